@@ -1,0 +1,5 @@
+import sys
+
+from e3dpsm.cli import main
+
+sys.exit(main())

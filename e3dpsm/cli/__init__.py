@@ -1,0 +1,64 @@
+"""`e3dpsm` command line: one sub-command per stage of the flow.
+
+Each sub-command lives in its own module `e3dpsm.cli.<name>` exposing
+`register(subparsers) -> argparse.ArgumentParser` whose parser sets `func(args) -> int`.
+Modules import heavy libraries (torch, onnxruntime) inside `func`, so `--help` stays fast
+and `e3dpsm run` never imports torch.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+from typing import Sequence
+
+from e3dpsm.errors import E3DPSMError
+
+# Order shown in --help: the order of the flow.
+COMMANDS: tuple[str, ...] = (
+    "pipeline", "synth", "prepare", "model_info", "train", "evaluate", "ablation", "export",
+    "parity", "quantize", "validate", "profile", "run",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="e3dpsm",
+        description="Train, export, quantise, verify and profile the E-3DPSM event-based "
+        "egocentric 3D pose model.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        module_name = f"e3dpsm.cli.{name}"
+        if importlib.util.find_spec(module_name) is None:
+            continue
+        importlib.import_module(module_name).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s", stream=sys.stderr
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except E3DPSMError as exc:
+        if args.verbose:
+            raise
+        print(f"e3dpsm {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"e3dpsm {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

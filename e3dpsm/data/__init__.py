@@ -1,0 +1,1 @@
+"""Event data: readers, the synthetic egocentric generator, and prepared LNES caches."""

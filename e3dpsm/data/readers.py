@@ -1,0 +1,144 @@
+"""Reading and writing raw event streams (HDF5 in the EE3D layout, or .npz).
+
+HDF5 files hold either one dataset `event` of shape (N, >=4) with columns
+x, y, t (microseconds), p[, frame_index, ...] — the EE3D layout — or separate datasets
+`x`, `y`, `t`, `p`. `.npz` files hold arrays `x`, `y`, `t`, `p`. Every stream passes
+through `validate_events`, so readers return canonical dtypes or raise.
+"""
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from e3dpsm.data.sequence import SENSOR_HW, EventStream
+from e3dpsm.errors import DataError, InputError
+from e3dpsm.events import validate_events
+from e3dpsm.utils.io import atomic_path
+
+EVENT_DATASET = "event"
+EVENT_COLUMNS = ("x", "y", "t", "p", "frame_index")
+HDF5_SUFFIXES = (".h5", ".hdf5")
+NO_FRAME = -1  # frame_index written when a stream carries no pose frames
+
+
+def read_events(path: str | os.PathLike, sensor_hw: tuple[int, int] | None = None) -> EventStream:
+    """Read and validate an event stream from `.h5`/`.hdf5` or `.npz`.
+
+    `sensor_hw` (height, width) defaults to the file's `sensor_height`/`sensor_width`
+    attributes, else an `event_meta.json` beside the file, else the EE3D sensor 480 x 640.
+    """
+    return read_events_with_frames(path, sensor_hw)[0]
+
+
+def read_events_with_frames(
+    path: str | os.PathLike, sensor_hw: tuple[int, int] | None = None
+) -> tuple[EventStream, np.ndarray | None]:
+    """Like `read_events`, also returning the EE3D frame_index column (None if absent)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"event file {path} does not exist")
+    suffix = path.suffix.lower()
+    if suffix in HDF5_SUFFIXES:
+        columns, file_hw = _read_h5(path)
+    elif suffix == ".npz":
+        columns, file_hw = _read_npz(path), None
+    else:
+        raise DataError(f"{path}: unsupported event file type {suffix!r}; expected .h5, .hdf5 or .npz")
+    hw = sensor_hw or file_hw or _meta_json_hw(path.parent / "event_meta.json") or SENSOR_HW
+    try:
+        x, y, t, p = validate_events(columns["x"], columns["y"], columns["t"], columns["p"], hw)
+    except InputError as exc:
+        raise DataError(f"{path}: {exc}") from exc
+    frames = columns.get("frame_index")
+    if frames is not None:
+        frames = np.asarray(frames, dtype=np.int64)
+    return EventStream(x=x, y=y, t_us=t, p=p, sensor_hw=(int(hw[0]), int(hw[1]))), frames
+
+
+def _read_h5(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            hw = None
+            if "sensor_height" in f.attrs and "sensor_width" in f.attrs:
+                hw = (int(f.attrs["sensor_height"]), int(f.attrs["sensor_width"]))
+            if EVENT_DATASET in f:
+                table = f[EVENT_DATASET][()]
+                if table.ndim != 2 or table.shape[1] < 4:
+                    raise DataError(
+                        f"{path}: dataset '{EVENT_DATASET}' has shape {table.shape}; "
+                        "expected (N, >=4) with columns x, y, t, p[, frame_index]"
+                    )
+                columns = {name: table[:, i] for i, name in enumerate(EVENT_COLUMNS[: table.shape[1]])}
+                return columns, hw
+            missing = [k for k in ("x", "y", "t", "p") if k not in f]
+            if missing:
+                raise DataError(
+                    f"{path}: no '{EVENT_DATASET}' dataset and missing datasets {missing}; "
+                    "expected 'event' (N, >=4) or separate 'x', 'y', 't', 'p'"
+                )
+            return {k: f[k][()] for k in ("x", "y", "t", "p")}, hw
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError, RuntimeError) as exc:  # h5py reports damage as these
+        raise DataError(f"{path}: cannot read HDF5 file (truncated or corrupted?): {exc}") from exc
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            missing = [k for k in ("x", "y", "t", "p") if k not in archive.files]
+            if missing:
+                raise DataError(f"{path}: missing arrays {missing}; expected x, y, t, p")
+            return {k: archive[k] for k in ("x", "y", "t", "p")}
+    except DataError:
+        raise
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile, KeyError) as exc:
+        raise DataError(f"{path}: cannot read .npz file (truncated or corrupted?): {exc}") from exc
+
+
+def _meta_json_hw(path: Path) -> tuple[int, int] | None:
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+        return int(meta["height"]), int(meta["width"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"{path}: expected JSON {{\"height\": H, \"width\": W}}: {exc}") from exc
+
+
+def write_events_h5(
+    path: str | os.PathLike, stream: EventStream, frame_index: np.ndarray | None = None
+) -> Path:
+    """Write `stream` as the EE3D `event` dataset, int64 (N, 5): x, y, t, p, frame_index.
+
+    Written to a temporary file and renamed, so a failure leaves no partial file.
+    `frame_index` defaults to -1 (no pose frame). Compressed with LZF + shuffle, which
+    keeps reading fast while shrinking the mostly-small integers several-fold.
+    """
+    import h5py
+
+    n = len(stream)
+    table = np.empty((n, len(EVENT_COLUMNS)), dtype=np.int64)
+    table[:, 0], table[:, 1], table[:, 2], table[:, 3] = stream.x, stream.y, stream.t_us, stream.p
+    if frame_index is None:
+        table[:, 4] = NO_FRAME
+    else:
+        frame_index = np.asarray(frame_index)
+        if frame_index.shape != (n,):
+            raise InputError(f"frame_index has shape {frame_index.shape}, expected ({n},)")
+        table[:, 4] = frame_index
+    with atomic_path(path, suffix=".h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset(
+                EVENT_DATASET, data=table, chunks=(min(max(n, 1), 65536), len(EVENT_COLUMNS)),
+                compression="lzf", shuffle=True,
+            )
+            f[EVENT_DATASET].attrs["columns"] = ",".join(EVENT_COLUMNS)
+            f.attrs["sensor_height"], f.attrs["sensor_width"] = stream.sensor_hw
+    return Path(path)

@@ -1,0 +1,189 @@
+"""Numpy ray caster for the head-mounted fisheye: textured room plus a capsule body.
+
+Rays through the pixel centres are fixed in the camera frame, so they are computed once.
+Pixels are stored tile by tile (`tile` x `tile` blocks of the render image): a capsule is
+only tested against the tiles whose cone of rays can reach its bounding sphere, which cuts
+the body pass to the few percent of the image each limb covers.
+
+Intensity is Lambertian under one ceiling light plus ambient, in (0, 1]; the renderer
+returns log intensity, the quantity an event pixel responds to.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from e3dpsm.camera import OcamCamera
+from e3dpsm.data.synth import texture
+from e3dpsm.data.synth.motion import Room
+from e3dpsm.errors import ConfigError
+
+LOG_EPS = 0.01  # keeps log intensity finite in the darkest texels (dark-current floor)
+AMBIENT = 0.3
+
+
+def intersect_capsule(rays: np.ndarray, a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
+    """Distance along unit rays [M, 3] from the origin to a capsule (segment a-b, radius r);
+    inf where the ray misses or the capsule is behind the camera.
+
+    The ray enters the capsule either through its cylinder wall, if that entry point lies
+    between the end planes, or through the end sphere on the side it falls; a ray missing
+    the infinite cylinder misses both spheres too, since they lie inside it.
+    """
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    d_a = rays @ a  # ray direction . a
+    if length < 1e-9:
+        return _sphere_hit(d_a, float(a @ a), r)
+    e = axis / length
+    d_e = rays @ e
+    a_e = float(a @ e)
+    # |(t d - a)_perp|^2 = r^2  ->  A t^2 - 2 B t + C = 0
+    A = 1.0 - d_e * d_e
+    B = d_a - a_e * d_e
+    C = float(a @ a) - a_e * a_e - r * r
+    disc = B * B - A * C
+    hit = disc >= 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (B - np.sqrt(np.where(hit, disc, 0.0))) / A
+    along = t * d_e - a_e
+    t_a = _sphere_hit(d_a, float(a @ a), r)
+    t_b = _sphere_hit(d_a + length * d_e, float(b @ b), r)
+    t = np.where(along < 0, t_a, np.where(along > length, t_b, t))
+    return np.where(hit & (t > 0), t, np.inf)
+
+
+def closest_on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fraction along a-b [M] and point [M, 3] of the segment closest to each of p [M, 3]."""
+    axis = b - a
+    length2 = float(axis @ axis)
+    s = np.clip((p - a) @ axis / length2, 0, 1) if length2 > 1e-18 else np.zeros(len(p))
+    return s, a + s[:, None] * axis
+
+
+def _sphere_hit(d_c: np.ndarray, c_c: float, r: float) -> np.ndarray:
+    disc = d_c * d_c - (c_c - r * r)
+    with np.errstate(invalid="ignore"):
+        t = d_c - np.sqrt(disc)
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+class Renderer:
+    def __init__(self, camera: OcamCamera, scale: float, room: Room, rng: np.random.Generator,
+                 tile: int = 16):
+        rays = camera.pixel_rays(scale).astype(np.float64)
+        h, w = rays.shape[:2]
+        if h % tile or w % tile:
+            tile = 8
+        if h % tile or w % tile:
+            raise ConfigError(f"render scale {scale} gives {w}x{h} pixels, not a multiple of 8")
+        self.render_hw, self.block = (h, w), round(1 / scale)
+        nty, ntx = h // tile, w // tile
+        # [tiles, pixels per tile, 3], tiles in row-major order of the tile grid
+        self.rays = rays.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4).reshape(nty * ntx, tile * tile, 3)
+        centre = self.rays.mean(axis=1)
+        self.tile_dir = centre / np.linalg.norm(centre, axis=-1, keepdims=True)
+        self.tile_angle = np.arccos(np.clip(np.einsum("tpc,tc->tp", self.rays, self.tile_dir), -1, 1)).max(1)
+        yy, xx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+        pix = np.stack([xx, yy], -1).reshape(nty, tile, ntx, tile, 2).transpose(0, 2, 1, 3, 4)
+        self.pixel_xy = pix.reshape(-1, 2)  # render-pixel (x, y) of each flat tile-major pixel
+        self.rays_flat = self.rays.reshape(-1, 3)
+        self.room = room
+        self.light = np.array([0.0, 0.0, room.height - 0.05])
+        self.floor_tex = texture.floor_texture(rng)
+        self.wall_tex = texture.wall_texture(rng)
+        self.ceiling_tex = texture.value_noise(rng, 64, (4, 8)) * 0.3 + 0.6
+        self.cloth_tex = texture.cloth_texture(rng)
+        self.floor_m, self.wall_m = 2.0, 4.0  # metres covered by one texture repeat
+
+    @property
+    def num_pixels(self) -> int:
+        return self.rays_flat.shape[0]
+
+    # ---- background ---------------------------------------------------------------------
+    def _room_intensity(self, cam_pos: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
+        d = self.rays_flat @ cam_rot.T  # world directions
+        lo = np.array([-self.room.half_x, -self.room.half_y, 0.0])
+        hi = np.array([self.room.half_x, self.room.half_y, self.room.height])
+        with np.errstate(divide="ignore"):
+            t_axes = np.where(d > 0, (hi - cam_pos) / d, (lo - cam_pos) / d)
+        face = np.argmin(t_axes, axis=1)  # 0: x walls, 1: y walls, 2: floor or ceiling
+        t = np.take_along_axis(t_axes, face[:, None], 1)[:, 0]
+        p = cam_pos + t[:, None] * d
+        albedo = np.empty(len(d), dtype=np.float32)
+        walls_tex_px = self.wall_tex.shape[0] / self.wall_m
+        for axis, (cu, cv) in ((0, (1, 2)), (1, (0, 2))):
+            sel = face == axis
+            albedo[sel] = texture.sample_bilinear(
+                self.wall_tex, (p[sel, cu] + 7.3 * axis) * walls_tex_px, p[sel, cv] * walls_tex_px)
+        floor = (face == 2) & (d[:, 2] < 0)
+        ceiling = (face == 2) & ~floor
+        s = self.floor_tex.shape[0] / self.floor_m
+        albedo[floor] = texture.sample_bilinear(self.floor_tex, p[floor, 0] * s, p[floor, 1] * s)
+        albedo[ceiling] = texture.sample_bilinear(self.ceiling_tex, p[ceiling, 0] * 8, p[ceiling, 1] * 8)
+        normal = np.zeros_like(d)
+        normal[np.arange(len(d)), face] = -np.sign(d[np.arange(len(d)), face])
+        return albedo * self._light(p, normal)
+
+    def _light(self, p: np.ndarray, normal: np.ndarray, light: np.ndarray | None = None) -> np.ndarray:
+        to_light = (self.light if light is None else light) - p
+        dist2 = np.einsum("nc,nc->n", to_light, to_light)
+        cos = np.einsum("nc,nc->n", normal, to_light) / np.sqrt(dist2)
+        return (AMBIENT + (1 - AMBIENT) * np.clip(cos, 0, None) * 6.0 / (6.0 + dist2)).astype(np.float32)
+
+    # ---- full frame ---------------------------------------------------------------------
+    def render(self, cam_pos: np.ndarray, cam_rot: np.ndarray, capsules: np.ndarray,
+               radii: np.ndarray, albedo: np.ndarray, forward_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Log intensity [N] and body mask [N] (tile-major pixel order) for one pose.
+
+        capsules: [K, 2, 3] end points in the camera frame; radii, albedo: [K];
+        forward_cam: the body's forward axis in the camera frame (cloth texture reference).
+        """
+        intensity = self._room_intensity(cam_pos, cam_rot)
+        depth = np.full(self.rays.shape[:2], np.inf)
+        shade = intensity.reshape(self.rays.shape[:2])
+        light_cam = (self.light - cam_pos) @ cam_rot
+        for k, ((a, b), r) in enumerate(zip(capsules, radii)):
+            tiles = self._tiles_near(a, b, r)
+            if tiles.size == 0:
+                continue
+            rays = self.rays[tiles].reshape(-1, 3)
+            t = intersect_capsule(rays, a, b, r)
+            closer = t < depth[tiles].ravel()
+            if not closer.any():
+                continue
+            t_hit = t[closer]
+            p = rays[closer] * t_hit[:, None]
+            value = albedo[k] * self._cloth(p, a, b, r, forward_cam, k) * self._light(
+                p, self._capsule_normal(p, a, b, r), light_cam)
+            sub_depth, sub_shade = depth[tiles].ravel(), shade[tiles].ravel()
+            sub_depth[closer], sub_shade[closer] = t_hit, value
+            depth[tiles], shade[tiles] = sub_depth.reshape(-1, depth.shape[1]), sub_shade.reshape(-1, depth.shape[1])
+        return np.log(LOG_EPS + shade.ravel()), np.isfinite(depth.ravel())
+
+    def _tiles_near(self, a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
+        centre = 0.5 * (a + b)
+        bound = 0.5 * float(np.linalg.norm(b - a)) + r
+        dist = float(np.linalg.norm(centre))
+        if dist <= bound:
+            return np.arange(len(self.tile_dir))
+        reach = np.minimum(np.arcsin(bound / dist) + self.tile_angle, np.pi)
+        return np.flatnonzero(self.tile_dir @ (centre / dist) >= np.cos(reach))
+
+    def _capsule_normal(self, p, a, b, r) -> np.ndarray:
+        return (p - closest_on_segment(p, a, b)[1]) / r
+
+    def _cloth(self, p, a, b, r, forward, k) -> np.ndarray:
+        """Cloth texture at surface points: u around the limb, v along it."""
+        s, on_axis = closest_on_segment(p, a, b)
+        axis = b - a
+        length = float(np.linalg.norm(axis))
+        e = axis / length if length > 1e-9 else np.array([0.0, 0.0, 1.0])
+        ref = forward - (forward @ e) * e
+        if np.linalg.norm(ref) < 0.3:  # limb along the forward axis: any perpendicular will do
+            ref = np.cross(e, forward)
+        ref /= np.linalg.norm(ref)
+        radial = p - on_axis
+        angle = np.arctan2(radial @ np.cross(e, ref), radial @ ref)
+        size = self.cloth_tex.shape[0]
+        return texture.sample_bilinear(self.cloth_tex, angle * (size / (2 * np.pi)),
+                                       s * length * size / 0.5 + 17 * k)

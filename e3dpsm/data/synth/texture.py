@@ -1,0 +1,62 @@
+"""Procedural grey-level textures (the event camera sees intensity only) and a wrapping
+bilinear sampler. Textures are band-limited on purpose: detail finer than a few render
+pixels would alias into flicker that a real lens and pixel area would blur away."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def sample_bilinear(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Sample `tex` [H, W] at texel coordinates (u along W, v along H), wrapping around."""
+    h, w = tex.shape
+    u0f, v0f = np.floor(u), np.floor(v)
+    fu, fv = (u - u0f).astype(np.float32), (v - v0f).astype(np.float32)
+    u0 = u0f.astype(np.int64) % w
+    v0 = v0f.astype(np.int64) % h
+    u1, v1 = (u0 + 1) % w, (v0 + 1) % h
+    flat = tex.ravel()
+    top = flat[v0 * w + u0] * (1 - fu) + flat[v0 * w + u1] * fu
+    bottom = flat[v1 * w + u0] * (1 - fu) + flat[v1 * w + u1] * fu
+    return top * (1 - fv) + bottom * fv
+
+
+def value_noise(rng: np.random.Generator, size: int, cells: tuple[int, ...]) -> np.ndarray:
+    """Sum of octaves of smoothly interpolated random lattices, scaled to [0, 1]; `cells`
+    lists the lattice sizes (the coarsest first), each octave half the previous weight."""
+    grid = np.arange(size, dtype=np.float64)
+    uu, vv = np.meshgrid(grid, grid)
+    out = np.zeros((size, size))
+    for k, n in enumerate(cells):
+        lattice = rng.uniform(size=(n, n))
+        out += 0.5**k * sample_bilinear(lattice, uu * n / size, vv * n / size)
+    out -= out.min()
+    return (out / max(out.max(), 1e-9)).astype(np.float32)
+
+
+def floor_texture(rng: np.random.Generator, size: int = 256, tiles: int = 4) -> np.ndarray:
+    """Tiles with dark grout and per-tile brightness, over mottled noise."""
+    tex = 0.55 + 0.35 * value_noise(rng, size, (8, 32))
+    idx = np.arange(size) * tiles // size
+    tex *= rng.uniform(0.6, 1.0, size=(tiles, tiles))[idx[:, None], idx[None, :]]
+    grout = (np.arange(size) % (size // tiles)) < max(2, size // 128)
+    tex[grout, :] *= 0.3
+    tex[:, grout] *= 0.3
+    return tex.astype(np.float32)
+
+
+def wall_texture(rng: np.random.Generator, size: int = 256, n_boxes: int = 12) -> np.ndarray:
+    """Plaster noise with rectangles standing for posters, doors and furniture."""
+    tex = 0.5 + 0.3 * value_noise(rng, size, (4, 16, 32))
+    for _ in range(n_boxes):
+        x0, y0 = rng.integers(0, size, 2)
+        w, h = rng.integers(size // 16, size // 4, 2)
+        ys, xs = np.arange(y0, y0 + h) % size, np.arange(x0, x0 + w) % size
+        tex[np.ix_(ys, xs)] = rng.uniform(0.1, 1.0)
+    return tex.astype(np.float32)
+
+
+def cloth_texture(rng: np.random.Generator, size: int = 64) -> np.ndarray:
+    """Folds and stripes for clothing, mapped around and along each limb."""
+    stripes = 0.5 + 0.5 * np.sin(np.arange(size) * 2 * np.pi * rng.integers(2, 6) / size)
+    tex = 0.6 + 0.25 * value_noise(rng, size, (4, 8)) + 0.15 * stripes[:, None]
+    return (tex / tex.max()).astype(np.float32)

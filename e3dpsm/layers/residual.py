@@ -1,0 +1,42 @@
+"""Convolutional encoder: pre-activation residual blocks (BatchNorm, SiLU) and stride-2 stages."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class PreActResBlock(nn.Module):
+    """BN-SiLU-conv3x3, BN-SiLU-conv3x3, plus a 1x1-conv shortcut.
+
+    The released blocks project the shortcut even when widths match; with that, the
+    `paper` variant's parameter count matches the release (FACTS section 3).
+    """
+
+    def __init__(self, in_ch: int, out_ch: int) -> None:
+        super().__init__()
+        self.norm1 = nn.BatchNorm2d(in_ch)
+        self.conv1 = nn.Conv2d(in_ch, out_ch, 3, padding=1)
+        self.norm2 = nn.BatchNorm2d(out_ch)
+        self.conv2 = nn.Conv2d(out_ch, out_ch, 3, padding=1)
+        self.shortcut = nn.Conv2d(in_ch, out_ch, 1)
+        self.act = nn.SiLU()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.conv1(self.act(self.norm1(x)))
+        h = self.conv2(self.act(self.norm2(h)))
+        return self.shortcut(x) + h
+
+
+class EncoderStage(nn.Module):
+    """One pyramid stage as released: two residual blocks, a 3x3 stride-2 conv, one more
+    residual block (FACTS section 3; the paper text omits the third block)."""
+
+    def __init__(self, in_ch: int, out_ch: int, extra_block: bool = True) -> None:
+        super().__init__()
+        self.block1 = PreActResBlock(in_ch, out_ch)
+        self.block2 = PreActResBlock(out_ch, out_ch)
+        self.down = nn.Conv2d(out_ch, out_ch, 3, stride=2, padding=1)
+        self.block3 = PreActResBlock(out_ch, out_ch) if extra_block else nn.Identity()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.block3(self.down(self.block2(self.block1(x))))

@@ -1,0 +1,96 @@
+"""Model configuration: a frozen dataclass saved inside every checkpoint and ONNX graph, so
+either rebuilds its model alone."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from e3dpsm.errors import ConfigError
+from e3dpsm.layers.fusion import FUSION_MODES
+
+
+@dataclass(frozen=True)
+class E3DPSMConfig:
+    variant: str = "paper"
+    in_channels: int = 2
+    height: int = 192
+    width: int = 256
+    num_joints: int = 16
+    stem_width: int = 16
+    widths: tuple[int, ...] = (32, 64, 128, 192)
+    extra_res_block: bool = True  # the released stages carry a third residual block
+    # Deformable attention per stage (heads x head width = stage width in the release).
+    deformable: bool = True
+    attn_heads: tuple[int, ...] = (4, 4, 4, 6)
+    attn_head_dim: tuple[int, ...] = (8, 16, 32, 32)
+    attn_points: int = 8
+    # S5 blocks: after these stages (0-based). Released code: stages 1 and 4 -> (0, 3);
+    # the paper's text: stages 2 and 4 -> (1, 3). State size P = width * ssm_state_ratio.
+    ssm_stages: tuple[int, ...] = (0, 3)
+    ssm_state_ratio: float = 0.5
+    ssm_bidirectional: bool = True
+    ssm_discretization: str = "bilinear"
+    ssm_bandlimit: float | None = 0.5
+    # Joint-query decoder over the last stage's tokens (its width is widths[-1]).
+    decoder_layers: int = 3
+    decoder_heads: int = 4
+    decoder_ffn: int = 768
+    pose_embed_dim: int = 64
+    fusion: str = "learned"
+    kalman_q_init: float = 1e-3
+    kalman_r_init: float = 1e-2
+    # Heads predict metres; outputs are millimetres.
+    pose_unit_mm: float = 1000.0
+    train_window_ms: float = 20.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        n = len(self.widths)
+        if len(self.attn_heads) != n or len(self.attn_head_dim) != n:
+            raise ConfigError(f"attn_heads and attn_head_dim need one entry per stage ({n})")
+        for i, (w, h, d) in enumerate(zip(self.widths, self.attn_heads, self.attn_head_dim)):
+            if self.deformable and w % 8:
+                raise ConfigError(f"stage {i} width {w} must be a multiple of 8 (GroupNorm(8))")
+            if self.deformable and h * d <= 0:
+                raise ConfigError(f"stage {i}: attention heads x head width must be positive")
+        if any(not 0 <= s < n for s in self.ssm_stages):
+            raise ConfigError(f"ssm_stages {self.ssm_stages} must index stages 0..{n - 1}")
+        if self.fusion not in FUSION_MODES:
+            raise ConfigError(f"unknown fusion {self.fusion!r}; choose from {list(FUSION_MODES)}")
+        if self.ssm_discretization not in ("bilinear", "zoh"):
+            raise ConfigError("ssm_discretization must be 'bilinear' or 'zoh'")
+        if self.widths[-1] % self.decoder_heads:
+            raise ConfigError(f"decoder width {self.widths[-1]} is not divisible by {self.decoder_heads} heads")
+        stride = 2 ** (n + 1)
+        if self.height % stride or self.width % stride:
+            raise ConfigError(f"input {self.height}x{self.width} must be divisible by {stride}")
+        if self.train_window_ms <= 0:
+            raise ConfigError("train_window_ms must be positive")
+
+    def stage_hw(self, stage: int) -> tuple[int, int]:
+        """Output map size of a stage: the stem halves the input, each stage halves again."""
+        f = 2 ** (stage + 2)
+        return self.height // f, self.width // f
+
+    def ssm_state_dim(self, stage: int) -> int:
+        return max(1, int(round(self.widths[stage] * self.ssm_state_ratio)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "E3DPSMConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ConfigError(f"unknown config fields {unknown}; known: {sorted(names)}")
+        kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**kwargs)
+
+    def replace(self, **overrides: Any) -> "E3DPSMConfig":
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ConfigError(f"unknown config fields {unknown}; known: {sorted(names)}")
+        return dataclasses.replace(self, **overrides)

@@ -1,0 +1,164 @@
+"""Model contract: variants, gradients, streaming exactness, long rollouts, bad input."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import e3dpsm
+from e3dpsm.errors import ConfigError, InputError
+from tests.conftest import sparse_lnes
+
+PAPER_PARAMS = 6.64e6
+
+
+@pytest.mark.parametrize("name", ["tiny", "small", "paper"])
+def test_variant_forward_backward_every_parameter_gets_gradient(name: str) -> None:
+    model = e3dpsm.create_model(name).train()
+    lnes = sparse_lnes((2, 3, 2, 192, 256), seed=1)
+    out = model.forward_sequence(lnes, causal=False)
+    for key in ("pose", "pose_direct", "pose_delta"):
+        assert out[key].shape == (2, 3, 16, 3)
+        assert torch.isfinite(out[key]).all()
+    loss = sum(out[k].square().mean() for k in out)
+    loss.backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
+    assert not missing, f"parameters without a finite gradient: {missing}"
+    zero = [n for n, p in model.named_parameters() if p.grad.abs().sum() == 0]
+    assert not zero, f"parameters whose gradient is identically zero: {zero}"
+
+
+def test_paper_variant_matches_released_parameter_count() -> None:
+    params = sum(p.numel() for p in e3dpsm.create_model("paper").parameters())
+    assert abs(params - PAPER_PARAMS) / PAPER_PARAMS < 0.05, params
+
+
+@pytest.mark.parametrize("window_ms", [20.0, 50.0])
+def test_step_by_step_equals_causal_sequence(tiny_model, window_ms: float) -> None:
+    lnes = sparse_lnes((1, 64, 2, 192, 256), seed=2)
+    with torch.no_grad():
+        whole = tiny_model.forward_sequence(lnes, causal=True, window_ms=window_ms)
+        state = tiny_model.init_state(1)
+        steps = []
+        for t in range(lnes.shape[1]):
+            out, state = tiny_model.step(lnes[:, t], state, window_ms)
+            steps.append(out)
+    for key in whole:
+        stepped = torch.stack([o[key] for o in steps], dim=1)
+        assert (stepped - whole[key]).abs().max().item() <= 1e-3, key
+
+
+def test_chunked_runs_equal_whole_run(tiny_model) -> None:
+    lnes = sparse_lnes((1, 40, 2, 192, 256), seed=3)
+    with torch.no_grad():
+        whole, whole_state = tiny_model.forward_sequence(lnes, causal=True, return_state=True)
+        state, chunks = None, []
+        for start, stop in ((0, 7), (7, 25), (25, 40)):
+            out, state = tiny_model.forward_sequence(lnes[:, start:stop], causal=True, state=state, return_state=True)
+            chunks.append(out["pose"])
+    assert (torch.cat(chunks, 1) - whole["pose"]).abs().max().item() <= 1e-3
+    for name, value in whole_state.items():
+        assert torch.allclose(state[name], value, rtol=1e-5, atol=1e-5), name
+
+
+def test_carried_state_has_an_effect(tiny_model) -> None:
+    """Guard against the released code's defect: the same frames after a different history
+    must give different outputs, in the S5 part alone as well as through the fusion."""
+    history_a, history_b = sparse_lnes((1, 10, 2, 192, 256), seed=4), sparse_lnes((1, 10, 2, 192, 256), seed=5)
+    probe = sparse_lnes((1, 5, 2, 192, 256), seed=6)
+    with torch.no_grad():
+        outs = []
+        for history in (history_a, history_b):
+            _, state = tiny_model.forward_sequence(history, causal=True, return_state=True)
+            # Reset the fusion so that only the S5 state differs between the two runs.
+            fresh = tiny_model.init_state(1)
+            state = {k: (v if k.startswith("s5_") else fresh[k]) for k, v in state.items()}
+            outs.append(tiny_model.forward_sequence(probe, causal=True, state=state)["pose_direct"])
+    assert (outs[0] - outs[1]).abs().max().item() > 1e-3
+
+
+def test_window_length_changes_the_dynamics(tiny_model) -> None:
+    lnes = sparse_lnes((1, 12, 2, 192, 256), seed=7)
+    with torch.no_grad():
+        a = tiny_model.forward_sequence(lnes, causal=True, window_ms=20.0)["pose_direct"]
+        b = tiny_model.forward_sequence(lnes, causal=True, window_ms=50.0)["pose_direct"]
+    assert (a - b).abs().max().item() > 1e-3
+
+
+def test_long_rollout_stays_finite_and_bounded() -> None:
+    """10,000 steps with states carried on random sparse LNES (a bank of frames cycled with
+    random order, so the input never settles into a fixed point). A 64 x 96 input keeps the
+    run short; the recurrent parts (S5 modes, fusion) are the same as at full size."""
+    tiny_model = e3dpsm.create_model("tiny", height=64, width=96).eval()
+    bank = sparse_lnes((64, 2, 64, 96), density=0.02, seed=8)
+    order = torch.randint(0, 64, (10_000,), generator=torch.Generator().manual_seed(0))
+    state = tiny_model.init_state(1)
+    peak = {name: 0.0 for name in state}
+    with torch.no_grad():
+        for i in order.tolist():
+            out, state = tiny_model.step(bank[i : i + 1], state, 20.0)
+            for name, value in state.items():
+                peak[name] = max(peak[name], value.abs().max().item())
+    assert torch.isfinite(out["pose"]).all()
+    assert out["pose"].abs().max().item() < 1e5
+    for name, value in peak.items():
+        assert value < 1e5, (name, value)
+
+
+def test_unknown_variant_lists_the_known_ones() -> None:
+    with pytest.raises(ConfigError, match="paper.*small.*tiny|available variants"):
+        e3dpsm.create_model("huge")
+
+
+def test_unknown_override_is_refused() -> None:
+    with pytest.raises(ConfigError, match="unknown config fields"):
+        e3dpsm.create_model("tiny", widthz=(8, 8, 8, 8))
+
+
+@pytest.mark.parametrize(
+    "lnes, message",
+    [
+        (torch.zeros(1, 2, 96, 128), r"shape \[1, 2, 96, 128\], expected \[B, 2, 192, 256\]"),
+        (torch.zeros(1, 2, 192, 256, dtype=torch.float64), "dtype torch.float64, expected torch.float32"),
+        (torch.zeros(2, 192, 256), "expected \\[B, 2, 192, 256\\]"),
+    ],
+)
+def test_bad_lnes_is_refused(tiny_model, lnes, message) -> None:
+    with pytest.raises(InputError, match=message):
+        tiny_model.step(lnes, tiny_model.init_state(lnes.shape[0] if lnes.dim() == 4 else 1), 20.0)
+
+
+def test_bad_state_is_refused(tiny_model) -> None:
+    lnes = torch.zeros(1, 2, 192, 256)
+    state = tiny_model.init_state(1)
+    missing = {k: v for k, v in state.items() if k != "fusion_pose"}
+    with pytest.raises(InputError, match="missing \\['fusion_pose'\\]"):
+        tiny_model.step(lnes, missing, 20.0)
+    wrong = dict(state, fusion_pose=torch.zeros(1, 15, 3))
+    with pytest.raises(InputError, match="'fusion_pose' has shape \\[1, 15, 3\\], expected \\[1, 16, 3\\]"):
+        tiny_model.step(lnes, wrong, 20.0)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"ssm_stages": ()},                 # no SSM
+        {"ssm_stages": (3,)},               # one SSM (stage 4)
+        {"ssm_stages": (1, 3)},             # the paper text's placement
+        {"deformable": False},              # no deformable attention
+        {"fusion": "naive"}, {"fusion": "direct"}, {"fusion": "static"},
+        {"ssm_discretization": "zoh"},
+    ],
+)
+def test_ablation_switches_keep_streaming_exact(overrides) -> None:
+    model = e3dpsm.create_model("tiny", **overrides).eval()
+    lnes = sparse_lnes((1, 6, 2, 192, 256), seed=9)
+    with torch.no_grad():
+        whole = model.forward_sequence(lnes, causal=True)["pose"]
+        state, steps = model.init_state(1), []
+        for t in range(6):
+            out, state = model.step(lnes[:, t], state, 20.0)
+            steps.append(out["pose"])
+    assert (torch.stack(steps, 1) - whole).abs().max().item() <= 1e-3
+    names = {s.name for s in model.state_spec()}
+    assert ("fusion_cov" in names) == (overrides.get("fusion", "learned") in ("learned", "static"))
+    assert sum(n.startswith("s5_") for n in names) == 2 * len(overrides.get("ssm_stages", (0, 3)))
