@@ -143,7 +143,8 @@ def _integral(a: np.ndarray, what: str) -> np.ndarray:
     fractional = np.flatnonzero(a != np.floor(a))
     if fractional.size:
         i = int(fractional[0])
-        raise InputError(f"event {i} has a fractional {what} ({a[i]}); expected integers")
+        unit = " (microseconds)" if what == "timestamp" else ""
+        raise InputError(f"event {i} has a fractional {what} ({a[i]}); expected integers{unit}")
     return a.astype(np.int64)
 
 

@@ -23,3 +23,25 @@ def tiny_model() -> torch.nn.Module:
     # A realistic offset (mm), so tolerances are checked at the magnitude of real poses.
     model.set_pose_prior(torch.linspace(-800.0, 1200.0, 48).view(16, 3))
     return model
+
+
+@pytest.fixture(scope="session")
+def synthetic_data(tmp_path_factory: pytest.TempPathFactory):
+    """Three 2-second synthetic sequences (train / val / test), made once per session."""
+    from e3dpsm.cli import main
+
+    root = tmp_path_factory.mktemp("synth") / "data"
+    code = main(["synth", "--out", str(root), "--sequences", "3", "--seconds", "2", "--seed", "11"])
+    assert code == 0, "e3dpsm synth failed"
+    return root
+
+
+@pytest.fixture(scope="session")
+def prepared_data(synthetic_data, tmp_path_factory: pytest.TempPathFactory):
+    """The synthetic sequences as a prepared LNES cache (20 ms windows, 192 x 256)."""
+    from e3dpsm.cli import main
+
+    out = tmp_path_factory.mktemp("prepared") / "prep20"
+    code = main(["prepare", "--data", str(synthetic_data), "--out", str(out), "--window-ms", "20", "--no-progress"])
+    assert code == 0, "e3dpsm prepare failed"
+    return out

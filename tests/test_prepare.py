@@ -176,3 +176,25 @@ def test_opening_a_folder_that_is_not_prepared(tmp_path, prepared_20ms):
     (broken / "meta.json").write_text(json.dumps({**meta, "format": "something/2"}))
     with pytest.raises(DataError, match="format 'something/2'"):
         PreparedData.open(broken)
+
+
+def test_prepare_reads_the_ee3d_layout_and_interpolates_its_pose_clock(tmp_path):
+    try:  # tests/ is on sys.path as a rootdir, or is a package
+        from test_readers import write_ee3d_folder
+    except ImportError:
+        from tests.test_readers import write_ee3d_folder
+
+    root = tmp_path / "ee3d"
+    root.mkdir()
+    _, j3d, _ = write_ee3d_folder(root / "seq_a", np.random.default_rng(3))
+    (root / "test.txt").write_text("seq_a\n")
+    assert detect_layout(root) == "ee3d"
+    report = prepare_dataset(root, tmp_path / "out", 20, progress=False)
+    assert report["source"] == "ee3d" and report["sequences"][0]["ground_truth"] == "resampled"
+    seq = PreparedData.open(tmp_path / "out").split("test")[0]
+    # poses (kept frames 0, 1, 3) at 24501, 39501, 59501 us; 20 ms ends from the first pose
+    np.testing.assert_array_equal(seq.t_us, [24_501, 44_501])
+    rotated = j3d * np.array([1, -1, -1]) * 1000
+    np.testing.assert_allclose(seq.j3d_mm[0], rotated[0], rtol=1e-5)
+    np.testing.assert_allclose(seq.j3d_mm[1], 0.75 * rotated[1] + 0.25 * rotated[3], rtol=1e-5, atol=1e-3)
+    assert (seq.action == -1).all()

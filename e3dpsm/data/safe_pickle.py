@@ -66,7 +66,8 @@ def safe_loads(data: bytes, *, source: str = "<bytes>") -> Any:
         return SafeUnpickler(io.BytesIO(data)).load()
     except RefusedGlobal as exc:
         raise DataError(f"{source}: {exc}") from exc
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError, ImportError) as exc:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            ImportError) as exc:
         raise DataError(f"{source}: corrupted pickle ({type(exc).__name__}: {exc})") from exc
 
 

@@ -33,7 +33,10 @@ PELVIS, CHEST_TOP = NUM_JOINTS, NUM_JOINTS + 1
 # albedo group). Head and face are not rendered: they move rigidly with the camera, so
 # they would add no events, only a fixed occluder at the border of the view.
 CAPSULES: tuple[tuple[int, int, float, str], ...] = (
-    (CHEST_TOP, PELVIS, 0.125, "top"),
+    # Torso: a spine capsule and one per flank, so it is wider than deep.
+    (CHEST_TOP, PELVIS, 0.10, "top"),
+    (J["R_shoulder"], J["R_hip"], 0.085, "top"),
+    (J["L_shoulder"], J["L_hip"], 0.085, "top"),
     (J["R_shoulder"], J["L_shoulder"], 0.055, "top"),
     (J["R_hip"], J["L_hip"], 0.095, "bottom"),
     (J["R_shoulder"], J["R_elbow"], 0.047, "top"),
@@ -84,7 +87,7 @@ def sample_body(rng: np.random.Generator) -> BodyShape:
     return BodyShape(
         *[float(v) for v in lengths],
         girth=float(rng.uniform(0.85, 1.2)),
-        albedo=tuple(float(a) for a in rng.uniform([0.15, 0.1, 0.45, 0.05], [0.9, 0.7, 0.8, 0.5])),
+        albedo=tuple(float(a) for a in rng.uniform([0.25, 0.2, 0.45, 0.1], [0.95, 0.8, 0.8, 0.6])),
     )
 
 

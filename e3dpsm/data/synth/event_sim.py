@@ -21,7 +21,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class EventParams:
-    threshold: float = 0.25
+    threshold: float = 0.2
     threshold_sigma: float = 0.03
     refractory_us: float = 300.0
     noise_hz_per_pixel: float = 0.05

@@ -123,14 +123,14 @@ def make_trajectory(t: np.ndarray, seq_index: int, seconds: float, segment_s: fl
     room = Room(rng.uniform(3.0, 5.0), rng.uniform(3.0, 5.0), rng.uniform(2.6, 3.2))
     segments = schedule(seconds, seq_index, segment_s, order, rng)
     motion, label = blend_segments(t, segments, rng, shape)
-    for name, amp in (("head_yaw", 0.35), ("head_pitch", 0.25), ("head_roll", 0.12)):
+    for name, amp in (("head_yaw", 0.2), ("head_pitch", 0.12), ("head_roll", 0.06)):
         motion.params[:, P[name]] += _smooth_noise(t, rng, amp)
     root_xy, yaw = integrate_root(t, motion.speed, motion.yaw_rate, room, rng)
     pts, r_head = forward_kinematics(motion.params, root_xy, yaw, shape)
     pts[..., 2] += ground_contact(pts, shape, motion.lift)[:, None]
 
     mount_rot, mount_pos = camera_mount(np.radians(rng.uniform(45, 60)),
-                                        np.array([rng.uniform(0.08, 0.12), 0.0, rng.uniform(0.03, 0.07)]))
+                                        np.array([rng.uniform(0.14, 0.2), 0.0, rng.uniform(0.02, 0.06)]))
     cam_pos = pts[:, 0] + np.einsum("tij,j->ti", r_head, mount_pos)
     cam_rot = r_head @ mount_rot
     forward = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=-1)

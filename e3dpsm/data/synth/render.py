@@ -82,53 +82,60 @@ class Renderer:
         self.rays = rays.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4).reshape(nty * ntx, tile * tile, 3)
         centre = self.rays.mean(axis=1)
         self.tile_dir = centre / np.linalg.norm(centre, axis=-1, keepdims=True)
-        self.tile_angle = np.arccos(np.clip(np.einsum("tpc,tc->tp", self.rays, self.tile_dir), -1, 1)).max(1)
+        cos_max = np.einsum("tpc,tc->tp", self.rays, self.tile_dir).min(1)
+        self.tile_sin = np.sqrt(np.clip(1 - cos_max**2, 0, 1)) + 1e-3  # sine of the tile's half-angle
         yy, xx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
         pix = np.stack([xx, yy], -1).reshape(nty, tile, ntx, tile, 2).transpose(0, 2, 1, 3, 4)
         self.pixel_xy = pix.reshape(-1, 2)  # render-pixel (x, y) of each flat tile-major pixel
-        self.rays_flat = self.rays.reshape(-1, 3)
+        self.rays_t = np.ascontiguousarray(self.rays.reshape(-1, 3).T, dtype=np.float32)
         self.room = room
         self.light = np.array([0.0, 0.0, room.height - 0.05])
-        self.floor_tex = texture.floor_texture(rng)
-        self.wall_tex = texture.wall_texture(rng)
-        self.ceiling_tex = texture.value_noise(rng, 64, (4, 8)) * 0.3 + 0.6
+        self.textures = np.stack([texture.floor_texture(rng), texture.wall_texture(rng)])
         self.cloth_tex = texture.cloth_texture(rng)
         self.floor_m, self.wall_m = 2.0, 4.0  # metres covered by one texture repeat
 
     @property
     def num_pixels(self) -> int:
-        return self.rays_flat.shape[0]
+        return self.rays_t.shape[1]
 
     # ---- background ---------------------------------------------------------------------
     def _room_intensity(self, cam_pos: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
-        d = self.rays_flat @ cam_rot.T  # world directions
-        lo = np.array([-self.room.half_x, -self.room.half_y, 0.0])
-        hi = np.array([self.room.half_x, self.room.half_y, self.room.height])
-        with np.errstate(divide="ignore"):
-            t_axes = np.where(d > 0, (hi - cam_pos) / d, (lo - cam_pos) / d)
-        face = np.argmin(t_axes, axis=1)  # 0: x walls, 1: y walls, 2: floor or ceiling
-        t = np.take_along_axis(t_axes, face[:, None], 1)[:, 0]
-        p = cam_pos + t[:, None] * d
-        albedo = np.empty(len(d), dtype=np.float32)
-        walls_tex_px = self.wall_tex.shape[0] / self.wall_m
-        for axis, (cu, cv) in ((0, (1, 2)), (1, (0, 2))):
-            sel = face == axis
-            albedo[sel] = texture.sample_bilinear(
-                self.wall_tex, (p[sel, cu] + 7.3 * axis) * walls_tex_px, p[sel, cv] * walls_tex_px)
-        floor = (face == 2) & (d[:, 2] < 0)
-        ceiling = (face == 2) & ~floor
-        s = self.floor_tex.shape[0] / self.floor_m
-        albedo[floor] = texture.sample_bilinear(self.floor_tex, p[floor, 0] * s, p[floor, 1] * s)
-        albedo[ceiling] = texture.sample_bilinear(self.ceiling_tex, p[ceiling, 0] * 8, p[ceiling, 1] * 8)
-        normal = np.zeros_like(d)
-        normal[np.arange(len(d)), face] = -np.sign(d[np.arange(len(d)), face])
-        return albedo * self._light(p, normal)
+        # Component arrays [N] rather than [N, 3]: numpy reduces short last axes slowly.
+        c = cam_pos.astype(np.float32)
+        d = cam_rot.astype(np.float32) @ self.rays_t  # [3, N] world directions
+        half = (self.room.half_x, self.room.half_y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_x = (np.copysign(np.float32(half[0]), d[0]) - c[0]) / d[0]
+            t_y = (np.copysign(np.float32(half[1]), d[1]) - c[1]) / d[1]
+            t_z = ((d[2] > 0) * np.float32(self.room.height) - c[2]) / d[2]
+        t_wall = np.minimum(t_x, t_y)
+        t = np.minimum(t_wall, t_z)
+        on_x, flat = t_x <= t_y, t_z <= t_wall  # hit an x wall (if not flat); floor/ceiling
+        p = c[:, None] + t * d
+        # Texture layer 0 (floor tiles) for floor and ceiling, layer 1 for walls: the
+        # horizontal coordinate runs along the wall, offset so facing walls differ.
+        k_wall = self.textures.shape[1] / self.wall_m
+        k_floor = self.textures.shape[1] / self.floor_m
+        along = np.where(on_x, p[1] + 7.3 * np.sign(p[0]), p[0] + 3.1 * np.sign(p[1]))
+        u = np.where(flat, p[0] * k_floor, along * k_wall)
+        v = np.where(flat, p[1] * k_floor, p[2] * k_wall)
+        albedo = texture.sample_bilinear(self.textures, u, v, layer=(~flat).astype(np.int32))
+        albedo *= np.where(flat & (d[2] > 0), np.float32(0.6), np.float32(1.0))  # darker ceiling
+        # Lambert with the light inside the room: cos(incidence) = distance from the light
+        # to the hit plane / distance to the hit point.
+        to_light = p - self.light.astype(np.float32)[:, None]
+        dist2 = (to_light * to_light).sum(0)
+        plane_dist = np.abs(np.where(flat, to_light[2], np.where(on_x, to_light[0], to_light[1])))
+        return albedo * self._lambert(plane_dist / np.sqrt(dist2), dist2)
 
-    def _light(self, p: np.ndarray, normal: np.ndarray, light: np.ndarray | None = None) -> np.ndarray:
-        to_light = (self.light if light is None else light) - p
-        dist2 = np.einsum("nc,nc->n", to_light, to_light)
-        cos = np.einsum("nc,nc->n", normal, to_light) / np.sqrt(dist2)
+    @staticmethod
+    def _lambert(cos: np.ndarray, dist2: np.ndarray) -> np.ndarray:
         return (AMBIENT + (1 - AMBIENT) * np.clip(cos, 0, None) * 6.0 / (6.0 + dist2)).astype(np.float32)
+
+    def _light(self, p: np.ndarray, normal: np.ndarray, light: np.ndarray) -> np.ndarray:
+        to_light = light - p
+        dist2 = np.einsum("nc,nc->n", to_light, to_light)
+        return self._lambert(np.einsum("nc,nc->n", normal, to_light) / np.sqrt(dist2), dist2)
 
     # ---- full frame ---------------------------------------------------------------------
     def render(self, cam_pos: np.ndarray, cam_rot: np.ndarray, capsules: np.ndarray,
@@ -153,28 +160,34 @@ class Renderer:
                 continue
             t_hit = t[closer]
             p = rays[closer] * t_hit[:, None]
-            value = albedo[k] * self._cloth(p, a, b, r, forward_cam, k) * self._light(
-                p, self._capsule_normal(p, a, b, r), light_cam)
+            s, on_axis = closest_on_segment(p, a, b)
+            radial = p - on_axis
+            value = albedo[k] * self._cloth(s, radial, a, b, forward_cam, k) * self._light(
+                p, radial / r, light_cam)
             sub_depth, sub_shade = depth[tiles].ravel(), shade[tiles].ravel()
             sub_depth[closer], sub_shade[closer] = t_hit, value
             depth[tiles], shade[tiles] = sub_depth.reshape(-1, depth.shape[1]), sub_shade.reshape(-1, depth.shape[1])
         return np.log(LOG_EPS + shade.ravel()), np.isfinite(depth.ravel())
 
     def _tiles_near(self, a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
-        centre = 0.5 * (a + b)
-        bound = 0.5 * float(np.linalg.norm(b - a)) + r
-        dist = float(np.linalg.norm(centre))
-        if dist <= bound:
-            return np.arange(len(self.tile_dir))
-        reach = np.minimum(np.arcsin(bound / dist) + self.tile_angle, np.pi)
-        return np.flatnonzero(self.tile_dir @ (centre / dist) >= np.cos(reach))
+        """Tiles whose cone of rays can meet the capsule. A ray within angle alpha of the
+        tile axis that touches the capsule passes within r of some segment point q, so q
+        lies within r + (|q| + r) sin(alpha) of the axis line; test the closest segment
+        point to each axis line against that bound (|q| bounded by the farther end)."""
+        w = b - a
+        a_u, w_u = self.tile_dir @ a, self.tile_dir @ w
+        w_w, a_w, a_a = float(w @ w), float(a @ w), float(a @ a)
+        denom = w_w - w_u * w_u
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.clip(np.where(denom > 1e-12, (a_u * w_u - a_w) / denom, 0.0), 0.0, 1.0)
+        dist2 = a_a + 2 * s * a_w + s * s * w_w - (a_u + s * w_u) ** 2
+        reach = r + (np.sqrt(max(a_a, float(b @ b))) + r) * self.tile_sin
+        return np.flatnonzero(dist2 <= reach * reach)
 
-    def _capsule_normal(self, p, a, b, r) -> np.ndarray:
-        return (p - closest_on_segment(p, a, b)[1]) / r
-
-    def _cloth(self, p, a, b, r, forward, k) -> np.ndarray:
-        """Cloth texture at surface points: u around the limb, v along it."""
-        s, on_axis = closest_on_segment(p, a, b)
+    def _cloth(self, s: np.ndarray, radial: np.ndarray, a: np.ndarray, b: np.ndarray,
+               forward: np.ndarray, k: int) -> np.ndarray:
+        """Cloth texture at surface points given their fraction `s` along the limb and
+        offset `radial` from its axis: u runs around the limb, v along it."""
         axis = b - a
         length = float(np.linalg.norm(axis))
         e = axis / length if length > 1e-9 else np.array([0.0, 0.0, 1.0])
@@ -182,7 +195,6 @@ class Renderer:
         if np.linalg.norm(ref) < 0.3:  # limb along the forward axis: any perpendicular will do
             ref = np.cross(e, forward)
         ref /= np.linalg.norm(ref)
-        radial = p - on_axis
         angle = np.arctan2(radial @ np.cross(e, ref), radial @ ref)
         size = self.cloth_tex.shape[0]
         return texture.sample_bilinear(self.cloth_tex, angle * (size / (2 * np.pi)),

@@ -6,17 +6,22 @@ from __future__ import annotations
 import numpy as np
 
 
-def sample_bilinear(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Sample `tex` [H, W] at texel coordinates (u along W, v along H), wrapping around."""
-    h, w = tex.shape
+def sample_bilinear(tex: np.ndarray, u: np.ndarray, v: np.ndarray,
+                    layer: np.ndarray | None = None) -> np.ndarray:
+    """Sample `tex` [H, W] (or a stack [L, H, W] with a per-sample `layer`) at texel
+    coordinates (u along W, v along H), wrapping around each texture's edges."""
+    h, w = tex.shape[-2:]
     u0f, v0f = np.floor(u), np.floor(v)
     fu, fv = (u - u0f).astype(np.float32), (v - v0f).astype(np.float32)
     u0 = u0f.astype(np.int64) % w
-    v0 = v0f.astype(np.int64) % h
-    u1, v1 = (u0 + 1) % w, (v0 + 1) % h
+    row0 = (v0f.astype(np.int64) % h) * w
+    u1, row1 = (u0 + 1) % w, (row0 + w) % (h * w)
+    if layer is not None:
+        base = layer * (h * w)
+        row0, row1 = row0 + base, row1 + base
     flat = tex.ravel()
-    top = flat[v0 * w + u0] * (1 - fu) + flat[v0 * w + u1] * fu
-    bottom = flat[v1 * w + u0] * (1 - fu) + flat[v1 * w + u1] * fu
+    top = flat[row0 + u0] * (1 - fu) + flat[row0 + u1] * fu
+    bottom = flat[row1 + u0] * (1 - fu) + flat[row1 + u1] * fu
     return top * (1 - fv) + bottom * fv
 
 
@@ -35,28 +40,28 @@ def value_noise(rng: np.random.Generator, size: int, cells: tuple[int, ...]) -> 
 
 def floor_texture(rng: np.random.Generator, size: int = 256, tiles: int = 4) -> np.ndarray:
     """Tiles with dark grout and per-tile brightness, over mottled noise."""
-    tex = 0.55 + 0.35 * value_noise(rng, size, (8, 32))
+    tex = 0.65 + 0.15 * value_noise(rng, size, (8, 32))
     idx = np.arange(size) * tiles // size
-    tex *= rng.uniform(0.6, 1.0, size=(tiles, tiles))[idx[:, None], idx[None, :]]
+    tex *= rng.uniform(0.85, 1.0, size=(tiles, tiles))[idx[:, None], idx[None, :]]
     grout = (np.arange(size) % (size // tiles)) < max(2, size // 128)
-    tex[grout, :] *= 0.3
-    tex[:, grout] *= 0.3
+    tex[grout, :] *= 0.75
+    tex[:, grout] *= 0.75
     return tex.astype(np.float32)
 
 
 def wall_texture(rng: np.random.Generator, size: int = 256, n_boxes: int = 12) -> np.ndarray:
     """Plaster noise with rectangles standing for posters, doors and furniture."""
-    tex = 0.5 + 0.3 * value_noise(rng, size, (4, 16, 32))
+    tex = 0.55 + 0.2 * value_noise(rng, size, (4, 16))
     for _ in range(n_boxes):
         x0, y0 = rng.integers(0, size, 2)
         w, h = rng.integers(size // 16, size // 4, 2)
         ys, xs = np.arange(y0, y0 + h) % size, np.arange(x0, x0 + w) % size
-        tex[np.ix_(ys, xs)] = rng.uniform(0.1, 1.0)
+        tex[np.ix_(ys, xs)] = rng.uniform(0.4, 0.8)
     return tex.astype(np.float32)
 
 
 def cloth_texture(rng: np.random.Generator, size: int = 64) -> np.ndarray:
     """Folds and stripes for clothing, mapped around and along each limb."""
     stripes = 0.5 + 0.5 * np.sin(np.arange(size) * 2 * np.pi * rng.integers(2, 6) / size)
-    tex = 0.6 + 0.25 * value_noise(rng, size, (4, 8)) + 0.15 * stripes[:, None]
+    tex = 0.35 + 0.25 * value_noise(rng, size, (4, 8)) + 0.4 * stripes[:, None]
     return (tex / tex.max()).astype(np.float32)

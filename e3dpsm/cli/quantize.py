@@ -1,0 +1,49 @@
+"""`e3dpsm quantize`: INT8 static (state-aware calibration), INT8 dynamic or FP16."""
+from __future__ import annotations
+
+import argparse
+import json
+
+from e3dpsm.cli._common import positive_float, positive_int
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "quantize", help="quantise an exported step graph (int8, int8-dynamic, fp16)",
+        description="Quantise the step graph. INT8 static calibrates on frames of real sequences "
+        "paired with the states a continuous FP32 rollout carried into them; the S5 recurrences "
+        "and the Kalman fusion stay in float; --exclude auto keeps more node groups in float "
+        "until the held-out error is within --budget-pct. Writes DIR/step_<mode>.onnx and DIR/report.json.")
+    p.add_argument("--model", required=True, help="fp32 step graph from `e3dpsm export`")
+    p.add_argument("--data", required=True, help="prepared folder (`e3dpsm prepare`) at the graph's window and size")
+    p.add_argument("--out", required=True, help="output folder (must not exist unless --force)")
+    p.add_argument("--mode", choices=("int8", "int8-dynamic", "fp16"), default="int8")
+    p.add_argument("--calibration", choices=("minmax", "entropy", "percentile"), default="minmax")
+    p.add_argument("--frames", type=positive_int, default=200, help="calibration frames (default 200, minimum 16)")
+    p.add_argument("--exclude", default="auto",
+                   help="float-kept nodes: auto (search), none, recurrent, or comma-separated group/node "
+                   "names added to the recurrent groups (default auto)")
+    p.add_argument("--budget-pct", type=positive_float, default=1.0,
+                   help="--exclude auto: allowed held-out error relative to fp32 MPJPE, in %% (default 1.0)")
+    p.add_argument("--split", default="train", help="split the calibration frames come from (default train)")
+    p.add_argument("--holdout-split", default="val", help="split for the accuracy check (default val)")
+    p.add_argument("--holdout-frames", type=positive_int, default=200, help="frames per held-out sequence (default 200)")
+    p.add_argument("--threads", type=positive_int, default=None, help="ORT threads (default: all)")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    options = QuantizeOptions(
+        mode=args.mode, calibration=args.calibration, frames=args.frames, exclude=args.exclude,
+        budget_pct=args.budget_pct, split=args.split, holdout_split=args.holdout_split,
+        holdout_frames=args.holdout_frames, threads=args.threads)
+    report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
+    h = report["holdout"]
+    print(json.dumps({"out": args.out, "artifact": report["artifact"], "mpjpe_mm": round(h["mpjpe_mm"], 3),
+                      "fp32_mpjpe_mm": round(h["fp32_mpjpe_mm"], 3), "loss_pct": round(h["loss_pct"], 4),
+                      "bytes": report["sizes"]["output_bytes"]}))
+    return 0

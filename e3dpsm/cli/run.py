@@ -1,0 +1,152 @@
+"""`e3dpsm run`: drive an exported step graph over an event file, poses to CSV.
+
+Torch-free (numpy, onnxruntime, the csv module): the command a device runs.
+
+Output: `--out poses.csv` with columns t_us (window end) then <joint>_x/_y/_z in mm for the
+joints named in the graph's metadata, and `poses.report.json` beside it. Both are written
+under temporary names and renamed only when the whole stream ran, so a failure leaves
+nothing behind. A stream that yields no complete window (no events, or shorter than one
+window) is an error rather than an empty CSV: a pipeline waiting for poses should stop.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+from pathlib import Path
+from typing import Iterator
+
+DEFAULT_CHUNK_EVENTS = 100_000
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "run",
+        help="stream an event file through an exported step graph and write timestamped poses (CSV)",
+        description="Read an event file (.h5/.hdf5/.npz), feed it in chunks to the streaming runtime "
+        "(T-ms windows, LNES frames, recurrent states carried; numpy + onnxruntime only) and write one "
+        "pose per window, timestamped at the window end, in millimetres. Empty windows are stepped with "
+        "an all-zero frame. A JSON report is written next to the CSV.",
+    )
+    parser.add_argument("--model", required=True, help="step graph written by `e3dpsm export` (or quantize)")
+    parser.add_argument("--events", required=True, help="event file: .h5/.hdf5 (EE3D layout) or .npz (x, y, t, p)")
+    parser.add_argument("--out", required=True, help="CSV of poses to write (report: <stem>.report.json)")
+    parser.add_argument("--window-ms", type=float, default=None,
+                        help="window length T in ms (default: the graph's training window, 20)")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: ORT's)")
+    parser.add_argument("--start-us", type=int, default=None,
+                        help="start of the first window in us (default: the first event); earlier events are skipped")
+    parser.add_argument("--chunk-events", type=int, default=DEFAULT_CHUNK_EVENTS,
+                        help=f"events handed to the runtime per chunk (default {DEFAULT_CHUNK_EVENTS})")
+    parser.add_argument("--force", action="store_true", help="replace an existing --out file")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+    return parser
+
+
+def report_path(out: Path) -> Path:
+    return out.with_name(out.stem + ".report.json")
+
+
+def run(args: argparse.Namespace) -> int:
+    from e3dpsm.data.readers import read_events
+    from e3dpsm.errors import ConfigError, DataError, OutputExistsError
+    from e3dpsm.runtime import StepSession, StreamingPoseEstimator
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import atomic_path, write_json_atomic
+
+    out = Path(args.out)
+    if args.chunk_events <= 0:
+        raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
+    if args.threads is not None and args.threads <= 0:
+        raise ConfigError(f"--threads must be positive, got {args.threads}")
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder; expected a CSV file path")
+    if out.exists() and not args.force:
+        raise OutputExistsError(f"{out} exists; pass --force to replace it")
+    _check_writable_folder(out.parent)  # fail before minutes of inference, not after
+
+    session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
+    # The file's own sensor size (attributes or event_meta.json) wins over the graph's default.
+    stream = read_events(args.events)
+    estimator = StreamingPoseEstimator(
+        session, window_ms=args.window_ms, start_us=args.start_us, sensor_hw=stream.sensor_hw,
+    )
+    chunks = _chunks(stream, args.chunk_events)
+    if not args.no_progress and sys.stderr.isatty():
+        chunks = _with_progress(chunks, len(stream), args.chunk_events)
+    rows = [[pose.t_us, *pose.pose.reshape(-1).tolist()] for pose in estimator.run(chunks)]
+    stats = estimator.stats
+    if not rows:  # documented choice: an error, not an empty CSV
+        if not len(stream):
+            raise DataError(f"{args.events}: the event stream is empty; nothing to estimate")
+        span = int(stream.t_us[-1] - stream.t_us[0])
+        skipped = f", {stats.events_before_start} of them before --start-us" if stats.events_before_start else ""
+        raise DataError(
+            f"{args.events}: no complete {estimator.window_ms:g} ms window in {len(stream)} events spanning "
+            f"{span} us{skipped}; nothing to estimate"
+        )
+    summary = stats.to_dict()
+    summary["overhead_ms"] = summary["mean_overhead_ms"]  # per window: windowing + LNES + validation
+    header = ["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")]
+    meta = estimator.session.meta
+    report = {
+        **report_header("run", {
+            "model": str(args.model), "events": str(args.events), "out": str(out),
+            "window_ms": estimator.window_ms, "threads": args.threads, "start_us": args.start_us,
+            "chunk_events": args.chunk_events,
+        }),
+        "graph": {"variant": meta.config.get("variant"), "quantization": meta.quantization,
+                  "frame_hw": list(estimator.frame_hw)},
+        "sensor_hw": list(estimator.sensor_hw),
+        "first_window_start_us": int(rows[0][0]) - estimator.window_us,
+        "last_pose_t_us": int(rows[-1][0]),
+        "pose_timestamp": "window end",
+        "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
+        "events_in_file": len(stream),
+        **summary,
+    }
+    with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path(out), suffix=".json") as tmp_report:
+        with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(header)
+            writer.writerows([row[0], *(f"{v:.4f}" for v in row[1:])] for row in rows)
+        write_json_atomic(tmp_report, report)
+    print(
+        f"{stats.windows} poses ({stats.empty_windows} empty windows, {stats.events} events) at "
+        f"{summary['mean_step_ms']:.2f} ms/step + {summary['overhead_ms']:.2f} ms runtime "
+        f"overhead -> {out}"
+    )
+    return 0
+
+
+def _chunks(stream, size: int) -> Iterator[tuple]:
+    for lo in range(0, len(stream), size):
+        hi = lo + size
+        yield stream.x[lo:hi], stream.y[lo:hi], stream.t_us[lo:hi], stream.p[lo:hi]
+
+
+def _with_progress(chunks: Iterator[tuple], total_events: int, size: int) -> Iterator[tuple]:
+    try:
+        from tqdm import tqdm
+    except ImportError:  # devices without tqdm run without a bar
+        yield from chunks
+        return
+    with tqdm(total=total_events, unit="ev", unit_scale=True, desc="run", file=sys.stderr) as bar:
+        for chunk in chunks:
+            yield chunk
+            bar.update(len(chunk[2]))
+
+
+def _check_writable_folder(folder: Path) -> None:
+    """The nearest existing ancestor of `folder` must be a writable directory."""
+    from e3dpsm.errors import DataError
+
+    probe = folder.absolute()
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise DataError(f"cannot write to {folder}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise DataError(f"cannot write to {folder}: {probe} is not writable")

@@ -1,0 +1,64 @@
+"""Drive an exported step graph with OpenVINO (optional extra: `pip install e3dpsm[openvino]`).
+
+Same interface as `StepSession`, so parity and profiling treat both runtimes alike. The
+state stays explicit here; `openvino.passes.MakeStateful` could move it inside the
+runtime, but explicit state keeps one graph and one contract for every runtime.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from e3dpsm.errors import ConfigError, DataError
+from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.runtime.session import StateArrays, build_feeds
+
+
+def openvino_available() -> tuple[bool, str]:
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return False, "openvino is not installed (pip install 'e3dpsm[openvino]')"
+    return True, ""
+
+
+class OpenVINOStepSession:
+    def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU") -> None:
+        ok, reason = openvino_available()
+        if not ok:
+            raise ConfigError(reason)
+        import onnx
+        import openvino as ov
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise DataError(f"model {self.path} does not exist")
+        self.meta = GraphMetadata.from_onnx(onnx.load(str(self.path), load_external_data=False), source=str(self.path))
+        core = ov.Core()
+        config = {"INFERENCE_PRECISION_HINT": "f32"}  # parity is an fp32 check: no silent bf16
+        if threads:
+            config["INFERENCE_NUM_THREADS"] = int(threads)
+        self._model = core.read_model(str(self.path))
+        self._compiled = core.compile_model(self._model, device, config)
+        self._request = self._compiled.create_infer_request()
+        self._inputs = [p.get_any_name() for p in self._compiled.inputs]
+        self._outputs = [p.get_any_name() for p in self._compiled.outputs]
+
+    def input_names(self) -> list[str]:
+        return list(self._inputs)
+
+    def output_names_all(self) -> list[str]:
+        return list(self._outputs)
+
+    def init_state(self, batch: int = 1) -> StateArrays:
+        return {s.name: s.initial_value(batch) for s in self.meta.states}
+
+    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray):
+        feeds = build_feeds(self.meta, lnes, state, window_ms)
+        result = self._request.infer(feeds)
+        named = {port.get_any_name(): np.asarray(value) for port, value in result.items()}
+        outputs = {name: named[name] for name in self.meta.output_names}
+        return outputs, {s.name: named[s.output_name] for s in self.meta.states}

@@ -1,0 +1,113 @@
+"""Drive an exported step graph with onnxruntime and numpy alone.
+
+The state layout, input names and window-length convention are read from the graph's
+metadata (e3dpsm.graph_metadata), never re-derived from Python model code.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from e3dpsm.errors import DataError, InputError
+from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.state import check_state_shapes
+
+StateArrays = dict[str, np.ndarray]
+
+
+def make_session(
+    path: str | os.PathLike, *, threads: int | None = None, providers: Sequence[str] | None = None,
+    options: Any = None, spin: bool = True,
+):
+    """An onnxruntime.InferenceSession with a bounded thread count (edge devices share cores).
+
+    `spin=False` stops idle worker threads from busy-waiting, which matters when the same
+    cores also run something else between steps (PyTorch in a parity run, windowing).
+    """
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"model {path} does not exist")
+    so = options or ort.SessionOptions()
+    if threads:
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+    if not spin:
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        return ort.InferenceSession(str(path), sess_options=so, providers=list(providers or ["CPUExecutionProvider"]))
+    except Exception as exc:  # ORT raises its own exception types for corrupt / invalid files
+        raise DataError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0][:300]}") from exc
+
+
+def build_feeds(
+    meta: GraphMetadata, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray
+) -> dict[str, np.ndarray]:
+    """The input dict of one step for any runtime, checked against the graph's metadata."""
+    frame_shape = tuple(meta.frame_input["shape"][1:])
+    if not isinstance(lnes, np.ndarray) or lnes.ndim != 4 or tuple(lnes.shape[1:]) != frame_shape:
+        got = list(lnes.shape) if isinstance(lnes, np.ndarray) else type(lnes).__name__
+        raise InputError(f"LNES has shape {got}, expected [B, {', '.join(map(str, frame_shape))}]")
+    if lnes.dtype != np.float32:
+        raise InputError(f"LNES has dtype {lnes.dtype}, expected float32")
+    batch = lnes.shape[0]
+    check_state_shapes(meta.states, {k: v.shape for k, v in state.items()}, batch)
+    window = np.asarray(window_ms, dtype=np.float32).reshape(-1)
+    if window.shape[0] == 1 and batch > 1:
+        window = np.repeat(window, batch)
+    if window.shape[0] != batch or not np.all(window > 0):
+        raise InputError(f"window_ms must hold one positive value or {batch}, got {window.tolist()}")
+    feeds = {meta.frame_input["name"]: lnes, meta.window_input["name"]: window}
+    for spec in meta.states:
+        feeds[spec.input_name] = np.ascontiguousarray(state[spec.name], dtype=np.float32)
+    return feeds
+
+
+class StepSession:
+    """One exported E-3DPSM step graph: `step(lnes, state, window_ms) -> (outputs, state)`."""
+
+    def __init__(self, path: str | os.PathLike, *, threads: int | None = None,
+                 providers: Sequence[str] | None = None, options: Any = None, spin: bool = True) -> None:
+        self.path = Path(path)
+        self.session = make_session(path, threads=threads, providers=providers, options=options, spin=spin)
+        self.meta = GraphMetadata.from_session(self.session, source=str(path))
+        self.frame_name = self.meta.frame_input["name"]
+        self.window_name = self.meta.window_input["name"]
+        self.output_names = [o.name for o in self.session.get_outputs()]
+        graph_inputs = {i.name for i in self.session.get_inputs()}
+        expected = {self.frame_name, self.window_name, *(s.input_name for s in self.meta.states)}
+        if graph_inputs != expected:
+            raise InputError(
+                f"{path}: graph inputs {sorted(graph_inputs)} do not match its metadata {sorted(expected)}"
+            )
+
+    @property
+    def states(self):
+        return self.meta.states
+
+    def input_names(self) -> list[str]:
+        return [i.name for i in self.session.get_inputs()]
+
+    def output_names_all(self) -> list[str]:
+        return list(self.output_names)
+
+    def init_state(self, batch: int = 1) -> StateArrays:
+        return {s.name: s.initial_value(batch) for s in self.meta.states}
+
+    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
+        """The input dict of one step, checked against the metadata."""
+        return build_feeds(self.meta, lnes, state, window_ms)
+
+    def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
+        values = self.session.run(self.output_names, dict(feeds))
+        named = dict(zip(self.output_names, values))
+        outputs = {name: named[name] for name in self.meta.output_names}
+        new_state = {s.name: named[s.output_name] for s in self.meta.states}
+        return outputs, new_state
+
+    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> tuple[dict[str, np.ndarray], StateArrays]:
+        return self.run_feeds(self.feeds(lnes, state, window_ms))

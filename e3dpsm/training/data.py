@@ -1,0 +1,95 @@
+"""Training windows over a prepared folder: N consecutive frames of one sequence.
+
+Sampling is a pure function of (seed, epoch, rank, world size), so a resumed run draws the
+same windows it would have drawn without the interruption, and the ranks of a distributed
+run draw disjoint shares of each epoch without a DistributedSampler.
+"""
+from __future__ import annotations
+
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, Sampler
+
+from e3dpsm.data.prepared import PreparedData, PreparedSequence
+from e3dpsm.errors import DataError
+
+ALL_SPLITS = "all"
+
+
+def select_sequences(data: PreparedData, split: str) -> list[PreparedSequence]:
+    """The sequences of one split, or every sequence for split "all"."""
+    return list(data.sequences) if split == ALL_SPLITS else data.split(split)
+
+
+class WindowDataset(Dataset):
+    """Item i = the window of `seq_len` frames starting at the i-th valid start; returns
+    float32 tensors lnes [N, 2, H, W], j3d_mm [N, J, 3], j2d_px [N, J, 2], visible [N, J]."""
+
+    def __init__(self, sequences: Sequence[PreparedSequence], seq_len: int) -> None:
+        if seq_len < 2:
+            raise DataError(f"--seq-len must be at least 2 (the delta loss needs two frames), got {seq_len}")
+        usable = [s for s in sequences if s.frames >= seq_len]
+        if not usable:
+            longest = max((s.frames for s in sequences), default=0)
+            raise DataError(f"no sequence has {seq_len} frames for a training window (longest: {longest}); "
+                            "lower --seq-len or prepare longer sequences")
+        self.sequences = usable
+        self.seq_len = seq_len
+        counts = np.array([s.frames - seq_len + 1 for s in usable])
+        self._offsets = np.concatenate([[0], np.cumsum(counts)])
+
+    def __len__(self) -> int:
+        return int(self._offsets[-1])
+
+    def locate(self, index: int) -> tuple[int, int]:
+        """Window index -> (sequence index, first frame)."""
+        seq = int(np.searchsorted(self._offsets, index, side="right") - 1)
+        return seq, int(index - self._offsets[seq])
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        seq_index, start = self.locate(index)
+        seq = self.sequences[seq_index]
+        window = slice(start, start + self.seq_len)
+        return {
+            "lnes": torch.from_numpy(np.asarray(seq.lnes[window], dtype=np.float32)),
+            "j3d_mm": torch.from_numpy(np.asarray(seq.j3d_mm[window], dtype=np.float32)),
+            "j2d_px": torch.from_numpy(np.asarray(seq.j2d_px[window], dtype=np.float32)),
+            "visible": torch.from_numpy(np.asarray(seq.visible[window], dtype=np.float32)),
+        }
+
+    def frames_total(self) -> int:
+        return int(sum(s.frames for s in self.sequences))
+
+
+class SeededWindowSampler(Sampler[int]):
+    """Random window starts for one epoch and one rank.
+
+    An epoch draws `samples_per_epoch` starts (without replacement while they last) from
+    a generator seeded by (seed, epoch); rank r of W takes every W-th of them. `skip`
+    drops the first batches of the epoch a resumed run has already trained on.
+    """
+
+    def __init__(self, num_windows: int, samples_per_epoch: int, seed: int, epoch: int,
+                 rank: int = 0, world_size: int = 1, skip: int = 0) -> None:
+        self.num_windows, self.samples_per_epoch = num_windows, samples_per_epoch
+        self.seed, self.epoch, self.rank, self.world_size, self.skip = seed, epoch, rank, world_size, skip
+
+    def _indices(self) -> np.ndarray:
+        rng = np.random.default_rng([self.seed, self.epoch])
+        rounds = -(-self.samples_per_epoch // self.num_windows)
+        drawn = np.concatenate([rng.permutation(self.num_windows) for _ in range(rounds)])
+        return drawn[: self.samples_per_epoch][self.rank :: self.world_size][self.skip :]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._indices().tolist())
+
+    def __len__(self) -> int:
+        return len(self._indices())
+
+
+def mean_pose_mm(sequences: Sequence[PreparedSequence]) -> np.ndarray:
+    """Mean ground-truth pose [J, 3] over every frame (the direct head's prior)."""
+    total = sum(np.asarray(s.j3d_mm, np.float64).sum(axis=0) for s in sequences)
+    return (total / sum(s.frames for s in sequences)).astype(np.float32)

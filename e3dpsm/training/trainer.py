@@ -1,0 +1,281 @@
+"""The training loop behind `e3dpsm train` (single process or torchrun/DDP).
+
+Run folder (written by rank 0 only):
+    RUN_DIR/checkpoint.pt  latest checkpoint: model + config (rebuilds alone), optimizer,
+                           scheduler, step, RNG state, training args, data window_ms
+    RUN_DIR/log.jsonl      one JSON object per logged step (losses, lr, grad norm, speed)
+    RUN_DIR/report.json    report header + args + final figures, at the end of a run
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from e3dpsm.camera import ee3d_default, sensor_to_frame_scale
+from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.errors import CheckpointError, ConfigError, OutputExistsError
+from e3dpsm.models import create_model
+from e3dpsm.training.data import SeededWindowSampler, WindowDataset, mean_pose_mm, select_sequences
+from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
+from e3dpsm.training.losses import LossWeights, PoseLoss
+from e3dpsm.training.projection import FisheyeProjection
+from e3dpsm.training.schedule import WarmupCosine
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "checkpoint.pt"
+LOG_NAME = "log.jsonl"
+REPORT_NAME = "report.json"
+# Each rank writes the digest of its parameters into this folder at the end of a run;
+# the distributed test compares them.
+PARAM_DUMP_ENV = "E3DPSM_DUMP_PARAMS_DIR"
+
+
+@dataclass
+class TrainArgs:
+    """Everything that defines a run; stored in the checkpoint and reused on --resume."""
+
+    variant: str = "small"
+    steps: int | None = None
+    epochs: float | None = None
+    seq_len: int = 40
+    batch_size: int = 4
+    lr: float = 1e-3
+    warmup_steps: int = 50
+    min_lr_ratio: float = 0.05
+    clip_norm: float = 1.0
+    seed: int = 0
+    split: str = "train"
+    overrides: dict[str, Any] = field(default_factory=dict)  # E3DPSMConfig fields (ablations)
+    weights: dict[str, float] = field(default_factory=lambda: LossWeights().to_dict())
+    supervise_direct: bool = True
+    mask_invisible: bool = False
+    log_every: int = 10
+    save_every: int = 200
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "TrainArgs":
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run (not part of the run's identity)."""
+
+    resume: bool = False
+    force: bool = False
+    stop_at: int | None = None  # leave after this step with a resumable checkpoint
+    device: str = "auto"
+    num_workers: int = 0
+    progress: bool = True
+
+
+def steps_per_epoch(dataset: WindowDataset, args: TrainArgs, world_size: int) -> tuple[int, int]:
+    """(optimizer steps per epoch, windows per epoch). An epoch covers every training frame
+    once in expectation; rounded so every rank does the same number of steps."""
+    per_step = args.batch_size * world_size
+    steps = max(1, -(-(dataset.frames_total() // args.seq_len) // per_step))
+    return steps, steps * per_step
+
+
+def _total_steps(args: TrainArgs, epoch_steps: int) -> int:
+    if args.steps is not None:
+        return int(args.steps)
+    if args.epochs is not None:
+        return max(1, int(round(args.epochs * epoch_steps)))
+    raise ConfigError("give --steps or --epochs")
+
+
+def _prepare_run_dir(out: Path, opts: RunOptions, ctx: DistContext) -> None:
+    ckpt = out / CHECKPOINT_NAME
+    if opts.resume:
+        if not ckpt.is_file():
+            raise CheckpointError(f"--resume: {ckpt} does not exist; start without --resume")
+        return
+    if ckpt.exists() or (out / LOG_NAME).exists():
+        if not opts.force:
+            raise OutputExistsError(f"run folder {out} holds a run; pass --resume to continue it or --force to restart")
+        if ctx.is_main:
+            for name in (CHECKPOINT_NAME, LOG_NAME, REPORT_NAME):
+                (out / name).unlink(missing_ok=True)
+    if ctx.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+
+
+def _trim_log(path: Path, step: int) -> None:
+    """On resume, drop log lines from steps after the checkpoint (they will be redone)."""
+    if not path.is_file():
+        return
+    kept = [line for line in path.read_text(encoding="utf-8").splitlines()
+            if line.strip() and json.loads(line).get("step", 0) <= step]
+    path.write_text("".join(line + "\n" for line in kept), encoding="utf-8")
+
+
+def _param_digest(model: torch.nn.Module) -> dict[str, Any]:
+    digest = hashlib.sha256()
+    total = 0.0
+    # Parameters only: on CPU each rank's BatchNorm running statistics follow its own batches.
+    for name, p in sorted(model.named_parameters()):
+        data = p.detach().cpu().contiguous()
+        digest.update(name.encode())
+        digest.update(data.numpy().tobytes())
+        if data.is_floating_point():
+            total += float(data.double().sum())
+    return {"sha256": digest.hexdigest(), "sum": total}
+
+
+def _batches(dataset: WindowDataset, args: TrainArgs, opts: RunOptions, ctx: DistContext,
+             epoch_steps: int, epoch_windows: int, start_step: int):
+    """Yield (step, batch) from `start_step` on, epoch after epoch."""
+    step = start_step
+    while True:
+        epoch, done = divmod(step, epoch_steps)
+        sampler = SeededWindowSampler(len(dataset), epoch_windows, args.seed, epoch, ctx.rank, ctx.world_size,
+                                      skip=done * args.batch_size)
+        loader = DataLoader(dataset, batch_size=args.batch_size, sampler=sampler, drop_last=True,
+                            num_workers=opts.num_workers)
+        for batch in loader:
+            yield step, batch
+            step += 1
+
+
+def train(args: TrainArgs, data_dir: str | os.PathLike, out: str | os.PathLike, opts: RunOptions) -> dict[str, Any]:
+    """Train (or resume) a run; returns the final report (rank 0's view)."""
+    ctx = setup_distributed(opts.device)
+    try:
+        return _train(args, Path(data_dir), Path(out), opts, ctx)
+    finally:
+        teardown(ctx)
+
+
+def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: DistContext) -> dict[str, Any]:
+    _prepare_run_dir(out, opts, ctx)
+    data = PreparedData.open(data_dir)
+    payload: dict[str, Any] | None = None
+    if opts.resume:
+        model, payload = load_checkpoint(out / CHECKPOINT_NAME, variant=args.variant)
+        stored = TrainArgs.from_dict(payload.get("train_args", {}))
+        # The run's identity comes from the checkpoint; only its length may change.
+        stored.steps, stored.epochs = (args.steps, args.epochs) if (args.steps or args.epochs) else (stored.steps, stored.epochs)
+        args = stored
+        data.check_compatible(window_ms=float(payload["window_ms"]))
+    else:
+        overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in args.overrides.items()}
+        # The model takes the frame size the data was prepared at.
+        model = create_model(args.variant, **{**overrides, "train_window_ms": data.window_ms,
+                                              "height": data.height, "width": data.width})
+    data.check_compatible(height=model.config.height, width=model.config.width)
+    sequences = select_sequences(data, args.split)
+    dataset = WindowDataset(sequences, args.seq_len)
+    if payload is None:
+        model.set_pose_prior(torch.from_numpy(mean_pose_mm(sequences)))
+    model.to(ctx.device).train()
+    trained = wrap_model(model, ctx)
+
+    epoch_steps, epoch_windows = steps_per_epoch(dataset, args, ctx.world_size)
+    total_steps = _total_steps(args, epoch_steps)
+    optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
+    schedule = WarmupCosine(total_steps, min(args.warmup_steps, max(1, total_steps // 10)), args.min_lr_ratio)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
+    start_step = 0
+    if payload is not None:
+        optimizer.load_state_dict(payload["optimizer"])
+        scheduler.load_state_dict(payload["scheduler"])
+        scheduler.lr_lambdas = [schedule]  # a changed --steps stretches the schedule
+        start_step = int(payload["step"])
+        if ctx.is_main:
+            torch.set_rng_state(payload["rng_torch"])
+            _trim_log(out / LOG_NAME, start_step)
+    if payload is None or not ctx.is_main:
+        torch.manual_seed(args.seed * 1000 + ctx.rank + 7919 * start_step)
+
+    frame_scale = sensor_to_frame_scale(tuple(data.meta.get("sensor_hw", (480, 640))), (data.height, data.width))
+    criterion = PoseLoss(FisheyeProjection(ee3d_default(), frame_scale), LossWeights(**args.weights),
+                         supervise_direct=args.supervise_direct, mask_invisible=args.mask_invisible).to(ctx.device)
+
+    def checkpoint(step: int) -> None:
+        if ctx.is_main:
+            save_checkpoint(out / CHECKPOINT_NAME, model, optimizer=optimizer.state_dict(),
+                            scheduler=scheduler.state_dict(), step=step, rng_torch=torch.get_rng_state(),
+                            train_args=args.to_dict(), window_ms=data.window_ms, data=str(data_dir))
+
+    end_step = min(total_steps, opts.stop_at) if opts.stop_at is not None else total_steps
+    bar = tqdm(total=total_steps, initial=start_step, desc=f"train {args.variant}", unit="step",
+               disable=not (ctx.is_main and opts.progress), dynamic_ncols=True)
+    started, last_terms, step = time.perf_counter(), {}, start_step
+    window_start, window_steps = time.perf_counter(), 0
+    if start_step < end_step:
+        for step, batch in _batches(dataset, args, opts, ctx, epoch_steps, epoch_windows, start_step):
+            batch = {k: v.to(ctx.device, non_blocking=True) for k, v in batch.items()}
+            outputs = trained(batch["lnes"], causal=False)
+            loss, terms = criterion(outputs, batch["j3d_mm"], batch["j2d_px"], batch["visible"])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip_norm)
+            optimizer.step()
+            scheduler.step()
+            step += 1
+            window_steps += 1
+            bar.update(1)
+            if step % args.log_every == 0 or step == end_step:
+                last_terms = _reduce_terms({"loss": loss.detach(), **{k: v.detach() for k, v in terms.items()}}, ctx)
+                elapsed = time.perf_counter() - window_start
+                record = {"step": step, "epoch": step / epoch_steps, "lr": scheduler.get_last_lr()[0],
+                          "grad_norm": float(grad_norm), "steps_per_s": window_steps / max(elapsed, 1e-9), **last_terms}
+                window_start, window_steps = time.perf_counter(), 0
+                bar.set_postfix(loss=f"{last_terms['loss']:.3g}")
+                if ctx.is_main:
+                    with open(out / LOG_NAME, "a", encoding="utf-8") as fh:
+                        fh.write(json.dumps(record) + "\n")
+            if step % args.save_every == 0 and step != end_step:
+                checkpoint(step)
+            if step >= end_step:
+                break
+    bar.close()
+    checkpoint(step)
+    _dump_params(model, ctx)
+    report = {
+        **report_header("train", {"args": args.to_dict(), "data": str(data_dir), "world_size": ctx.world_size}),
+        "step": step, "total_steps": total_steps, "finished": step >= total_steps, "steps_per_epoch": epoch_steps,
+        "windows": len(dataset), "seconds": time.perf_counter() - started, "last": last_terms,
+        "parameters": sum(p.numel() for p in model.parameters()), "checkpoint": str(out / CHECKPOINT_NAME),
+    }
+    if ctx.is_main:
+        write_json_atomic(out / REPORT_NAME, report)
+    return {**report, "rank": ctx.rank}
+
+
+def _reduce_terms(terms: dict[str, torch.Tensor], ctx: DistContext) -> dict[str, float]:
+    """Mean over ranks of the logged loss terms (one all-reduce, on log steps only)."""
+    names = sorted(terms)
+    values = torch.stack([torch.as_tensor(terms[n], dtype=torch.float32, device=ctx.device) for n in names])
+    if ctx.enabled:
+        torch.distributed.all_reduce(values)
+        values /= ctx.world_size
+    return {n: float(v) for n, v in zip(names, values.cpu())}
+
+
+def _dump_params(model: torch.nn.Module, ctx: DistContext) -> None:
+    folder = os.environ.get(PARAM_DUMP_ENV)
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        write_json_atomic(Path(folder) / f"rank{ctx.rank}.json", _param_digest(model))

@@ -1,0 +1,156 @@
+"""Export the stateful single-step graph to ONNX: trace, attach metadata, simplify, check.
+
+Every S5 state (real and imaginary parts) and the fusion state (pose, covariance,
+initialised flag) are explicit inputs and outputs with paired names (`x_in` -> `x_out`);
+the batch axis is dynamic; only default-domain operators are allowed, so the same file runs
+on ONNX Runtime (CPU, CUDA, TensorRT) and OpenVINO.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import onnx
+import torch
+
+from e3dpsm.errors import E3DPSMError
+from e3dpsm.export.spec import StepIOSpec, graph_metadata, step_io_spec
+from e3dpsm.export.wrapper import StepGraph
+from e3dpsm.models import E3DPSM
+from e3dpsm.utils.io import atomic_path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_OPSET = 17  # GridSample needs >= 16; LayerNormalization is a single op from 17
+MIN_OPSET = 17
+# onnx 1.23 writes IR 14 by default; ONNX Runtime 1.31 reads up to 13. Opset 17-20 graphs
+# need no newer IR than 8-10, so the exporter writes the lowest IR its opset allows.
+_IR_FOR_OPSET = {17: 8, 18: 8, 19: 9, 20: 9, 21: 10}
+ALLOWED_DOMAINS = ("", "ai.onnx")
+
+
+class ExportError(E3DPSMError):
+    """The graph could not be exported, checked or simplified."""
+
+
+@dataclass
+class ExportResult:
+    path: str
+    opset: int
+    ir_version: int
+    nodes_traced: int
+    nodes_final: int
+    simplified: bool
+    bytes: int
+    seconds_export: float
+    seconds_simplify: float
+    op_types: dict[str, int]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _op_histogram(model: onnx.ModelProto) -> dict[str, int]:
+    hist: dict[str, int] = {}
+    for node in model.graph.node:
+        hist[node.op_type] = hist.get(node.op_type, 0) + 1
+    return dict(sorted(hist.items(), key=lambda kv: -kv[1]))
+
+
+def check_graph(model: onnx.ModelProto) -> None:
+    """Full checker, strict shape inference, default-domain operators only."""
+    foreign = sorted({f"{n.domain}::{n.op_type}" for n in model.graph.node if n.domain not in ALLOWED_DOMAINS})
+    if foreign:
+        raise ExportError(f"graph uses non-standard operators {foreign}; only default-domain ONNX ops are allowed")
+    try:
+        onnx.checker.check_model(model, full_check=True)
+        onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
+        raise ExportError(f"exported graph fails the ONNX checker: {str(exc).splitlines()[0]}") from exc
+
+
+def _simplify(model: onnx.ModelProto, spec: StepIOSpec) -> onnx.ModelProto:
+    import onnxsim
+
+    # Concrete batch-1 shapes for onnxsim's own numeric check; the graph keeps its dynamic axis.
+    test_shapes = {t.name: [1 if isinstance(d, str) else d for d in t.shape] for t in spec.inputs}
+    simplified, ok = onnxsim.simplify(model, check_n=1, test_input_shapes=test_shapes)
+    if not ok:
+        raise ExportError("onnxsim could not validate the simplified graph; export with --no-simplify")
+    return simplified
+
+
+@contextlib.contextmanager
+def _eval_mode(model: torch.nn.Module):
+    was_training = model.training
+    model.eval()
+    try:
+        yield model
+    finally:
+        model.train(was_training)
+
+
+def export_step_with_report(
+    model: E3DPSM, path: str | os.PathLike, opset: int | None = None, simplify: bool = True,
+    metadata_extra: dict[str, Any] | None = None,
+) -> ExportResult:
+    opset = opset or DEFAULT_OPSET
+    if opset not in _IR_FOR_OPSET:
+        raise ExportError(f"opset {opset} is not supported; use one of {sorted(_IR_FOR_OPSET)}")
+    spec = step_io_spec(model)
+    wrapper = StepGraph(model)
+    t0 = time.perf_counter()
+    with _eval_mode(model), torch.no_grad(), tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+        # Shape checks in `step` are Python-level and trace to constants: expected.
+        warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
+        warnings.simplefilter("ignore", category=DeprecationWarning)
+        raw = Path(tmp) / "step.onnx"
+        torch.onnx.export(
+            wrapper, wrapper.example_inputs(1), str(raw), input_names=spec.input_names,
+            output_names=spec.output_names, dynamic_axes=spec.dynamic_axes, opset_version=opset,
+            do_constant_folding=True, dynamo=False,
+        )
+        graph = onnx.load(str(raw))
+    seconds_export = time.perf_counter() - t0
+    nodes_traced = len(graph.graph.node)
+
+    t1 = time.perf_counter()
+    if simplify:
+        graph = _simplify(graph, spec)
+    seconds_simplify = time.perf_counter() - t1
+
+    graph.ir_version = _IR_FOR_OPSET[opset]
+    del graph.metadata_props[:]
+    for key, value in graph_metadata(model, metadata_extra).to_props().items():
+        graph.metadata_props.add(key=key, value=value)
+    graph.producer_name = "e3dpsm"
+    graph.doc_string = f"E-3DPSM single-step graph, variant {model.config.variant}"
+    check_graph(graph)
+    # The graph must expose exactly the spec's names, in its order.
+    got_in = [i.name for i in graph.graph.input]
+    got_out = [o.name for o in graph.graph.output]
+    if got_in != spec.input_names or got_out != spec.output_names:
+        raise ExportError(f"exported names differ from the spec: inputs {got_in}, outputs {got_out}")
+
+    with atomic_path(path, suffix=".onnx") as tmp_path:
+        onnx.save(graph, str(tmp_path))
+    size = Path(path).stat().st_size
+    log.info("exported %s: %d -> %d nodes, %.1f MB", path, nodes_traced, len(graph.graph.node), size / 1e6)
+    return ExportResult(
+        path=str(path), opset=opset, ir_version=graph.ir_version, nodes_traced=nodes_traced,
+        nodes_final=len(graph.graph.node), simplified=simplify, bytes=size,
+        seconds_export=round(seconds_export, 3), seconds_simplify=round(seconds_simplify, 3),
+        op_types=_op_histogram(graph),
+    )
+
+
+def export_step(model: E3DPSM, path: str | os.PathLike, opset: int | None = None) -> Path:
+    """Write the simplified, checked single-step graph of `model` to `path`."""
+    return Path(export_step_with_report(model, path, opset).path)

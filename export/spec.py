@@ -1,0 +1,97 @@
+"""Declarative I/O spec of the step graph: names, shapes (with the "batch" axis) and dtypes
+of every input and output, derived from the model's config and `state_spec()` alone."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.joints import JOINT_NAMES, PARENTS
+from e3dpsm.models import OUTPUT_NAMES, E3DPSM
+from e3dpsm.state import BATCH_AXIS
+
+FRAME_INPUT = "lnes"
+WINDOW_INPUT = "window_ms"
+
+_OUTPUT_DOCS = {
+    "pose": "fused 3D pose (the model's output), millimetres, fisheye camera frame",
+    "pose_direct": "direct-regression 3D pose, millimetres",
+    "pose_delta": "predicted pose change since the previous step, millimetres",
+}
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    name: str
+    shape: tuple[int | str, ...]
+    dtype: str = "float32"
+
+    @property
+    def dynamic_axes(self) -> dict[int, str]:
+        return {i: d for i, d in enumerate(self.shape) if isinstance(d, str)}
+
+
+@dataclass(frozen=True)
+class StepIOSpec:
+    inputs: tuple[TensorSpec, ...]
+    outputs: tuple[TensorSpec, ...]
+
+    @property
+    def input_names(self) -> list[str]:
+        return [t.name for t in self.inputs]
+
+    @property
+    def output_names(self) -> list[str]:
+        return [t.name for t in self.outputs]
+
+    @property
+    def dynamic_axes(self) -> dict[str, dict[int, str]]:
+        return {t.name: t.dynamic_axes for t in (*self.inputs, *self.outputs) if t.dynamic_axes}
+
+
+def step_io_spec(model: E3DPSM) -> StepIOSpec:
+    cfg = model.config
+    states = model.state_spec()
+    pose_shape = (BATCH_AXIS, cfg.num_joints, 3)
+    inputs = (
+        TensorSpec(FRAME_INPUT, (BATCH_AXIS, cfg.in_channels, cfg.height, cfg.width)),
+        TensorSpec(WINDOW_INPUT, (BATCH_AXIS,)),
+        *(TensorSpec(s.input_name, (BATCH_AXIS, *s.shape), s.dtype) for s in states),
+    )
+    outputs = (
+        *(TensorSpec(name, pose_shape) for name in OUTPUT_NAMES),
+        *(TensorSpec(s.output_name, (BATCH_AXIS, *s.shape), s.dtype) for s in states),
+    )
+    return StepIOSpec(inputs, outputs)
+
+
+def graph_metadata(model: E3DPSM, extra: dict[str, Any] | None = None) -> GraphMetadata:
+    """The DESIGN.md metadata contract for `model`'s step graph."""
+    cfg = model.config
+    spec = step_io_spec(model)
+    frame = spec.inputs[0]
+    inputs = {
+        "frame": {
+            "name": frame.name, "shape": list(frame.shape), "dtype": frame.dtype,
+            "encoding": "LNES: (t - t0) / T of the latest event per pixel in [t0, t0 + T), "
+                        "channel = polarity (0 negative, 1 positive), 0 where no event",
+            "sensor_hw": [480, 640],
+        },
+        "window": {
+            "name": WINDOW_INPUT, "shape": [BATCH_AXIS], "dtype": "float32", "unit": "ms",
+            "train_window_ms": cfg.train_window_ms,
+            "doc": "length T of the window each frame covers; one graph serves 20, 25 and 50 ms",
+        },
+    }
+    outputs = [
+        {"name": t.name, "shape": list(t.shape), "dtype": t.dtype, "unit": "mm", "doc": _OUTPUT_DOCS[t.name]}
+        for t in spec.outputs if t.name in OUTPUT_NAMES
+    ]
+    config = {
+        "variant": cfg.variant, "train_window_ms": cfg.train_window_ms, "fusion": cfg.fusion,
+        "model_config": cfg.to_dict(), **(extra or {}),
+    }
+    return GraphMetadata(
+        states=model.state_spec(), inputs=inputs, outputs=outputs, config=config,
+        joints=list(JOINT_NAMES), extra={"e3dpsm.parents": str(list(PARENTS))},
+    )

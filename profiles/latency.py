@@ -1,0 +1,155 @@
+"""Step runners per runtime and a side-by-side latency measurement.
+
+Fairness: every runner sees the same frames in the same order with its own states carried,
+at the same thread count, and the runners take turns in chunks of steps, so a burst of load
+from elsewhere on a shared machine hits all of them rather than one.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Mapping, Protocol
+
+import numpy as np
+
+from e3dpsm.profiles.targets import Target
+
+
+class StepRunner(Protocol):
+    def reset(self) -> None: ...
+    def step(self, lnes: np.ndarray) -> None: ...
+
+
+class TorchRunner:
+    """PyTorch eager `model.step`, states carried as tensors."""
+
+    def __init__(self, model: Any, threads: int, window_ms: float) -> None:
+        import torch
+
+        torch.set_num_threads(threads)
+        self.torch, self.model, self.window_ms = torch, model.eval(), window_ms
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = self.model.init_state(1, device="cpu")
+
+    def step(self, lnes: np.ndarray) -> None:
+        with self.torch.inference_mode():
+            _, self.state = self.model.step(self.torch.from_numpy(lnes), self.state, self.window_ms)
+
+
+def ort_session_options(threads: int, profile_prefix: str | None = None) -> Any:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    if profile_prefix:
+        options.enable_profiling = True
+        options.profile_file_prefix = profile_prefix
+    return options
+
+
+class OrtRunner:
+    """An onnxruntime step graph through e3dpsm.runtime.StepSession."""
+
+    def __init__(self, path: str, target: Target, window_ms: float, profile_prefix: str | None = None) -> None:
+        from e3dpsm.runtime.session import StepSession
+
+        providers: list[Any] = [(target.provider, dict(target.options))] if target.options else [target.provider]
+        if target.provider != "CPUExecutionProvider":
+            providers.append("CPUExecutionProvider")  # nodes the accelerator lacks
+        self.session = StepSession(path, threads=target.threads, providers=providers,
+                                   options=ort_session_options(target.threads, profile_prefix))
+        self.window_ms = window_ms
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = self.session.init_state(1)
+
+    def step(self, lnes: np.ndarray) -> None:
+        _, self.state = self.session.step(lnes, self.state, self.window_ms)
+
+    def end_profiling(self) -> str:
+        return self.session.session.end_profiling()
+
+
+class OpenVinoRunner:
+    """OpenVINO compiled model; state outputs fed back by the names in the graph metadata."""
+
+    def __init__(self, path: str, target: Target, window_ms: float) -> None:
+        import onnx
+        import openvino as ov
+
+        from e3dpsm.graph_metadata import GraphMetadata
+
+        self.meta = GraphMetadata.from_onnx(onnx.load(path, load_external_data=False))
+        core = ov.Core()
+        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY"}
+        if target.precision == "fp32":
+            config["INFERENCE_PRECISION_HINT"] = "f32"  # no silent bf16 / fp16 on capable CPUs
+        self.compiled = core.compile_model(path, target.provider, config)
+        self.request = self.compiled.create_infer_request()
+        self.window = np.full((1,), window_ms, np.float32)
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = {s.input_name: s.initial_value(1) for s in self.meta.states}
+
+    def step(self, lnes: np.ndarray) -> None:
+        feeds = {self.meta.frame_input["name"]: lnes, self.meta.window_input["name"]: self.window, **self.state}
+        results = self.request.infer(feeds)
+        by_name = {port.get_any_name(): value for port, value in results.items()}
+        self.state = {s.input_name: by_name[s.output_name] for s in self.meta.states}
+
+
+def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, steps: int, warmup: int,
+                         chunk: int = 25) -> dict[str, np.ndarray]:
+    """Seconds per step for every runner: `warmup` untimed steps each, then `steps` timed
+    steps, in rounds of `chunk` steps per runner. Step k uses frame k (mod the frame count)."""
+    for runner in runners.values():
+        runner.reset()
+        for k in range(warmup):
+            runner.step(frames[k % len(frames)][None])
+    times = {name: np.empty(steps) for name in runners}
+    position = {name: warmup for name in runners}
+    for start in range(0, steps, chunk):
+        for name, runner in runners.items():
+            for k in range(start, min(start + chunk, steps)):
+                frame = frames[position[name] % len(frames)][None]
+                t0 = time.perf_counter()
+                runner.step(frame)
+                times[name][k] = time.perf_counter() - t0
+                position[name] += 1
+    return times
+
+
+def latency_summary(seconds: np.ndarray) -> dict[str, float]:
+    ms = np.asarray(seconds) * 1e3
+    p50, p90, p99 = np.percentile(ms, [50, 90, 99])
+    return {"p50": float(p50), "p90": float(p90), "p99": float(p99), "mean": float(ms.mean()),
+            "min": float(ms.min()), "steps": int(ms.size)}
+
+
+def matmul_peak_gflops(threads: int, size: int = 1024, repeats: int = 20) -> dict[str, Any]:
+    """Best float32 size^3 matrix product rate (GFLOP/s, 2 size^3 per product) on `threads`
+    threads: the machine's practical dense-compute peak, measured in the same run."""
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+        gen = torch.Generator().manual_seed(0)
+        a, b = torch.randn(size, size, generator=gen), torch.randn(size, size, generator=gen)
+        matmul, library = torch.mm, f"torch {torch.__version__}"
+    except ImportError:  # torch-free installs: numpy's BLAS (thread count fixed at import)
+        rng = np.random.default_rng(0)
+        a, b = rng.standard_normal((size, size), np.float32), rng.standard_normal((size, size), np.float32)
+        matmul, library = np.matmul, f"numpy {np.__version__}"
+    matmul(a, b)
+    best = min(_timed(matmul, a, b) for _ in range(repeats))
+    return {"gflops": 2 * size**3 / best / 1e9, "size": size, "threads": threads, "library": library}
+
+
+def _timed(fn, *args) -> float:
+    t0 = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t0

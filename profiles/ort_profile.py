@@ -1,0 +1,54 @@
+"""Where an onnxruntime step spends its time: run with `SessionOptions.enable_profiling` and
+aggregate the trace's per-node kernel events by op type and by module group."""
+from __future__ import annotations
+
+import json
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+_KERNEL_SUFFIX = "_kernel_time"
+
+
+def summarize_trace(trace_path: str | os.PathLike, node_groups: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """ms per step by op type and by module group, from an ORT profiling JSON trace.
+
+    Node names in the trace are the graph's node names (ORT may add fused nodes, e.g.
+    `..._token_0` or `FusedConv`, which keep the name of the node they replace as a prefix).
+    """
+    events = json.loads(Path(trace_path).read_text(encoding="utf-8"))
+    runs = [e for e in events if e.get("cat") == "Session" and e.get("name") == "model_run"]
+    steps = max(len(runs), 1)
+    by_op: dict[str, float] = defaultdict(float)
+    by_group: dict[str, float] = defaultdict(float)
+    by_provider: dict[str, float] = defaultdict(float)
+    node_total = 0.0
+    for event in events:
+        if event.get("cat") != "Node" or not str(event.get("name", "")).endswith(_KERNEL_SUFFIX):
+            continue
+        ms = float(event.get("dur", 0)) / 1e3
+        args = event.get("args", {})
+        node = str(event["name"])[: -len(_KERNEL_SUFFIX)]
+        by_op[str(args.get("op_name", "?"))] += ms
+        by_provider[str(args.get("provider", "?"))] += ms
+        if node_groups is not None:
+            by_group[_group_of_node(node, node_groups)] += ms
+        node_total += ms
+    run_ms = float(np.median([float(e.get("dur", 0)) / 1e3 for e in runs])) if runs else None
+    per_step = lambda table: {k: v / steps for k, v in sorted(table.items(), key=lambda kv: -kv[1])}  # noqa: E731
+    return {
+        "steps": len(runs), "run_ms_median": run_ms, "kernel_ms_per_step": node_total / steps,
+        "by_op_type_ms": per_step(by_op), "by_module_ms": per_step(by_group) if node_groups is not None else None,
+        "by_provider_ms": per_step(by_provider),
+    }
+
+
+def _group_of_node(node: str, node_groups: Mapping[str, str]) -> str:
+    if node in node_groups:
+        return node_groups[node]
+    # ORT-fused nodes are named after the first node they absorb, plus a suffix.
+    best = max((k for k in node_groups if node.startswith(k)), key=len, default=None)
+    return node_groups[best] if best else "unmapped (ORT-created)"

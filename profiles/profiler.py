@@ -1,0 +1,161 @@
+"""`e3dpsm profile` without the argument parsing: counts, memory, side-by-side latency,
+onnxruntime op profiles and device estimates for a list of targets, as one report dict."""
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import onnx
+
+from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.profiles import devices as devices_mod
+from e3dpsm.profiles.flops import CATEGORIES, relative_difference
+from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
+from e3dpsm.profiles.graph_groups import assign_groups
+from e3dpsm.profiles.inputs import Frames
+from e3dpsm.profiles.latency import (OpenVinoRunner, OrtRunner, TorchRunner, latency_summary, matmul_peak_gflops,
+                                     measure_side_by_side)
+from e3dpsm.profiles.memory import RssSampler
+from e3dpsm.profiles.ort_profile import summarize_trace
+from e3dpsm.profiles.targets import Target, availability
+
+BASELINES = ("torch-eager-cpu", "ort-cpu-fp32")
+MEMORY_STEPS = 5
+
+
+@dataclass(frozen=True)
+class ProfileSettings:
+    steps: int = 300
+    warmup: int = 20
+    chunk: int = 25
+    ort_profile_steps: int = 50
+    roofline_precisions: tuple[str, ...] = ("fp32", "fp16")
+
+
+def count_both(model: Any, graph: onnx.ModelProto) -> dict[str, Any]:
+    """PyTorch and ONNX counts of one pose update and how far apart their MACs are."""
+    onnx_count = count_onnx(graph)
+    counting: dict[str, Any] = {"onnx": onnx_count.to_dict(), "pytorch": None, "relative_difference": None}
+    if model is not None:
+        from e3dpsm.profiles.flops_torch import count_torch
+
+        torch_count = count_torch(model)
+        counting["pytorch"] = torch_count.to_dict()
+        counting["relative_difference"] = relative_difference(torch_count.macs, onnx_count.macs)
+    return counting
+
+
+def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any, window_ms: float,
+                  profile_prefix: str | None = None) -> Any:
+    if target.runtime == "torch":
+        return TorchRunner(model, target.threads, window_ms)
+    path = str(graphs[target.graph])
+    if target.runtime == "onnxruntime":
+        return OrtRunner(path, target, window_ms, profile_prefix)
+    return OpenVinoRunner(path, target, window_ms)
+
+
+def _model_bytes(target: Target, graphs: Mapping[str, Path | None], model: Any, checkpoint: str | None) -> int:
+    if target.graph != "none":
+        return Path(graphs[target.graph]).stat().st_size
+    if checkpoint:
+        return Path(checkpoint).stat().st_size
+    return sum(t.numel() * t.element_size() for t in model.state_dict().values())
+
+
+def _ratios(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """p50 speed-up of each target over each baseline measured in the same run (a baseline is
+    compared only with the targets listed after it in BASELINES, and with all others)."""
+    p50 = {e["name"]: e["latency_ms"]["p50"] for e in entries if e.get("latency_ms")}
+    ratios = {}
+    for i, base in enumerate(BASELINES):
+        for name, value in p50.items():
+            if base in p50 and name != base and name not in BASELINES[:i]:
+                ratios[f"{name} vs {base}"] = p50[base] / value
+    return ratios
+
+
+def _ort_profile(target: Target, graphs: Mapping[str, Path | None], frames: Frames, steps: int) -> dict[str, Any]:
+    """A separate profiled session (profiling slows every run, so never the timed one)."""
+    graph_path = Path(graphs[target.graph])
+    graph = load_graph(graph_path)
+    _, dtypes = static_shapes(graph)
+    node_groups = assign_groups(graph, dtypes)
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-ortprof-") as tmp:
+        runner = OrtRunner(str(graph_path), target, frames.window_ms, profile_prefix=str(Path(tmp) / "ort"))
+        for k in range(steps):
+            runner.step(frames.lnes[k % len(frames.lnes)][None])
+        return summarize_trace(runner.end_profiling(), node_groups)
+
+
+def profile_targets(
+    targets: Sequence[Target], graphs: Mapping[str, Path | None], model: Any, frames: Frames,
+    settings: ProfileSettings, checkpoint: str | None = None,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The report body (without the header) and the per-target step times (seconds)."""
+    graph = load_graph(graphs["fp32"])
+    meta = GraphMetadata.from_onnx(graph)
+    counting = count_both(model, graph)
+    primary = counting["pytorch"] or counting["onnx"]
+    params = primary["params"] if primary["params"] is not None else initializer_values(graph)
+
+    entries: list[dict[str, Any]] = []
+    runners: dict[str, Any] = {}
+    for target in targets:
+        status = availability(target, graphs, model is not None)
+        entry: dict[str, Any] = {
+            **target.to_dict(), "available": status.available, "reason": status.reason, "params": params,
+            "macs": primary["macs"], "flops": primary["flops"], "latency_ms": None, "hz": None,
+            "peak_rss_mb": None, "model_bytes": None,
+        }
+        if status.available:
+            try:
+                with RssSampler() as rss:
+                    runner = _build_runner(target, graphs, model, frames.window_ms)
+                    for k in range(MEMORY_STEPS):
+                        runner.step(frames.lnes[k % len(frames.lnes)][None])
+            except Exception as exc:  # a runtime that refuses the graph is a result, not a crash
+                entry.update(available=False, reason=f"failed to load or run: {str(exc).splitlines()[0][:300]}")
+            else:
+                runners[target.name] = runner
+                entry.update(peak_rss_mb=rss.peak_mb, rss_growth_mb=rss.growth_mb,
+                             model_bytes=_model_bytes(target, graphs, model, checkpoint))
+        entries.append(entry)
+
+    with RssSampler() as overall:
+        times = measure_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk)
+    threads = targets[0].threads if targets else 1
+    peak = matmul_peak_gflops(threads)
+    for entry in entries:
+        if entry["name"] in times:
+            summary = latency_summary(times[entry["name"]])
+            entry["latency_ms"] = summary
+            entry["hz"] = 1e3 / summary["p50"]
+            entry["gflops_achieved"] = entry["flops"] / (summary["p50"] / 1e3) / 1e9
+            entry["peak_fraction"] = entry["gflops_achieved"] / peak["gflops"]
+
+    ort_profiles = {}
+    for target in targets:
+        if target.name in runners and target.runtime == "onnxruntime" and settings.ort_profile_steps > 0:
+            ort_profiles[target.name] = _ort_profile(target, graphs, frames, settings.ort_profile_steps)
+
+    state_values = sum(math.prod(s.shape) for s in meta.states)
+    act_values = activation_bytes(graph) // 4
+    rooflines = [
+        devices_mod.roofline(device, primary["flops"],
+                             devices_mod.bytes_per_step(params, act_values, state_values, precision), precision)
+        for device in devices_mod.load_devices() for precision in settings.roofline_precisions
+    ]
+    body = {
+        "counting": {**counting, "categories": list(CATEGORIES)},
+        "targets": entries, "ratios": _ratios(entries), "machine_peak": peak,
+        "process_peak_rss_mb": overall.peak_mb, "ort_profiles": ort_profiles, "devices": rooflines,
+        "bytes_per_step_inputs": {"weight_values": params, "activation_values": act_values,
+                                  "state_values": state_values},
+    }
+    return body, times
+

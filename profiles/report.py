@@ -1,0 +1,157 @@
+"""report.md and plots from the profile / model-info report dict (report.json is that dict)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from e3dpsm.profiles.flops import GROUP_NAMES, PAPER_EFFICIENCY, PAPER_FRAMES
+
+CONVENTION_LINE = (
+    "Counting convention: MACs per pose update (one step, batch 1) = Conv/Gemm/MatMul MACs + "
+    "GridSample bilinear (4 MACs per sampled value per channel) + S5 and Kalman recurrences by "
+    "formula; FLOPs = 2 x MACs. The paper counts FLOPs = 2 x MACs over a 2-frame input, so the "
+    f"column compared with it is **2 x MACs x {PAPER_FRAMES} frames** (\"paper convention\")."
+)
+
+
+def _g(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None else f"{value:.{digits}g}"
+
+
+def module_table(counts: Mapping[str, Any], reference: Mapping[str, Any] | None = None) -> list[str]:
+    """Markdown rows: per module params, MACs and FLOPs per update, paper-convention G, paper G.
+
+    `counts` is a FlopCount dict; `reference` an optional second one (the other counter)."""
+    paper = PAPER_EFFICIENCY["gflops_per_module"]
+    header = "| module | params | MACs / update (G) | FLOPs / update (G) | ours, paper convention (G) | paper (G) |"
+    if reference is not None:
+        header += f" {reference['source']} MACs (G) |"
+    rows = [header, "|" + "---|" * (header.count("|") - 1)]
+    for group in [*GROUP_NAMES, "total"]:
+        entry = counts if group == "total" else counts["modules"][group]
+        if group == "other" and entry["macs"] == 0 and not entry.get("params"):
+            continue
+        macs = entry["macs"]
+        paper_g = PAPER_EFFICIENCY["gflops"] if group == "total" else paper.get(group)
+        row = (f"| {group} | {_params(entry.get('params'))} | {macs / 1e9:.4g} | {2 * macs / 1e9:.4g} | "
+               f"{2 * macs * PAPER_FRAMES / 1e9:.4g} | {_g(paper_g)} |")
+        if reference is not None:
+            other = reference if group == "total" else reference["modules"][group]
+            row += f" {other['macs'] / 1e9:.4g} |"
+        rows.append(row)
+    return rows
+
+
+def _params(value: int | None) -> str:
+    return "-" if value is None else f"{value / 1e6:.4g} M"
+
+
+def target_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
+    rows = ["| target | available | p50 ms | p90 ms | p99 ms | Hz (p50) | GFLOP/s | of matmul peak | "
+            "peak RSS MB | model MB | reason |", "|" + "---|" * 11]
+    for t in targets:
+        lat = t.get("latency_ms") or {}
+        share = t.get("peak_fraction")
+        rows.append(
+            f"| {t['name']} | {'yes' if t['available'] else 'no'} | {_g(lat.get('p50'))} | {_g(lat.get('p90'))} | "
+            f"{_g(lat.get('p99'))} | {_g(t.get('hz'))} | {_g(t.get('gflops_achieved'))} | "
+            f"{'-' if share is None else format(100 * share, '.0f') + '%'} | "
+            f"{_g(t.get('peak_rss_mb'), 4)} | {_g((t.get('model_bytes') or 0) / 1e6 or None)} | {t.get('reason') or ''} |"
+        )
+    return rows
+
+
+def model_info_markdown(report: Mapping[str, Any]) -> str:
+    model = report["model"]
+    lines = [f"# E-3DPSM model info: `{model['variant']}`", "",
+             f"Parameters: **{model['params'] / 1e6:.4g} M** (paper: {PAPER_EFFICIENCY['params_m']} M).", "",
+             CONVENTION_LINE, "", *module_table(report["counting"]["pytorch"]), ""]
+    return "\n".join(lines)
+
+
+def profile_markdown(report: Mapping[str, Any]) -> str:
+    counting, inputs = report["counting"], report["inputs"]
+    lines = [f"# E-3DPSM profile: `{report['model']['variant']}`", "",
+             f"Created {report['created']} on {report['machine'].get('cpu_model', report['machine']['platform'])} "
+             f"({report['machine']['cpu_count']} CPUs); {inputs['threads']} threads per target; "
+             f"{inputs['steps']} timed steps after {inputs['warmup']} warm-up steps, states carried, inputs: "
+             f"{inputs['source']} ({inputs['window_ms']:g} ms windows). Targets measured side by side in one process, "
+             f"taking turns every {inputs['chunk']} steps.", "",
+             "## Parameters and compute per pose update", "", CONVENTION_LINE, ""]
+    primary = counting.get("pytorch") or counting.get("onnx")
+    secondary = counting.get("onnx") if counting.get("pytorch") else None
+    lines += module_table(primary, secondary)
+    if counting.get("relative_difference") is not None:
+        lines += ["", f"PyTorch vs ONNX MACs differ by {100 * counting['relative_difference']:.3f}%."]
+    lines += ["", "## Latency per target", "", *target_table(report["targets"]), ""]
+    if report.get("ratios"):
+        lines += ["Median ratios (speed-up = slower p50 / faster p50):", ""]
+        lines += [f"- {name}: **{value:.2f}x**" for name, value in report["ratios"].items()]
+        lines.append("")
+    peak = report.get("machine_peak")
+    if peak:
+        lines += [f"Machine matmul peak ({peak['size']}^3 float32, {peak['threads']} threads, {peak['library']}): "
+                  f"{peak['gflops']:.1f} GFLOP/s.", ""]
+    for name, prof in (report.get("ort_profiles") or {}).items():
+        lines += [f"### Where time goes: {name} (onnxruntime profiling, ms per step)", "",
+                  f"Kernel time {prof['kernel_ms_per_step']:.2f} ms / step over {prof['steps']} profiled steps.", "",
+                  "| op type | ms | module | ms |", "|---|---|---|---|"]
+        ops = list(prof["by_op_type_ms"].items())[:10]
+        mods = list((prof.get("by_module_ms") or {}).items())
+        for k in range(max(len(ops), len(mods))):
+            op = ops[k] if k < len(ops) else ("", None)
+            mod = mods[k] if k < len(mods) else ("", None)
+            lines.append(f"| {op[0]} | {_g(op[1])} | {mod[0]} | {_g(mod[1])} |")
+        lines.append("")
+    if report.get("devices"):
+        lines += ["## Reference devices: roofline ESTIMATE vs the paper's measured rate", "",
+                  "Estimate = min(peak compute / FLOPs, bandwidth / bytes moved per step); an upper bound that "
+                  "ignores launch and framework overhead. Peaks from vendor datasheets (profiles/devices.toml).", "",
+                  "| device | precision | estimate Hz | bound | paper measured Hz |", "|---|---|---|---|---|"]
+        for d in report["devices"]:
+            lines.append(f"| {d['device']} | {d['precision']} | {d['hz_estimate']:.0f} | {d['bound']} | "
+                         f"{_g(d['paper_measured_hz'])} |")
+        lines.append("")
+    lines += ["Plots: `latency.png` (latency distribution per target), `macs_per_module.png`.", ""]
+    return "\n".join(lines)
+
+
+def plot_latency(times_ms: Mapping[str, np.ndarray], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 0.6 * len(times_ms) + 1.5))
+    names = list(times_ms)
+    ax.boxplot([times_ms[n] for n in names], vert=False, showfliers=True, whis=(1, 99))
+    ax.set_yticks(range(1, len(names) + 1), names)
+    ax.set_xlabel("latency per pose update (ms); whiskers p1-p99")
+    ax.set_title("Step latency per target")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_macs(counts: Mapping[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = [g for g in GROUP_NAMES if g in PAPER_EFFICIENCY["gflops_per_module"]]
+    ours = [max(2 * counts["modules"][g]["macs"] * PAPER_FRAMES / 1e9, 1e-7) for g in groups]
+    paper = [PAPER_EFFICIENCY["gflops_per_module"][g] for g in groups]
+    x = np.arange(len(groups))
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.bar(x - 0.2, ours, 0.4, label=f"ours ({counts['source']}), 2 x MACs x {PAPER_FRAMES} frames")
+    ax.bar(x + 0.2, paper, 0.4, label="paper")
+    ax.set_xticks(x, groups, rotation=20)
+    ax.set_yscale("log")
+    ax.set_ylabel("GFLOPs (paper convention)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,192 @@
+"""`quantize_graph`: one exported step graph + prepared data -> one quantised artifact
+folder (`DIR/step_<mode>.onnx`, `DIR/report.json`), built under a temporary name."""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import onnx
+
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.errors import ConfigError, DataError
+from e3dpsm.graph_metadata import GraphMetadata, MetadataError
+from e3dpsm.quantize.artifact import finalize, op_counts, save_model
+from e3dpsm.quantize.calibration import record_calibration_set
+from e3dpsm.quantize.dynamic import quantize_dynamic_int8
+from e3dpsm.quantize.exclusions import greedy_exclusions, scratch_model_path
+from e3dpsm.quantize.fp16 import convert_fp16
+from e3dpsm.quantize.graph_groups import candidate_groups, recurrent_groups
+from e3dpsm.quantize.holdout import accuracy_of, make_holdout
+from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8, quantised_node_count
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import atomic_dir, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+MODES: tuple[str, ...] = ("int8", "int8-dynamic", "fp16")
+REPORT_FILE = "report.json"
+
+
+@dataclass(frozen=True)
+class QuantizeOptions:
+    mode: str = "int8"
+    calibration: str = "minmax"
+    frames: int = 200
+    exclude: str = "auto"          # auto | none | recurrent | comma-separated groups / nodes
+    budget_pct: float = 1.0
+    split: str = "train"           # calibration frames
+    holdout_split: str = "val"     # accuracy check (never calibration frames)
+    holdout_frames: int = 200      # per held-out sequence
+    max_rounds: int = 4
+    state_source: str = "rollout"
+    threads: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"unknown mode {self.mode!r}; choose from {list(MODES)}")
+        if not self.budget_pct > 0:
+            raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
+
+
+def artifact_name(mode: str) -> str:
+    return f"step_{mode.replace('-', '_')}.onnx"
+
+
+def load_source(path: str | os.PathLike) -> tuple[onnx.ModelProto, GraphMetadata]:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"model {path} does not exist")
+    try:
+        model = onnx.load(str(path))
+    except Exception as exc:  # onnx raises DecodeError and friends on damaged files
+        raise DataError(f"{path} is not a readable ONNX file: {str(exc).splitlines()[0][:200]}") from exc
+    meta = GraphMetadata.from_onnx(model, source=str(path))
+    if meta.quantization is not None:
+        raise MetadataError(f"{path} is already quantised ({meta.quantization.get('mode')}); start from the fp32 export")
+    return model, meta
+
+
+def resolve_exclusions(spec: str, recurrent: list[str], groups: Sequence, node_names: set[str]) -> list[str] | None:
+    """Nodes kept in float for a fixed `--exclude`; None means "search" (auto)."""
+    if spec == "auto":
+        return None
+    if spec == "none":
+        return []
+    if spec == "recurrent":
+        return list(recurrent)
+    by_name = {g.name: list(g.nodes) for g in groups}
+    chosen = list(recurrent)
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        if item in by_name:
+            chosen += by_name[item]
+        elif item in node_names:
+            chosen.append(item)
+        else:
+            raise ConfigError(f"--exclude: {item!r} is neither a node nor a group; groups: {sorted(by_name)}")
+    return list(dict.fromkeys(chosen))
+
+
+def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, out_dir: str | os.PathLike,
+                   options: QuantizeOptions, *, force: bool = False) -> dict[str, Any]:
+    started = time.perf_counter()
+    source, meta = load_source(model_path)
+    data = PreparedData.open(data_dir)
+    height, width = meta.frame_hw
+    data.check_compatible(window_ms=meta.train_window_ms, height=height, width=width)
+    holdout_seqs = data.split(options.holdout_split)
+    calib_seqs = data.split(options.split) if options.mode == "int8" else []
+    window_ms = meta.train_window_ms
+    report: dict[str, Any] = report_header("quantize", {
+        "model": str(model_path), "data": str(data_dir), "out": str(out_dir), **options.__dict__})
+
+    with atomic_dir(out_dir, force=force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-quant-") as work:
+        work = Path(work)
+        holdout = make_holdout(model_path, holdout_seqs, window_ms, options.holdout_frames, options.threads)
+        info: dict[str, Any] = {"mode": options.mode, "source": Path(model_path).name}
+        extra: dict[str, Any] = {}
+        if options.mode == "int8":
+            model, info, extra = _static(model_path, source, calib_seqs, holdout, window_ms, options, work)
+        else:
+            keep = [n for g in recurrent_groups(source, meta) for n in g.nodes]
+            if options.mode == "fp16":
+                model = convert_fp16(source, keep)
+                info.update({"precision": "float16", "io_types": "float32", "kept_float32_nodes": len(keep)})
+            else:
+                dyn = work / "dynamic.onnx"
+                info.update(quantize_dynamic_int8(model_path, dyn, exclude=keep))
+                model = onnx.load(str(dyn))
+                info["excluded_nodes"] = keep
+            info["mode"] = options.mode
+        finalize(model, meta, info)
+        out_path = tmp / artifact_name(options.mode)
+        size = save_model(model, out_path)
+        accuracy = accuracy_of(out_path, holdout, options.threads)
+        report.update({
+            "mode": options.mode,
+            "artifact": artifact_name(options.mode),
+            "quantization": {k: v for k, v in info.items() if k != "excluded_nodes"},
+            "excluded_nodes": info.get("excluded_nodes", []),
+            "holdout": {"split": options.holdout_split, "frames": holdout.frames, **accuracy},
+            "sizes": {"source_bytes": Path(model_path).stat().st_size, "output_bytes": size},
+            "nodes": {"source": len(source.graph.node), "output": len(model.graph.node),
+                      "source_ops": op_counts(source), "output_ops": op_counts(model)},
+            **extra,
+            "seconds": round(time.perf_counter() - started, 2),
+        })
+        write_json_atomic(tmp / REPORT_FILE, report)
+    log.info("%s: holdout MPJPE %.2f mm (fp32 %.2f, %+.3f%%) -> %s", options.mode, accuracy["mpjpe_mm"],
+             accuracy["fp32_mpjpe_mm"], accuracy["loss_pct"], Path(out_dir) / artifact_name(options.mode))
+    return report
+
+
+def _static(model_path, source, calib_seqs, holdout, window_ms, options: QuantizeOptions, work: Path):
+    config = StaticConfig(calibration=options.calibration)
+    pre = work / "pre.onnx"
+    preprocess(model_path, pre)
+    pre_model = onnx.load(str(pre))
+    pre_meta = GraphMetadata.from_onnx(pre_model)
+    recurrent = recurrent_groups(pre_model, pre_meta)
+    keep = [n for g in recurrent for n in g.nodes]
+    groups = candidate_groups(pre_model, keep)
+    fixed = resolve_exclusions(options.exclude, keep, [*recurrent, *groups], {n.name for n in pre_model.graph.node})
+
+    calib = record_calibration_set(model_path, calib_seqs, options.frames, window_ms,
+                                   state_source=options.state_source, seed=options.seed, threads=options.threads)
+    cache = work / "calibration.json"
+    out = work / "int8.onnx"
+    calib_seconds = quantize_int8(pre, out, config, exclude=fixed or keep, calibration=calib, cache=cache)
+    search = None
+    if fixed is None:
+        def evaluate(excluded: list[str], label: str) -> float:
+            trial = scratch_model_path(work, label)
+            quantize_int8(pre, trial, config, exclude=excluded, cache=cache)
+            finalize_trial = onnx.load(str(trial))
+            finalize(finalize_trial, pre_meta, {"mode": "int8", "trial": label})
+            onnx.save(finalize_trial, str(trial))
+            error = accuracy_of(trial, holdout, options.threads)["bound_pct"]
+            trial.unlink()
+            return error
+
+        search = greedy_exclusions(keep, groups, options.budget_pct, evaluate, options.max_rounds)
+        fixed = search.excluded_nodes
+        quantize_int8(pre, out, config, exclude=fixed, cache=cache)
+    model = onnx.load(str(out))
+    info = {
+        "mode": "int8", **config.to_dict(), "calibration_frames": len(calib),
+        "calibration_split": options.split, "state_source": calib.state_source,
+        "exclude": options.exclude, "float_groups": [g.name for g in recurrent] + (search.chosen if search else []),
+        "excluded_nodes": fixed, **quantised_node_count(model),
+    }
+    extra = {
+        "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
+                        "frames": len(calib), "sequences": {k: len(v) for k, v in calib.frames.items()}},
+        "exclusion_search": search.to_dict() if search else None,
+        "groups": {g.name: {"kind": g.kind, "nodes": len(g)} for g in [*recurrent, *groups]},
+    }
+    return model, info, extra

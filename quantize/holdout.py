@@ -1,0 +1,68 @@
+"""The accuracy check the exclusion search and the report use: every candidate graph runs
+as a continuous stream over held-out sequences (never the calibration frames), compared
+with the FP32 graph on the same frames."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from e3dpsm.data.prepared import PreparedSequence
+from e3dpsm.metrics import joint_errors, mpjpe
+from e3dpsm.runtime import StepSession
+from e3dpsm.validation.streams import onnx_stream
+
+
+@dataclass
+class HoldoutSet:
+    """Held-out frames with ground truth, and the FP32 graph's poses on them."""
+
+    lnes: list[np.ndarray]
+    gt: list[np.ndarray]
+    fp32: list[np.ndarray]
+    window_ms: float
+
+    @property
+    def frames(self) -> int:
+        return sum(len(g) for g in self.gt)
+
+    @property
+    def fp32_mpjpe(self) -> float:
+        return _pooled_mpjpe(self.fp32, self.gt)
+
+
+def _pooled_mpjpe(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> float:
+    return mpjpe(np.concatenate(preds), np.concatenate(gts))
+
+
+def make_holdout(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequence], window_ms: float,
+                 frames_per_sequence: int, threads: int | None = None) -> HoldoutSet:
+    session = StepSession(fp32_model, threads=threads)
+    lnes = [np.asarray(s.lnes[:frames_per_sequence], dtype=np.float32) for s in sequences]
+    gt = [np.asarray(s.j3d_mm[:frames_per_sequence], dtype=np.float32) for s in sequences]
+    fp32 = [onnx_stream(session, x, window_ms) for x in lnes]
+    return HoldoutSet(lnes, gt, fp32, window_ms)
+
+
+def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | None = None) -> dict[str, float]:
+    """MPJPE of `model` on the held-out streams, and how far it moved from FP32.
+
+    `loss_pct` is the relative MPJPE increase over FP32. `bound_pct` is the mean joint
+    distance to the FP32 poses relative to the FP32 MPJPE: by the triangle inequality it
+    bounds |loss_pct| from above and, unlike the loss, cannot look good by luck; the
+    exclusion search budgets on it.
+    """
+    session = StepSession(model, threads=threads)
+    preds = [onnx_stream(session, x, holdout.window_ms) for x in holdout.lnes]
+    base = holdout.fp32_mpjpe
+    value = _pooled_mpjpe(preds, holdout.gt)
+    deviation = float(joint_errors(np.concatenate(preds), np.concatenate(holdout.fp32)).mean())
+    return {
+        "mpjpe_mm": value,
+        "fp32_mpjpe_mm": base,
+        "loss_pct": 100.0 * (value - base) / base,
+        "deviation_from_fp32_mm": deviation,
+        "bound_pct": 100.0 * deviation / base,
+    }

@@ -1,0 +1,53 @@
+"""Session-scoped data and graphs shared by test_quantize.py and test_validate.py."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import e3dpsm
+from e3dpsm.camera import ee3d_default
+from e3dpsm.data.layout import write_dataset_index, write_synthetic_sequence
+from e3dpsm.data.prepare import prepare_dataset
+from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
+
+SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
+
+
+def make_prepared(root: Path, seconds: float = 1.0) -> Path:
+    """Four short synthetic sequences (2 train, 1 val, 1 test), prepared at 20 ms, 192 x 256.
+    Coarse rendering keeps it to a few seconds; the events are still real simulator output."""
+    raw, prepared = root / "raw", root / "prepared"
+    camera = ee3d_default()
+    config = SynthConfig(seed=7, seconds=seconds, render_hz=50, render_scale=0.25)
+    for index in range(4):
+        seq, _ = generate_sequence(config, index, camera)
+        write_synthetic_sequence(raw / seq.name, seq, camera.to_json())
+    write_dataset_index(raw, SPLITS, {"seed": 7})
+    prepare_dataset(raw, prepared, window_ms=20.0, progress=False)
+    return prepared
+
+
+def mean_pose_model(data: Path, **overrides) -> torch.nn.Module:
+    """The tiny variant with its pose prior at the training split's mean pose."""
+    from e3dpsm.data.prepared import PreparedData
+
+    train = PreparedData.open(data).split("train")
+    mean = np.concatenate([s.j3d_mm for s in train]).mean(axis=0)
+    model = e3dpsm.create_model("tiny", **overrides).eval()
+    model.set_pose_prior(torch.from_numpy(mean.astype(np.float32)))
+    return model
+
+
+@pytest.fixture(scope="session")
+def quant_data(tmp_path_factory) -> Path:
+    return make_prepared(tmp_path_factory.mktemp("quant_data"))
+
+
+@pytest.fixture(scope="session")
+def tiny_graph(tmp_path_factory, quant_data) -> Path:
+    from e3dpsm.export import export_step
+
+    return export_step(mean_pose_model(quant_data), tmp_path_factory.mktemp("graphs") / "tiny.onnx")
