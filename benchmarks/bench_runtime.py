@@ -18,6 +18,8 @@
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,36 +38,45 @@ CHUNK_EVENTS = 100_000
 OVERHEAD_TARGET = 0.10
 
 
-def export_variant(name: str, folder: Path, **overrides) -> Path:
-    """An untrained graph of variant `name` (timing does not depend on the weights)."""
-    import torch
+def export_variant(name: str, folder: Path, **overrides: int) -> Path:
+    """An untrained graph of variant `name` (timing does not depend on the weights).
 
-    import e3dpsm
-    from e3dpsm.export import export_step
-
-    torch.manual_seed(0)
-    suffix = "_".join(f"{k}{v}" for k, v in overrides.items())
-    return export_step(e3dpsm.create_model(name, **overrides).eval(), folder / f"{name}{suffix}.onnx")
+    Exported in a child process so this one never imports torch: the figures (RSS above
+    all) are those of a process with numpy and onnxruntime only, as on a device.
+    """
+    suffix = "".join(f"_{k}{v}" for k, v in overrides.items())
+    path = folder / f"{name}{suffix}.onnx"
+    code = (
+        "import torch, e3dpsm; from e3dpsm.export import export_step; torch.manual_seed(0); "
+        f"export_step(e3dpsm.create_model({name!r}, **{overrides!r}).eval(), {str(path)!r})"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, stdout=subprocess.DEVNULL)
+    return path
 
 
 def synthetic_chunks(
     windows: int, events_per_window: float, seed: int, silent_fraction: float = 0.0,
 ) -> Iterator[tuple[np.ndarray, ...]]:
-    """Chunks of ~CHUNK_EVENTS sorted events covering `windows` windows, generated lazily so a
-    long stream never sits in memory. Poisson counts per window; a window is silent with
-    probability `silent_fraction` (at least one event per chunk keeps the stream moving)."""
+    """Chunks of ~CHUNK_EVENTS sorted events over windows [kT, (k+1)T), k = 0..windows,
+    generated lazily so a long stream never sits in memory. Poisson counts per window; a
+    window is silent with probability `silent_fraction`, except the first and last of each
+    chunk (so window `windows`, one past the end, closes the last one)."""
     rng = np.random.default_rng(seed)
     per_chunk = max(1, int(CHUNK_EVENTS // max(events_per_window, 1)))
     for first in range(0, windows + 1, per_chunk):  # +1: one window past the end closes the last
         count = min(per_chunk, windows + 1 - first)
         n_per = rng.poisson(events_per_window, count)
         n_per[rng.random(count) < silent_fraction] = 0
-        n_per[0] = max(n_per[0], 1)
+        n_per[[0, -1]] = np.maximum(n_per[[0, -1]], 1)
         window_of = np.repeat(np.arange(first, first + count), n_per)
         t = window_of * WINDOW_US + rng.integers(0, WINDOW_US, window_of.size)
         t.sort()
         n = t.size
-        yield (rng.integers(0, SENSOR_HW[1], n), rng.integers(0, SENSOR_HW[0], n), t, rng.integers(0, 2, n))
+        # The canonical dtypes `read_events` returns, as `e3dpsm run` feeds them.
+        yield (
+            rng.integers(0, SENSOR_HW[1], n, dtype=np.int32), rng.integers(0, SENSOR_HW[0], n, dtype=np.int32),
+            t.astype(np.int64), rng.integers(0, 2, n, dtype=np.uint8),
+        )
 
 
 def bench_overhead(model: Path, windows: int, threads: int) -> dict:
@@ -89,7 +100,8 @@ def bench_overhead(model: Path, windows: int, threads: int) -> dict:
 
 def bench_endurance(model: Path, steps: int, threads: int) -> dict:
     process = psutil.Process()
-    estimator = StreamingPoseEstimator(model, threads=threads)
+    # Grid anchored at 0 and an event in the window after the last: exactly `steps` windows.
+    estimator = StreamingPoseEstimator(model, threads=threads, start_us=0)
     checkpoints = {"start": min(1_000, steps // 4), "middle": steps // 2}  # start: after warm-up
     rss_mb: dict[str, float] = {}
     max_abs_pose = 0.0
@@ -111,7 +123,7 @@ def bench_endurance(model: Path, steps: int, threads: int) -> dict:
         "empty_windows": s["empty_windows"], "events": s["events"], "seconds": time.perf_counter() - began,
         "mean_step_ms": s["mean_step_ms"], "overhead_ms": s["mean_overhead_ms"],
         "all_poses_finite": nonfinite == 0, "nonfinite_poses": nonfinite, "final_state_finite": state_finite,
-        "max_abs_pose_mm": max_abs_pose, "rss_mb": rss_mb,
+        "max_abs_pose_mm": max_abs_pose, "rss_mb": rss_mb, "torch_imported": "torch" in sys.modules,
         "rss_growth_mb": rss_mb.get("end", float("nan")) - rss_mb.get("start", float("nan")),
     }
 

@@ -27,13 +27,13 @@ from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
 
 TARGET_WALL_S = 180.0
-# Stage -> the function whose cumulative time measures it.
+# Stage -> (module file, function) whose cumulative time measures it.
 STAGES = {
-    "motion_and_kinematics": "make_trajectory",
-    "render_total": "render",
-    "render_room": "_room_intensity",
-    "event_simulation": "step",
-    "visibility": "occlusion",
+    "motion_and_kinematics": ("motion.py", "make_trajectory"),
+    "render_total": ("render.py", "render"),
+    "render_room": ("render.py", "_room_intensity"),
+    "event_simulation": ("event_sim.py", "step"),
+    "visibility": ("generator.py", "occlusion"),
 }
 
 
@@ -44,9 +44,9 @@ def stage_breakdown(seconds: float) -> dict[str, float]:
     total = time.perf_counter() - start
     stats = pstats.Stats(profiler).stats
     out = {"sequence_s": seconds, "total_s": total}
-    for stage, func in STAGES.items():
+    for stage, (module, func) in STAGES.items():
         out[f"{stage}_s"] = sum(v[3] for (path, _, name), v in stats.items()
-                                if name == func and "synth" in path)
+                                if name == func and path.endswith(f"synth/{module}"))
     out["render_body_s"] = out["render_total_s"] - out["render_room_s"]
     return out
 
@@ -58,7 +58,11 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--profile-seconds", type=float, default=2.0)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "synth.json"))
+    parser.add_argument("--breakdown-only", action="store_true", help="print the stage breakdown and exit")
     args = parser.parse_args()
+    if args.breakdown_only:
+        print(stage_breakdown(args.profile_seconds))
+        return 0
 
     config = SynthConfig(seed=0, seconds=args.seconds)
     load_before = os.getloadavg()

@@ -16,9 +16,10 @@ import numpy as np
 import onnx
 from onnx import TensorProto, numpy_helper
 
+from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.profiles.flops import FlopCount, grid_sample_macs, recurrence_macs
-from e3dpsm.profiles.graph_groups import assign_groups
+from e3dpsm.profiles.graph_groups import assign_groups, node_key
 
 DENSE_OPS = ("Conv", "Gemm", "MatMul")
 # Nodes that do arithmetic on every output value (reported as "elementwise", not in MACs).
@@ -32,8 +33,6 @@ Shapes = dict[str, tuple[int, ...]]
 
 
 def load_graph(path: str | os.PathLike) -> onnx.ModelProto:
-    from e3dpsm.errors import DataError
-
     try:
         return onnx.load(str(path))
     except FileNotFoundError:
@@ -128,7 +127,7 @@ def count_onnx(model: onnx.ModelProto | str | os.PathLike) -> FlopCount:
     for module in result.modules.values():
         module.elementwise = 0
     for node in model.graph.node:
-        group = groups[node.name or node.output[0]]
+        group = groups[node_key(node)]
         if node.op_type in DENSE_OPS:
             result.add(group, "dense", _dense_macs(node, shapes))
         elif node.op_type == "GridSample":

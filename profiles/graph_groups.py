@@ -6,8 +6,8 @@
 2. S5 anchors: the model calls its S5 blocks through `block.step(...)`, which the tracer does
    not scope, so their nodes carry bare names (`/Mul_3`, `/norm1/...`). Nodes reading or
    writing an `s5_*` state are S5 work, and so is every unscoped node connected to them by
-   float tensors (integer tensors are shape arithmetic, shared across modules: not followed).
-3. The remaining unscoped nodes take the group their labelled float producers agree on, else
+   activation tensors (float or 8-bit; int64 shape arithmetic is shared: not followed).
+3. The remaining unscoped nodes take the group their labelled producers agree on, else
    the one their consumers agree on (repeated until nothing changes); leftovers are "other".
 """
 from __future__ import annotations
@@ -19,7 +19,10 @@ from onnx import TensorProto
 
 from e3dpsm.profiles.flops import OTHER, group_of
 
-_FLOAT_TYPES = {TensorProto.FLOAT, TensorProto.FLOAT16, TensorProto.DOUBLE, TensorProto.BFLOAT16}
+# Activation types: float, and 8-bit for the quantised tensors of QDQ graphs. int64 / int32
+# tensors are shape arithmetic, shared across modules, so labels never travel along them.
+_DATA_TYPES = {TensorProto.FLOAT, TensorProto.FLOAT16, TensorProto.DOUBLE, TensorProto.BFLOAT16,
+               TensorProto.UINT8, TensorProto.INT8}
 _SSM_STATE_PREFIX = "s5_"
 
 
@@ -41,7 +44,10 @@ def node_key(node: onnx.NodeProto) -> str:
 def assign_groups(model: onnx.ModelProto, dtypes: dict[str, int]) -> dict[str, str]:
     """node key (name, or first output if unnamed) -> group name."""
     nodes = list(model.graph.node)
-    is_float = lambda tensor: dtypes.get(tensor, TensorProto.FLOAT) in _FLOAT_TYPES  # noqa: E731
+
+    def is_activation(tensor: str) -> bool:
+        return dtypes.get(tensor, TensorProto.FLOAT) in _DATA_TYPES
+
     producer: dict[str, int] = {}
     consumers: dict[str, list[int]] = defaultdict(list)
     for i, node in enumerate(nodes):
@@ -50,25 +56,25 @@ def assign_groups(model: onnx.ModelProto, dtypes: dict[str, int]) -> dict[str, s
         for tensor in node.input:
             consumers[tensor].append(i)
 
-    def float_producers(i: int) -> list[int]:
-        return [producer[t] for t in nodes[i].input if t in producer and is_float(t)]
+    def data_producers(i: int) -> list[int]:
+        return [producer[t] for t in nodes[i].input if t in producer and is_activation(t)]
 
-    def float_consumers(i: int) -> list[int]:
-        return [j for t in nodes[i].output if is_float(t) for j in consumers.get(t, ())]
+    def data_consumers(i: int) -> list[int]:
+        return [j for t in nodes[i].output if is_activation(t) for j in consumers.get(t, ())]
 
     labels: list[str | None] = []
     for node in nodes:
         found = next((g for g in map(scope_group, [node.name, *node.output]) if g), None)
         labels.append(found)
 
-    # S5 anchors and their float-connected unscoped neighbourhood.
+    # S5 anchors and their unscoped neighbourhood.
     queue = [i for i, node in enumerate(nodes) if labels[i] is None and any(
         t.startswith(_SSM_STATE_PREFIX) for t in (*node.input, *node.output))]
     for i in queue:
         labels[i] = "ssm"
     while queue:
         i = queue.pop()
-        for j in (*float_producers(i), *float_consumers(i)):
+        for j in (*data_producers(i), *data_consumers(i)):
             if labels[j] is None and nodes[j].op_type != "Constant":
                 labels[j] = "ssm"
                 queue.append(j)
@@ -79,7 +85,7 @@ def assign_groups(model: onnx.ModelProto, dtypes: dict[str, int]) -> dict[str, s
         for i in range(len(nodes)):
             if labels[i] is not None:
                 continue
-            for neighbours in (float_producers(i), float_consumers(i)):
+            for neighbours in (data_producers(i), data_consumers(i)):
                 found = {labels[j] for j in neighbours if labels[j] is not None}
                 if len(found) == 1:
                     labels[i] = found.pop()

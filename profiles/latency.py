@@ -7,7 +7,7 @@ from elsewhere on a shared machine hits all of them rather than one.
 from __future__ import annotations
 
 import time
-from typing import Any, Mapping, Protocol
+from typing import Any, Callable, Mapping, Protocol
 
 import numpy as np
 
@@ -98,14 +98,16 @@ class OpenVinoRunner:
     def step(self, lnes: np.ndarray) -> None:
         feeds = {self.meta.frame_input["name"]: lnes, self.meta.window_input["name"]: self.window, **self.state}
         results = self.request.infer(feeds)
-        by_name = {port.get_any_name(): value for port, value in results.items()}
+        # A port can carry several names (fusion_pose_out is an Identity of pose): map them all.
+        by_name = {name: value for port, value in results.items() for name in port.get_names()}
         self.state = {s.input_name: by_name[s.output_name] for s in self.meta.states}
 
 
 def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, steps: int, warmup: int,
-                         chunk: int = 25) -> dict[str, np.ndarray]:
+                         chunk: int = 25, on_chunk: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Seconds per step for every runner: `warmup` untimed steps each, then `steps` timed
-    steps, in rounds of `chunk` steps per runner. Step k uses frame k (mod the frame count)."""
+    steps, in rounds of `chunk` steps per runner. Step k uses frame k (mod the frame count).
+    `on_chunk(n)` is called after every n timed steps of a runner (progress bars)."""
     for runner in runners.values():
         runner.reset()
         for k in range(warmup):
@@ -120,6 +122,8 @@ def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, 
                 runner.step(frame)
                 times[name][k] = time.perf_counter() - t0
                 position[name] += 1
+            if on_chunk is not None:
+                on_chunk(min(chunk, steps - start))
     return times
 
 

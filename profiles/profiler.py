@@ -94,7 +94,7 @@ def _ort_profile(target: Target, graphs: Mapping[str, Path | None], frames: Fram
 
 def profile_targets(
     targets: Sequence[Target], graphs: Mapping[str, Path | None], model: Any, frames: Frames,
-    settings: ProfileSettings, checkpoint: str | None = None,
+    settings: ProfileSettings, checkpoint: str | None = None, progress: bool = False,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The report body (without the header) and the per-target step times (seconds)."""
     graph = load_graph(graphs["fp32"])
@@ -126,8 +126,12 @@ def profile_targets(
                              model_bytes=_model_bytes(target, graphs, model, checkpoint))
         entries.append(entry)
 
-    with RssSampler() as overall:
-        times = measure_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk)
+    from tqdm import tqdm
+
+    with RssSampler() as overall, tqdm(total=settings.steps * len(runners), desc="timed steps", unit="step",
+                                       disable=not progress) as bar:
+        times = measure_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk,
+                                     on_chunk=bar.update)
     threads = targets[0].threads if targets else 1
     peak = matmul_peak_gflops(threads)
     for entry in entries:

@@ -50,7 +50,7 @@ def _params(value: int | None) -> str:
 
 def target_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
     rows = ["| target | available | p50 ms | p90 ms | p99 ms | Hz (p50) | GFLOP/s | of matmul peak | "
-            "peak RSS MB | model MB | reason |", "|" + "---|" * 11]
+            "peak RSS MB | RSS growth MB | model MB | reason |", "|" + "---|" * 12]
     for t in targets:
         lat = t.get("latency_ms") or {}
         share = t.get("peak_fraction")
@@ -58,7 +58,7 @@ def target_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
             f"| {t['name']} | {'yes' if t['available'] else 'no'} | {_g(lat.get('p50'))} | {_g(lat.get('p90'))} | "
             f"{_g(lat.get('p99'))} | {_g(t.get('hz'))} | {_g(t.get('gflops_achieved'))} | "
             f"{'-' if share is None else format(100 * share, '.0f') + '%'} | "
-            f"{_g(t.get('peak_rss_mb'), 4)} | {_g((t.get('model_bytes') or 0) / 1e6 or None)} | {t.get('reason') or ''} |"
+            f"{_g(t.get('peak_rss_mb'), 4)} | {_g(t.get('rss_growth_mb'))} | {_g((t.get('model_bytes') or 0) / 1e6 or None)} | {t.get('reason') or ''} |"
         )
     return rows
 
@@ -85,7 +85,9 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
     lines += module_table(primary, secondary)
     if counting.get("relative_difference") is not None:
         lines += ["", f"PyTorch vs ONNX MACs differ by {100 * counting['relative_difference']:.3f}%."]
-    lines += ["", "## Latency per target", "", *target_table(report["targets"]), ""]
+    lines += ["", "## Latency per target", "", *target_table(report["targets"]), "",
+              "Peak RSS is the whole process while the target loads and runs its first steps (it includes "
+              "Python, torch and the targets loaded before it); RSS growth is the increase during that phase.", ""]
     if report.get("ratios"):
         lines += ["Median ratios (speed-up = slower p50 / faster p50):", ""]
         lines += [f"- {name}: **{value:.2f}x**" for name, value in report["ratios"].items()]
@@ -126,13 +128,19 @@ def plot_latency(times_ms: Mapping[str, np.ndarray], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 0.6 * len(times_ms) + 1.5))
     names = list(times_ms)
-    ax.boxplot([times_ms[n] for n in names], vert=False, showfliers=True, whis=(1, 99))
+    # matplotlib 3.10 replaced `vert` by `orientation`
+    horizontal = {"orientation": "horizontal"} if _version(matplotlib.__version__) >= (3, 10) else {"vert": False}
+    ax.boxplot([times_ms[n] for n in names], showfliers=True, whis=(1, 99), **horizontal)
     ax.set_yticks(range(1, len(names) + 1), names)
     ax.set_xlabel("latency per pose update (ms); whiskers p1-p99")
     ax.set_title("Step latency per target")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _version(text: str) -> tuple[int, ...]:
+    return tuple(int(part) for part in text.split(".")[:2] if part.isdigit())
 
 
 def plot_macs(counts: Mapping[str, Any], path: Path) -> None:

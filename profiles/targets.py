@@ -6,7 +6,7 @@ import sys
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 from e3dpsm.errors import ConfigError
 
@@ -133,7 +133,3 @@ def availability(target: Target, graphs: Mapping[str, Path | None], has_torch_mo
     if graphs.get(target.graph) is None:
         return Availability(False, GRAPH_HINTS[target.graph])
     return Availability(True)
-
-
-def needed_graphs(targets: Sequence[Target]) -> set[str]:
-    return {t.graph for t in targets if t.graph != "none"}

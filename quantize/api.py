@@ -160,7 +160,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                    state_source=options.state_source, seed=options.seed, threads=options.threads)
     cache = work / "calibration.json"
     out = work / "int8.onnx"
-    calib_seconds = quantize_int8(pre, out, config, exclude=fixed or keep, calibration=calib, cache=cache)
+    calib_seconds = quantize_int8(pre, out, config, exclude=keep if fixed is None else fixed,
+                                  calibration=calib, cache=cache)
     search = None
     if fixed is None:
         def evaluate(excluded: list[str], label: str) -> float:

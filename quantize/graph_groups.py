@@ -178,8 +178,12 @@ def recurrent_groups(model: onnx.ModelProto, meta: GraphMetadata | None = None) 
 
 
 def module_scopes(model: onnx.ModelProto) -> dict[str, str]:
-    """Node name -> module scope ("" if none). Unscoped nodes (onnxsim renames, functional
-    code) take the scope of their output tensor's name, else of a neighbour."""
+    """Node name -> module scope ("" if none).
+
+    Nodes onnxsim renamed (no leading "/": `Gemm_3`) take the scope of their output
+    tensor's name, else of a non-constant neighbour. Top-level exporter names (`/Mul_12`,
+    the functional S5 step) stay unscoped: they belong to no module.
+    """
     index = GraphIndex(model)
 
     def scope_of(text: str) -> str:
@@ -189,12 +193,14 @@ def module_scopes(model: onnx.ModelProto) -> dict[str, str]:
     scopes = {}
     for name, node in index.nodes.items():
         scopes[name] = scope_of(name) or next((s for s in map(scope_of, node.output) if s), "")
+    renamed = [n for n in index.nodes if not n.startswith("/") and not scopes[n]]
     for _ in range(8):  # a few sweeps settle chains of renamed nodes
         changed = False
-        for name in index.nodes:
+        for name in renamed:
             if scopes[name]:
                 continue
-            neighbours = index.consumers_of(name) + index.producers_of(name)
+            neighbours = [n for n in index.consumers_of(name) + index.producers_of(name)
+                          if index.nodes[n].op_type != "Constant"]
             found = next((scopes[n] for n in neighbours if scopes[n]), "")
             if found:
                 scopes[name], changed = found, True

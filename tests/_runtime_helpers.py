@@ -15,8 +15,9 @@ SENSOR_HW = (480, 640)
 
 
 @functools.lru_cache(maxsize=1)
-def exported_tiny(folder: str):
-    """(torch model, graph path): exported once per session even when two test modules ask."""
+def exported_tiny(basetemp: str):
+    """(torch model, graph path): exported once per session even when two test modules ask
+    (both pass the session's base temp folder, the cache key)."""
     import torch
 
     import e3dpsm
@@ -26,7 +27,9 @@ def exported_tiny(folder: str):
     model = e3dpsm.create_model("tiny").eval()
     # Poses of realistic magnitude (mm), so the tolerances are checked where they matter.
     model.set_pose_prior(torch.linspace(-800.0, 1200.0, 48).view(16, 3))
-    path = export_step(model, Path(folder) / "tiny_step.onnx")
+    folder = Path(basetemp) / "runtime_graph"
+    folder.mkdir(exist_ok=True)
+    path = export_step(model, folder / "tiny_step.onnx")
     return model, path
 
 

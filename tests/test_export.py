@@ -135,13 +135,13 @@ def test_export_cli_and_parity_cli(tmp_path, prepared_data, capsys) -> None:
     assert main(["export", "--variant", "tiny", "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
     code = main(["parity", "--model", str(out / "step.onnx"), "--variant", "tiny", "--seed", "3",
-                 "--data", str(prepared_data), "--steps", "50", "--window-ms", "20", "50"])
+                 "--data", str(prepared_data), "--steps", "50", "--window-ms", "20", "50", "--threads", "1"])
     assert code == 0
     parity = json.loads((out / "parity-onnxruntime.json").read_text())
     assert parity["passed"] and [r["window_ms"] for r in parity["runs"]] == [20.0, 50.0]
     # The wrong weights fail with exit 1 and a FAIL line.
     code = main(["parity", "--model", str(out / "step.onnx"), "--variant", "tiny", "--seed", "4",
-                 "--data", str(prepared_data), "--steps", "5"])
+                 "--data", str(prepared_data), "--steps", "5", "--threads", "1"])
     assert code == 1 and "FAIL" in capsys.readouterr().out
 
 

@@ -9,16 +9,14 @@ from e3dpsm.graph_metadata import MetadataError
 from e3dpsm.profiles.flops import BILINEAR_TAPS, MODULE_GROUPS, relative_difference
 from e3dpsm.profiles.flops_onnx import count_onnx
 from e3dpsm.profiles.flops_torch import count_torch
+from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
 
 AGREEMENT = 0.02  # the tolerance between the two counters
 
 
 @pytest.fixture(scope="session")
-def tiny_graph(tmp_path_factory, tiny_model) -> onnx.ModelProto:
-    from e3dpsm.export import export_step
-
-    path = export_step(tiny_model, tmp_path_factory.mktemp("flops") / "tiny.onnx")
-    return onnx.load(str(path))
+def tiny_graph(tiny_step_graph) -> onnx.ModelProto:
+    return onnx.load(str(tiny_step_graph))
 
 
 @pytest.fixture(scope="session")

@@ -14,6 +14,7 @@ from e3dpsm.profiles.inputs import synthetic_frames
 from e3dpsm.profiles.latency import latency_summary, measure_side_by_side
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.targets import Target, availability, load_targets, select_targets
+from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
 
 REQUIRED_TARGETS = {
     ("torch", "cpu", "fp32"), ("onnxruntime", "CPUExecutionProvider", "fp32"),
@@ -21,13 +22,6 @@ REQUIRED_TARGETS = {
     ("openvino", "CPU", "fp32"), ("onnxruntime", "CUDAExecutionProvider", "fp32"),
     ("onnxruntime", "TensorrtExecutionProvider", "fp16"), ("onnxruntime", "TensorrtExecutionProvider", "int8"),
 }
-
-
-@pytest.fixture(scope="session")
-def tiny_step_graph(tmp_path_factory, tiny_model):
-    from e3dpsm.export import export_step
-
-    return export_step(tiny_model, tmp_path_factory.mktemp("profile") / "tiny.onnx")
 
 
 # -- targets -----------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from e3dpsm.errors import InputError
 from e3dpsm.events import window_bounds
 from e3dpsm.runtime import EventWindower, StreamingPoseEstimator
-from tests._runtime_helpers import (
+from _runtime_helpers import (
     SENSOR_HW, WINDOW_US, chunked, exported_tiny, reference_frames, shared_session, step_frames, synthetic_stream,
 )
 
@@ -25,7 +25,7 @@ cut_points = st.lists(st.integers(0, N_EVENTS), max_size=12)
 
 @pytest.fixture(scope="session")
 def session(tmp_path_factory):
-    return shared_session(str(exported_tiny(str(tmp_path_factory.mktemp("runtime_graph")))[1]))
+    return shared_session(str(exported_tiny(str(tmp_path_factory.getbasetemp()))[1]))
 
 
 @pytest.fixture(scope="module")

@@ -81,6 +81,14 @@ def test_skeleton_is_rigid_and_timed_at_the_pose_rate(synth_seq):
     assert len(set(seq.action.tolist())) == 2 and seq.action.max() < len(ACTIONS)
 
 
+def test_action_changes_are_smooth(synth_seq):
+    seq, _ = synth_seq
+    step = np.linalg.norm(np.diff(seq.j3d_m, axis=0), axis=-1)  # metres per 20 ms
+    assert np.count_nonzero(np.diff(seq.action)) == 1  # the sequence does switch actions
+    # 0.3 m in 20 ms is 15 m/s: faster than any limb; an unblended switch of poses jumps ~1 m.
+    assert step.max() < 0.3
+
+
 def test_same_seed_same_data_other_seed_other_data():
     a, _ = generate_sequence(SMALL, 0)
     b, _ = generate_sequence(SMALL, 0)

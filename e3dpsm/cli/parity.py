@@ -38,6 +38,11 @@ def make_runner(path: str, runtime: str, threads: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
+
+    # PyTorch and the graph alternate on the same cores: OpenMP workers that busy-wait after
+    # each PyTorch step would starve the other runtime (only effective before torch loads).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
     from e3dpsm.data.streams import prepared_frames, synthetic_frames

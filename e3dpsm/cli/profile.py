@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 from e3dpsm.cli._common import positive_int
@@ -40,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--profile-steps", type=int, default=50,
                    help="steps of the separate onnxruntime profiling run per ORT target (0: none; default 50)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p
 
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     graphs: dict[str, Path | None] = {"fp32": _existing(args.model, "--model"),
                                       "int8": _existing(args.int8_model, "--int8-model"),
                                       "fp16": _existing(args.fp16_model, "--fp16-model")}
-    for precision, path in graphs.items():
+    for path in graphs.values():
         if path is not None:
             GraphMetadata.from_onnx(load_graph(path), source=str(path))  # MetadataError if it has none
 
@@ -94,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
                   else synthetic_frames(min(frames_needed, 400), height, width, meta.train_window_ms))
         settings = ProfileSettings(steps=args.steps, warmup=args.warmup, ort_profile_steps=args.profile_steps)
         log.info("profiling %d target(s) on %s", len(targets), frames.source)
-        body, times = profile_targets(targets, graphs, model, frames, settings, checkpoint=args.checkpoint)
+        body, times = profile_targets(targets, graphs, model, frames, settings, checkpoint=args.checkpoint,
+                                      progress=not args.no_progress and sys.stderr.isatty())
 
         variant = meta.config.get("variant", "?")
         report = report_header("profile", {k: v for k, v in vars(args).items() if k != "func"})

@@ -15,7 +15,12 @@ import csv
 import os
 import sys
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
+
+if TYPE_CHECKING:  # pragma: no cover
+    from e3dpsm.data.sequence import EventStream
+    from e3dpsm.runtime import StreamingPoseEstimator
+    from e3dpsm.runtime.stream import EventChunk
 
 DEFAULT_CHUNK_EVENTS = 100_000
 
@@ -53,7 +58,6 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.data.readers import read_events
     from e3dpsm.errors import ConfigError, DataError, OutputExistsError
     from e3dpsm.runtime import StepSession, StreamingPoseEstimator
-    from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
     out = Path(args.out)
@@ -75,59 +79,71 @@ def run(args: argparse.Namespace) -> int:
     )
     chunks = _chunks(stream, args.chunk_events)
     if not args.no_progress and sys.stderr.isatty():
-        chunks = _with_progress(chunks, len(stream), args.chunk_events)
-    rows = [[pose.t_us, *pose.pose.reshape(-1).tolist()] for pose in estimator.run(chunks)]
-    stats = estimator.stats
-    if not rows:  # documented choice: an error, not an empty CSV
-        if not len(stream):
-            raise DataError(f"{args.events}: the event stream is empty; nothing to estimate")
-        span = int(stream.t_us[-1] - stream.t_us[0])
-        skipped = f", {stats.events_before_start} of them before --start-us" if stats.events_before_start else ""
-        raise DataError(
-            f"{args.events}: no complete {estimator.window_ms:g} ms window in {len(stream)} events spanning "
-            f"{span} us{skipped}; nothing to estimate"
-        )
-    summary = stats.to_dict()
-    summary["overhead_ms"] = summary["mean_overhead_ms"]  # per window: windowing + LNES + validation
-    header = ["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")]
-    meta = estimator.session.meta
-    report = {
-        **report_header("run", {
-            "model": str(args.model), "events": str(args.events), "out": str(out),
-            "window_ms": estimator.window_ms, "threads": args.threads, "start_us": args.start_us,
-            "chunk_events": args.chunk_events,
-        }),
-        "graph": {"variant": meta.config.get("variant"), "quantization": meta.quantization,
-                  "frame_hw": list(estimator.frame_hw)},
-        "sensor_hw": list(estimator.sensor_hw),
-        "first_window_start_us": int(rows[0][0]) - estimator.window_us,
-        "last_pose_t_us": int(rows[-1][0]),
-        "pose_timestamp": "window end",
-        "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
-        "events_in_file": len(stream),
-        **summary,
-    }
+        chunks = _with_progress(chunks, len(stream))
+
+    # Rows go to the temporary CSV as they come (memory stays flat on long recordings); both
+    # files appear under their names only once the whole stream ran.
     with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path(out), suffix=".json") as tmp_report:
         with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
             writer = csv.writer(fh)
-            writer.writerow(header)
-            writer.writerows([row[0], *(f"{v:.4f}" for v in row[1:])] for row in rows)
+            writer.writerow(["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")])
+            for pose in estimator.run(chunks):
+                writer.writerow([pose.t_us, *(f"{v:.4f}" for v in pose.pose.reshape(-1).tolist())])
+        if estimator.stats.windows == 0:  # documented choice: an error, not an empty CSV
+            raise _no_window_error(args.events, stream, estimator)
+        report = _report(args, out, estimator, len(stream))
         write_json_atomic(tmp_report, report)
     print(
-        f"{stats.windows} poses ({stats.empty_windows} empty windows, {stats.events} events) at "
-        f"{summary['mean_step_ms']:.2f} ms/step + {summary['overhead_ms']:.2f} ms runtime "
-        f"overhead -> {out}"
+        f"{report['windows']} poses ({report['empty_windows']} empty windows, {report['events']} events) at "
+        f"{report['mean_step_ms']:.2f} ms/step + {report['overhead_ms']:.2f} ms runtime overhead -> {out}"
     )
     return 0
 
 
-def _chunks(stream, size: int) -> Iterator[tuple]:
+def _report(args: argparse.Namespace, out: Path, estimator: StreamingPoseEstimator, events_in_file: int) -> dict:
+    from e3dpsm.utils.env import report_header
+
+    summary = estimator.stats.to_dict()
+    meta = estimator.session.meta
+    config = {
+        "model": str(args.model), "events": str(args.events), "out": str(out), "window_ms": estimator.window_ms,
+        "threads": args.threads, "start_us": args.start_us, "chunk_events": args.chunk_events,
+    }
+    return {
+        **report_header("run", config),
+        "graph": {"variant": meta.config.get("variant"), "quantization": meta.quantization,
+                  "frame_hw": list(estimator.frame_hw)},
+        "sensor_hw": list(estimator.sensor_hw),
+        "first_window_start_us": estimator.first_window_start_us,
+        "pose_timestamp": "window end",
+        "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
+        "events_in_file": events_in_file,
+        **summary,
+        "overhead_ms": summary["mean_overhead_ms"],  # per window: validation, windowing, LNES, feeds
+    }
+
+
+def _no_window_error(events: str, stream: EventStream, estimator: StreamingPoseEstimator) -> Exception:
+    from e3dpsm.errors import DataError
+
+    if not len(stream):
+        return DataError(f"{events}: the event stream is empty; nothing to estimate")
+    span = int(stream.t_us[-1] - stream.t_us[0])
+    skipped = estimator.stats.events_before_start
+    before = f", {skipped} of them before --start-us" if skipped else ""
+    return DataError(
+        f"{events}: no complete {estimator.window_ms:g} ms window in {len(stream)} events spanning "
+        f"{span} us{before}; nothing to estimate"
+    )
+
+
+def _chunks(stream: EventStream, size: int) -> Iterator[EventChunk]:
     for lo in range(0, len(stream), size):
         hi = lo + size
         yield stream.x[lo:hi], stream.y[lo:hi], stream.t_us[lo:hi], stream.p[lo:hi]
 
 
-def _with_progress(chunks: Iterator[tuple], total_events: int, size: int) -> Iterator[tuple]:
+def _with_progress(chunks: Iterator[EventChunk], total_events: int) -> Iterator[EventChunk]:
     try:
         from tqdm import tqdm
     except ImportError:  # devices without tqdm run without a bar

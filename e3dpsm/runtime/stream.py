@@ -97,6 +97,7 @@ class EventWindower:
         self.explicit_start = start_us is not None
         self.next_start_us: int | None = None if start_us is None else int(start_us)
         self.last_t_us: int | None = None  # newest event timestamp received
+        self.first_event_us: int | None = None
         self.skipped_before_start = 0
         # Earliest timestamp still acceptable: the latest event, or the start of the window
         # being filled once windows were closed (a flush may close time no event reached).
@@ -118,6 +119,8 @@ class EventWindower:
                 f"{self._floor_us} us (the latest event, or the start of the window being filled); "
                 "the stream must be sorted by time"
             )
+        if self.first_event_us is None:
+            self.first_event_us = int(t[0])
         self.last_t_us = int(t[-1])
         self._floor_us = self.last_t_us  # >= the old floor: the chunk passed the check above
         if self.next_start_us is None:
@@ -220,6 +223,11 @@ class StreamingPoseEstimator:
         self.state: StateArrays = self.session.init_state(1)
         self.stats = StreamStats()
         self._window_feed = np.full(1, self.window_ms, dtype=np.float32)
+
+    @property
+    def first_window_start_us(self) -> int | None:
+        """Start of window 0 of the grid (None until the first event, without start_us)."""
+        return self._start_us if self._start_us is not None else self.windower.first_event_us
 
     def push(self, x: np.ndarray, y: np.ndarray, t_us: np.ndarray, p: np.ndarray) -> list[PoseEstimate]:
         """Add a chunk of events; returns the poses of the windows it completed."""

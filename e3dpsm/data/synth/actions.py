@@ -87,23 +87,25 @@ def _crouch(rng, shape):
     return fn
 
 
-def _prone_pitch(reach: float, body_len: float) -> float:
-    """Lean from vertical that puts hands and feet (or knees) on the floor."""
-    return float(np.arccos(np.clip(reach / body_len, 0.0, 0.95)))
+def _prone_pitch(reach: float, body_len: float) -> np.ndarray | float:
+    """Lean from vertical of a straight body of `body_len` whose shoulders are held
+    `reach` above the ground at its other end (hands and feet, or hands and knees)."""
+    return np.arccos(np.clip(reach / body_len, 0.0, 0.95))
 
 
 def _pushup(rng, shape):
     period = rng.uniform(1.4, 2.6)
-    arm = shape.upper_arm + shape.forearm
-    pitch = _prone_pitch(arm, shape.spine + shape.thigh + shape.shin + 0.1)
+    body_len = shape.spine + shape.thigh + shape.shin + 0.8 * shape.foot
 
     def fn(t):
         d = 0.5 * (1 - np.cos(2 * np.pi * t / period))
+        elbow = 0.1 + 1.3 * d
+        # Upper arms stay vertical; the bent forearm sets the shoulder height.
+        lean = _prone_pitch(shape.upper_arm + shape.forearm * np.cos(elbow), body_len)
         m = Motion.rest(t.size)
-        lean = pitch + 0.35 * d
         for side in "rl":
-            m.set(**{f"{side}_sh_flex": lean - 0.1 - 0.5 * d, f"{side}_sh_abd": 0.25 + 0.2 * d,
-                     f"{side}_elbow": 0.1 + 1.4 * d, f"{side}_knee": 0.05, f"{side}_ankle": 0.6})
+            m.set(**{f"{side}_sh_flex": lean, f"{side}_sh_abd": 0.25, f"{side}_elbow": elbow,
+                     f"{side}_knee": 0.05, f"{side}_ankle": 0.6})
         return m.set(body_pitch=lean, head_pitch=0.35)
     return fn
 
@@ -187,7 +189,8 @@ def _interaction(rng, shape):
 
 def _crawl(rng, shape):
     freq = rng.uniform(0.5, 0.9)
-    pitch = _prone_pitch(shape.upper_arm + shape.forearm - shape.thigh + 0.1, shape.spine)
+    # hands under the shoulders, knees under the hips
+    pitch = _prone_pitch(shape.upper_arm + shape.forearm - shape.thigh, shape.spine)
 
     def fn(t):
         ph = 2 * np.pi * freq * t
@@ -198,8 +201,9 @@ def _crawl(rng, shape):
             s = np.sin(ph + off)
             m.set(**{f"{side}_sh_flex": pitch + 0.25 * s, f"{side}_elbow": 0.1 + 0.2 * np.clip(s, 0, None),
                      f"{side}_hip_flex": pitch - 0.25 * s, f"{side}_knee": 1.5 - 0.2 * s,
-                     f"{side}_ankle": 1.2, f"{side}_sh_abd": 0.1})
-        return m.set(body_pitch=pitch + 0.03 * np.sin(2 * ph), head_pitch=-0.3, head_yaw=0.15 * np.sin(0.5 * ph))
+                     f"{side}_ankle": 1.5, f"{side}_sh_abd": 0.1})  # instep flat on the floor
+        return m.set(body_pitch=pitch + 0.03 * np.sin(2 * ph), head_pitch=-0.3,
+                     head_yaw=0.15 * np.sin(0.5 * ph))
     return fn
 
 

@@ -157,7 +157,8 @@ def forward_kinematics(params: np.ndarray, root_xy: np.ndarray, yaw: np.ndarray,
         pts[:, J[f"{prefix}_wrist"]] = elbow + _apply(r_torso, fore * shape.forearm)
 
         hip = pelvis + _apply(r_pelvis, np.array([0.0, side * shape.hip_width / 2, 0.0]))
-        thigh, shin, shin_normal = _limb(p[f"{low}_hip_flex"], p[f"{low}_hip_abd"], p[f"{low}_knee"], side, -1.0)
+        thigh, shin, shin_normal = _limb(
+            p[f"{low}_hip_flex"], p[f"{low}_hip_abd"], p[f"{low}_knee"], side, -1.0)
         knee = hip + _apply(r_pelvis, thigh * shape.thigh)
         ankle = knee + _apply(r_pelvis, shin * shape.shin)
         # ankle = 0: foot at right angles to the shin; positive points the toes down.

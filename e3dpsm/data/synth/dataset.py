@@ -30,10 +30,13 @@ def split_names(names: list[str]) -> dict[str, list[str]]:
     n_eval = max(1, round(0.1 * n)) if n >= 3 else 0
     n_test = n_eval if n >= 3 else (1 if n == 2 else 0)
     n_train = n - n_test - n_eval
-    return {"train": names[:n_train], "val": names[n_train:n_train + n_eval], "test": names[n_train + n_eval:]}
+    return {"train": names[:n_train], "val": names[n_train:n_train + n_eval],
+            "test": names[n_train + n_eval:]}
 
 
-def _one(config: SynthConfig, index: int, root: Path, preview: bool, progress: bool) -> tuple[SequenceStats, list[str]]:
+def _one(config: SynthConfig, index: int, root: Path, preview: bool,
+         progress: bool) -> tuple[SequenceStats, list[str]]:
+    """Generate and write one sequence (runs in a worker process)."""
     camera = ee3d_default()
     seq, extras = generate_sequence(config, index, camera, progress=progress)
     write_synthetic_sequence(root / seq.name, seq, camera.to_json())
@@ -60,7 +63,8 @@ def write_dataset(out: str | os.PathLike, config: SynthConfig, sequences: int, *
         else:
             with cf.ProcessPoolExecutor(max_workers=min(workers, sequences)) as pool:
                 futures = [pool.submit(_one, config, i, root, preview, False) for i in range(sequences)]
-                for _ in tqdm(cf.as_completed(futures), total=sequences, desc="sequences", disable=not progress):
+                done = cf.as_completed(futures)
+                for _ in tqdm(done, total=sequences, desc="sequences", disable=not progress):
                     pass
                 results = [f.result() for f in futures]
         stats = [r[0] for r in results]

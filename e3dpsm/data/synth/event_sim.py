@@ -68,11 +68,13 @@ class EventSimulator:
         # Greedy refractory filter on an evenly spaced train: skip to the first crossing
         # past the dead time, then keep every `stride`-th one.
         refr = self.params.refractory_us
-        skip = np.where(spacing > 0, np.ceil((self.last_t[idx] + refr - t_first) / np.where(spacing > 0, spacing, 1)), 0)
-        skip = np.clip(np.nan_to_num(skip, nan=0.0, neginf=0.0), 0, None).astype(np.int64)
-        skip = np.where((spacing == 0) & (t_first < self.last_t[idx] + refr), count, skip)
-        stride = np.maximum(1, np.ceil(refr / np.maximum(spacing, 1e-9))).astype(np.int64)
-        stride = np.where(spacing > 0, stride, count + 1)
+        ready_at = self.last_t[idx] + refr  # -inf for pixels that never fired
+        moving = spacing > 0
+        safe_spacing = np.where(moving, spacing, 1.0)
+        skip = np.where(moving, np.ceil((ready_at - t_first) / safe_spacing),
+                        np.where(t_first < ready_at, count, 0))
+        skip = np.clip(np.nan_to_num(skip, neginf=0.0), 0, None).astype(np.int64)
+        stride = np.where(moving, np.maximum(1, np.ceil(refr / safe_spacing)), count + 1).astype(np.int64)
         kept = np.where(count > skip, (count - skip - 1) // stride + 1, 0)
 
         self.ref[idx] += sign * c * count

@@ -66,6 +66,9 @@ def action_order(seed: int) -> np.ndarray:
 
 def generate_sequence(config: SynthConfig, index: int, camera: OcamCamera | None = None,
                       progress: bool = False) -> tuple[Sequence, SequenceExtras]:
+    """Sequence `index` of the data set `config.seed` describes: events in sensor pixels,
+    ground truth at the pose rate (pose f timed at the end of its window, (f+1)/pose_hz).
+    Deterministic: everything is drawn from one Generator seeded by (seed, index)."""
     config.validate()
     camera = camera or ee3d_default()
     rng = np.random.default_rng([config.seed, index])

@@ -63,22 +63,28 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
     return x * x * (3 - 2 * x)
 
 
-def blend_segments(t: np.ndarray, segments, rng: np.random.Generator, shape: BodyShape) -> tuple[Motion, np.ndarray]:
-    """Cross-faded motion over all segments, and the per-sample action label."""
+def blend_segments(t: np.ndarray, segments: list[tuple[int, float, float]], rng: np.random.Generator,
+                   shape: BodyShape) -> tuple[Motion, np.ndarray]:
+    """Cross-faded motion over all segments, and the per-sample action label. The fade is
+    shortened for segments shorter than `BLEND_S` so the weights still sum to one."""
+    blend = min(BLEND_S, min(end - start for _, start, end in segments))
     total = Motion(np.zeros((t.size, len(P))), np.zeros(t.size), np.zeros(t.size), np.zeros(t.size))
     label = np.zeros(t.size, dtype=np.int16)
     for k, (action, start, end) in enumerate(segments):
-        fade_in = np.ones(t.size) if k == 0 else _smoothstep((t - start) / BLEND_S + 0.5)
-        fade_out = np.ones(t.size) if k == len(segments) - 1 else 1 - _smoothstep((t - end) / BLEND_S + 0.5)
+        fade_in = np.ones(t.size) if k == 0 else _smoothstep((t - start) / blend + 0.5)
+        fade_out = np.ones(t.size) if k == len(segments) - 1 else 1 - _smoothstep((t - end) / blend + 0.5)
         weight = fade_in * fade_out
         active = weight > 0
-        fn = make_action(ACTIONS[action], np.random.default_rng(rng.integers(2**63)), shape)
+        label[(t >= start) & (t < end)] = action
+        style_rng = np.random.default_rng(rng.integers(2**63))
+        if not active.any():  # a segment shorter than one sample
+            continue
+        fn = make_action(ACTIONS[action], style_rng, shape)
         m = fn(t[active] - start)
         w = weight[active]
         total.params[active] += w[:, None] * m.params
         for name in ("speed", "yaw_rate", "lift"):
             getattr(total, name)[active] += w * getattr(m, name)
-        label[(t >= start) & (t < end)] = action
     label[t >= segments[-1][2]] = segments[-1][0]
     return total, label
 
@@ -95,7 +101,8 @@ def integrate_root(t: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, room:
     dt = np.diff(t, prepend=t[0])
     pos = np.zeros((t.size, 2))
     yaw = np.zeros(t.size)
-    x, y, h = rng.uniform(-0.3, 0.3) * room.half_x, rng.uniform(-0.3, 0.3) * room.half_y, rng.uniform(-np.pi, np.pi)
+    x, y = rng.uniform(-0.3, 0.3) * room.half_x, rng.uniform(-0.3, 0.3) * room.half_y
+    h = rng.uniform(-np.pi, np.pi)
     limit = np.array([room.half_x, room.half_y]) * 0.55
     for i in range(t.size):
         off = np.array([x, y]) / limit

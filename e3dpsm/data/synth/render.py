@@ -79,7 +79,8 @@ class Renderer:
         self.render_hw, self.block = (h, w), round(1 / scale)
         nty, ntx = h // tile, w // tile
         # [tiles, pixels per tile, 3], tiles in row-major order of the tile grid
-        self.rays = rays.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4).reshape(nty * ntx, tile * tile, 3)
+        tiled = rays.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4)
+        self.rays = tiled.reshape(nty * ntx, tile * tile, 3)
         centre = self.rays.mean(axis=1)
         self.tile_dir = centre / np.linalg.norm(centre, axis=-1, keepdims=True)
         cos_max = np.einsum("tpc,tc->tp", self.rays, self.tile_dir).min(1)
@@ -138,36 +139,35 @@ class Renderer:
         return self._lambert(np.einsum("nc,nc->n", normal, to_light) / np.sqrt(dist2), dist2)
 
     # ---- full frame ---------------------------------------------------------------------
-    def render(self, cam_pos: np.ndarray, cam_rot: np.ndarray, capsules: np.ndarray,
-               radii: np.ndarray, albedo: np.ndarray, forward_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, cam_pos: np.ndarray, cam_rot: np.ndarray, capsules: np.ndarray, radii: np.ndarray,
+               albedo: np.ndarray, forward_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Log intensity [N] and body mask [N] (tile-major pixel order) for one pose.
 
         capsules: [K, 2, 3] end points in the camera frame; radii, albedo: [K];
         forward_cam: the body's forward axis in the camera frame (cloth texture reference).
         """
-        intensity = self._room_intensity(cam_pos, cam_rot)
-        depth = np.full(self.rays.shape[:2], np.inf)
-        shade = intensity.reshape(self.rays.shape[:2])
+        shade = self._room_intensity(cam_pos, cam_rot)
+        depth = np.full(shade.shape, np.inf)
         light_cam = (self.light - cam_pos) @ cam_rot
+        per_tile = np.arange(self.rays.shape[1])
         for k, ((a, b), r) in enumerate(zip(capsules, radii)):
             tiles = self._tiles_near(a, b, r)
             if tiles.size == 0:
                 continue
+            pix = (tiles[:, None] * per_tile.size + per_tile).ravel()
             rays = self.rays[tiles].reshape(-1, 3)
             t = intersect_capsule(rays, a, b, r)
-            closer = t < depth[tiles].ravel()
+            closer = t < depth[pix]
             if not closer.any():
                 continue
-            t_hit = t[closer]
+            t_hit, pix = t[closer], pix[closer]
             p = rays[closer] * t_hit[:, None]
             s, on_axis = closest_on_segment(p, a, b)
             radial = p - on_axis
-            value = albedo[k] * self._cloth(s, radial, a, b, forward_cam, k) * self._light(
+            depth[pix] = t_hit
+            shade[pix] = albedo[k] * self._cloth(s, radial, a, b, forward_cam, k) * self._light(
                 p, radial / r, light_cam)
-            sub_depth, sub_shade = depth[tiles].ravel(), shade[tiles].ravel()
-            sub_depth[closer], sub_shade[closer] = t_hit, value
-            depth[tiles], shade[tiles] = sub_depth.reshape(-1, depth.shape[1]), sub_shade.reshape(-1, depth.shape[1])
-        return np.log(LOG_EPS + shade.ravel()), np.isfinite(depth.ravel())
+        return np.log(LOG_EPS + shade), np.isfinite(depth)
 
     def _tiles_near(self, a: np.ndarray, b: np.ndarray, r: float) -> np.ndarray:
         """Tiles whose cone of rays can meet the capsule. A ray within angle alpha of the

@@ -1,0 +1,129 @@
+"""Step latency and accuracy of fp32 / fp16 / int8-dynamic / int8 static, side by side.
+
+    python benchmarks/bench_quantize.py --data PREPARED [--checkpoint CKPT | --variant paper]
+        [--accuracy-checkpoint CKPT_SMALL] [--threads 2] [--steps 100] [--frames 200]
+
+Latency: one graph per variant, real LNES frames of the test split, states carried,
+median (and p90) over `--steps` steps after `--warmup`; the variants are measured
+interleaved, round by round, so machine load hits all of them alike. Accuracy: the
+quantise command's held-out check (MPJPE of each variant vs the fp32 graph). Writes
+benchmarks/results/quantize.json (and prints a table).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.quantize import QuantizeOptions, artifact_name, quantize_graph
+from e3dpsm.runtime import StepSession
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic
+
+MODES = ("int8", "fp16", "int8-dynamic")
+RESULTS = Path(__file__).resolve().parent / "results" / "quantize.json"
+
+
+def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str, out: Path) -> Path:
+    import e3dpsm
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.export import export_step
+
+    if checkpoint:
+        model, _ = load_checkpoint(checkpoint)
+    else:
+        data = PreparedData.open(args.data)
+        mean = np.concatenate([s.j3d_mm for s in data.split("train")]).mean(axis=0)
+        import torch
+
+        model = e3dpsm.create_model(variant).eval()
+        model.set_pose_prior(torch.from_numpy(mean.astype(np.float32)))
+    return export_step(model, out)
+
+
+def quantise_all(graph: Path, args: argparse.Namespace, work: Path, label: str) -> dict[str, dict]:
+    reports = {}
+    for mode in MODES:
+        options = QuantizeOptions(mode=mode, frames=args.frames, holdout_frames=args.holdout_frames,
+                                  budget_pct=args.budget_pct, threads=args.threads)
+        reports[mode] = quantize_graph(graph, args.data, work / f"{label}_{mode}", options)
+        h = reports[mode]["holdout"]
+        print(f"[{label}] {mode}: MPJPE {h['mpjpe_mm']:.3f} vs fp32 {h['fp32_mpjpe_mm']:.3f} mm "
+              f"({h['loss_pct']:+.4f} %), distance to fp32 {h['deviation_from_fp32_mm']:.4f} mm", flush=True)
+    return reports
+
+
+def latency(paths: dict[str, Path], lnes: np.ndarray, threads: int, steps: int, warmup: int) -> dict[str, dict]:
+    sessions = {name: StepSession(p, threads=threads) for name, p in paths.items()}
+    states = {name: s.init_state(1) for name, s in sessions.items()}
+    times: dict[str, list[float]] = {name: [] for name in sessions}
+    for i in range(warmup + steps):
+        frame = np.asarray(lnes[i % len(lnes)][None], dtype=np.float32)
+        for name, session in sessions.items():  # interleaved: load spikes hit every variant
+            feeds = session.feeds(frame, states[name], 20.0)
+            t0 = time.perf_counter()
+            _, states[name] = session.run_feeds(feeds)
+            if i >= warmup:
+                times[name].append(time.perf_counter() - t0)
+    base = float(np.median(times["fp32"]))
+    return {name: {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
+                   "speedup_vs_fp32": base / float(np.median(t)), "bytes": paths[name].stat().st_size}
+            for name, t in times.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--checkpoint", help="speed model checkpoint (default: --variant weights)")
+    parser.add_argument("--variant", default="paper")
+    parser.add_argument("--accuracy-checkpoint", help="trained model for the accuracy figures (e.g. small)")
+    parser.add_argument("--accuracy-variant", default="small")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--holdout-frames", type=int, default=200)
+    parser.add_argument("--budget-pct", type=float, default=1.0)
+    parser.add_argument("--out", default=str(RESULTS))
+    args = parser.parse_args(argv)
+
+    result = report_header("bench_quantize", vars(args))
+    with tempfile.TemporaryDirectory(prefix="bench-quant-") as tmp:
+        work = Path(tmp)
+        acc_graph = export_graph(args, args.accuracy_checkpoint, args.accuracy_variant, work / "acc_fp32.onnx")
+        acc = quantise_all(acc_graph, args, work, "accuracy")
+        result["accuracy"] = {
+            "model": args.accuracy_checkpoint or f"{args.accuracy_variant} (untrained, mean-pose prior)",
+            **{mode: {**r["holdout"], "calibration": r.get("calibration"),
+                      "float_groups": r["quantization"].get("float_groups"),
+                      "exclusion_search": r.get("exclusion_search")} for mode, r in acc.items()},
+        }
+        speed_graph = export_graph(args, args.checkpoint, args.variant, work / "speed_fp32.onnx")
+        speed = quantise_all(speed_graph, args, work, "speed")
+        paths = {"fp32": speed_graph, **{m: work / f"speed_{m}" / artifact_name(m) for m in MODES}}
+        lnes = PreparedData.open(args.data).split("test")[0].lnes
+        result["latency"] = {
+            "model": args.checkpoint or f"{args.variant} (untrained)", "threads": args.threads,
+            "steps": args.steps, "warmup": args.warmup,
+            **latency(paths, lnes, args.threads, args.steps, args.warmup),
+        }
+        result["speed_model_accuracy"] = {m: r["holdout"] for m, r in speed.items()}
+        result["calibration"] = {m: r.get("calibration") for m, r in speed.items() if r.get("calibration")}
+    write_json_atomic(args.out, result)
+    print(f"{'variant':14s} {'median ms':>10s} {'speed-up':>9s} {'MPJPE loss %':>13s}")
+    for name, row in result["latency"].items():
+        if isinstance(row, dict):
+            loss = result["accuracy"].get(name, {}).get("loss_pct", 0.0)
+            print(f"{name:14s} {row['median_ms']:10.2f} {row['speedup_vs_fp32']:9.2f} {loss:13.4f}")
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

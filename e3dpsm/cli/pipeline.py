@@ -1,0 +1,33 @@
+"""`e3dpsm pipeline`: the whole flow on the embedded default, resumable."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from e3dpsm.cli._common import positive_float
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "pipeline", help="run the whole flow on synthetic data (about 10 minutes on 2 cores)",
+        description="synth -> prepare -> train -> evaluate -> export -> parity -> quantize -> validate -> "
+                    "profile -> OUT/report/index.md. Finished stages are skipped on a rerun.")
+    p.add_argument("--out", default="runs/pipeline", help="output folder (default runs/pipeline)")
+    p.add_argument("--variant", choices=("tiny", "small"), default="small")
+    p.add_argument("--minutes", type=positive_float, default=10.0,
+                   help="rough total budget; about half of it trains (default 10)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--only", nargs="+", metavar="STAGE", help="rerun only these stages (others untouched)")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from e3dpsm.pipeline import PipelineConfig, run_pipeline
+
+    cfg = PipelineConfig(out=Path(args.out), variant=args.variant, minutes=args.minutes, seed=args.seed,
+                         threads=args.threads)
+    run_pipeline(cfg, only=args.only)
+    print(f"report: {cfg.out / 'report' / 'index.md'}")
+    return 0

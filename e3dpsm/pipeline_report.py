@@ -1,0 +1,135 @@
+"""OUT/report/index.md (and index.html): the key table on top, then every stage's report."""
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+
+# Stage name -> (human-readable report, machine-readable report), relative to OUT.
+STAGE_REPORTS: dict[str, tuple[str, str]] = {
+    "synth": ("data/report.json", "data/report.json"),
+    "prepare": ("prepared/report.json", "prepared/report.json"),
+    "train": ("train/log.jsonl", "train/report.json"),
+    "evaluate": ("evaluate/metrics.md", "evaluate/metrics.json"),
+    "export": ("export/export.json", "export/export.json"),
+    "parity": ("parity/report.json", "parity/report.json"),
+    "quantize-int8": ("quantize/int8/report.json", "quantize/int8/report.json"),
+    "quantize-fp16": ("quantize/fp16/report.json", "quantize/fp16/report.json"),
+    "quantize-int8-dynamic": ("quantize/int8-dynamic/report.json", "quantize/int8-dynamic/report.json"),
+    "validate": ("validate/validation.md", "validate/report.json"),
+    "profile": ("profile/report.md", "profile/report.json"),
+}
+# Which profile target measures which validated variant.
+_TARGET_OF = {("pytorch", "fp32"): "torch-eager-cpu", ("onnx", "fp32"): "ort-cpu-fp32",
+              ("onnx", "fp16"): "ort-cpu-fp16", ("onnx", "int8"): "ort-cpu-int8"}
+
+
+def _load(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def key_table(out: Path) -> list[str]:
+    validate = _load(out / "validate/report.json") or {}
+    profile = _load(out / "profile/report.json") or {}
+    targets = {t["name"]: t for t in profile.get("targets", [])}
+    rows = validate.get("rows") or validate.get("result", {}).get("rows", [])
+    lines = ["| variant | MPJPE (mm) | PA-MPJPE (mm) | e_smooth (mm) | ΔMPJPE vs fp32 ONNX | step p50 (ms) | Hz | size (MB) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        target = targets.get(_TARGET_OF.get((row.get("kind"), row.get("precision")), ""), {})
+        latency = (target.get("latency_ms") or {}).get("p50") if target.get("available") else None
+        path = Path(row.get("path", ""))
+        size = path.stat().st_size / 1e6 if path.suffix == ".onnx" and path.is_file() else None
+        lines.append(
+            f"| {row['variant']} | {_fmt(row.get('mpjpe_mm'))} | {_fmt(row.get('pa_mpjpe_mm'))} | "
+            f"{_fmt(row.get('e_smooth_mm'))} | {_fmt(row.get('delta_mpjpe_pct'))} % | {_fmt(latency)} | "
+            f"{_fmt(target.get('hz') if target.get('available') else None, 1)} | {_fmt(size)} |"
+        )
+    if not rows:
+        lines.append("| (validate has not run) | | | | | | | |")
+    return lines
+
+
+def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]]) -> Path:
+    out = Path(out)
+    report_dir = out / "report"
+    parity = _load(out / "parity/report.json") or {}
+    lines = ["# E-3DPSM pipeline report", "",
+             f"Variant `{config.get('variant')}`, synthetic data (seed {config.get('seed')}), "
+             f"{config.get('window_ms')} ms windows. Accuracy on the held-out test sequences, streamed "
+             "with states never reset; latency on this machine with the stated thread count.", "",
+             "## Accuracy and speed of each variant", "", *key_table(out), ""]
+    if parity:
+        status = "passed" if parity.get("passed") else "FAILED"
+        runs = ", ".join(f"{r['window_ms']:g} ms" for r in parity.get("runs", []))
+        lines += [f"Parity ONNX Runtime vs PyTorch ({runs}): **{status}** (details in "
+                  "[parity/report.json](../parity/report.json)).", ""]
+    lines += ["## Stages", "", "| stage | status | seconds | report |", "|---|---|---:|---|"]
+    for s in stages:
+        human, machine = STAGE_REPORTS.get(s["stage"], ("", ""))
+        links = " · ".join(f"[{p}](../{p})" for p in dict.fromkeys((human, machine)) if p and (out / p).exists())
+        lines.append(f"| {s['stage']} | {s['status']} | {s['seconds']} | {links or '-'} |")
+    figures = sorted(p for p in out.glob("*/**/*.png") if "report" not in p.parts[len(out.parts):][:1])
+    if figures:
+        lines += ["", "## Figures", ""]
+        for fig in figures[:12]:
+            rel = fig.relative_to(out)
+            lines += [f"### {rel}", "", f"![{rel}](../{rel})", ""]
+    text = "\n".join(lines) + "\n"
+    write_text_atomic(report_dir / "index.md", text)
+    write_text_atomic(report_dir / "index.html", _html(text))
+    summary = report_header("pipeline", config)
+    summary["stages"] = stages
+    write_json_atomic(report_dir / "pipeline.json", summary)
+    return report_dir / "index.md"
+
+
+def _html(markdown: str) -> str:
+    """A dependency-free rendering: tables, headings, images and links become HTML."""
+    body, table = [], []
+
+    def flush_table() -> None:
+        if table:
+            rows = [r for r in table if not set(r.replace("|", "").strip()) <= set("-:")]
+            cells = [[html.escape(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
+            head = "".join(f"<th>{c}</th>" for c in cells[0])
+            rest = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:])
+            body.append(f"<table><tr>{head}</tr>{rest}</table>")
+            table.clear()
+
+    import re
+
+    for line in markdown.splitlines():
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        flush_table()
+        if line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            body.append(f"<h{level}>{html.escape(line[level:].strip())}</h{level}>")
+        elif line.startswith("!["):
+            src = line[line.index("(") + 1 : -1]
+            body.append(f'<img src="{html.escape(src)}" style="max-width:900px">')
+        elif line.strip():
+            text = html.escape(line)
+            text = re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', text)
+            text = re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", text)
+            body.append(f"<p>{text}</p>")
+    flush_table()
+    style = "body{font-family:sans-serif;max-width:1000px;margin:auto}table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:4px 8px}"
+    return f"<!doctype html><html><head><meta charset='utf-8'><title>E-3DPSM report</title><style>{style}</style></head><body>{''.join(body)}</body></html>\n"

@@ -1,0 +1,54 @@
+"""Session-scoped data and runs shared by the training / evaluation / distributed tests.
+
+The prepared folders are 96 x 128 (a uniform 0.2 resize of the sensor) so that the tiny
+model trains a step in about a second on two cores."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from e3dpsm.cli import main
+
+HW = ("--height", "96", "--width", "128")
+FAST_TRAIN = ("--variant", "tiny", "--seq-len", "3", "--batch-size", "2", "--warmup-steps", "1",
+              "--lr", "3e-3", "--log-every", "1", "--no-progress", "--threads", "2")
+
+
+@pytest.fixture(scope="session")
+def small_raw_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("train_data")
+    rc = main(["synth", "--out", str(root / "raw"), "--sequences", "3", "--seconds", "1.2", "--seed", "5",
+               "--render-hz", "50", "--render-scale", "0.25", "--workers", "1"])
+    assert rc == 0
+    return root / "raw"
+
+
+@pytest.fixture(scope="session")
+def prepared_small(small_raw_data: Path) -> Path:
+    out = small_raw_data.parent / "prep20"
+    assert main(["prepare", "--data", str(small_raw_data), "--out", str(out), "--no-progress", *HW]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def prepared_small_40ms(small_raw_data: Path) -> Path:
+    out = small_raw_data.parent / "prep40"
+    assert main(["prepare", "--data", str(small_raw_data), "--out", str(out), "--window-ms", "40",
+                 "--no-progress", *HW]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def training_runs(prepared_small: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """start: step 0 only; full: 8 steps straight; resumed: 8 steps, stopped at 4 then resumed."""
+    root = tmp_path_factory.mktemp("runs")
+    data = ("--data", str(prepared_small), "--split", "all")
+    assert main(["train", *data, "--out", str(root / "start"), "--steps", "8", "--stop-at", "0", *FAST_TRAIN]) == 0
+    assert main(["train", *data, "--out", str(root / "full"), "--steps", "8", *FAST_TRAIN]) == 0
+    assert main(["train", *data, "--out", str(root / "resumed"), "--steps", "8", "--stop-at", "4", *FAST_TRAIN]) == 0
+    shutil.copy(root / "resumed" / "checkpoint.pt", root / "step4.pt")
+    assert main(["train", "--data", str(prepared_small), "--out", str(root / "resumed"), "--resume",
+                 "--no-progress", "--variant", "tiny"]) == 0
+    return {"start": root / "start", "full": root / "full", "resumed": root / "resumed", "step4": root / "step4.pt"}

@@ -1,0 +1,80 @@
+"""Evaluation core on hand-made predictions, and `e3dpsm evaluate` end to end."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from e3dpsm.cli import main
+from e3dpsm.evaluation.core import evaluate_predictions
+from e3dpsm.metrics import mpjpe
+
+pytest_plugins = ["_training_helpers"]  # session fixtures shared by the training tests
+
+
+
+def _case() -> dict:
+    """Two sequences; action 0 has 6 frames offset by 10 mm, action 1 has 2 frames offset
+    by 40 mm, 2 frames are unlabelled (-1) with 20 mm."""
+    n, j = 10, 16
+    gt = np.zeros((n, j, 3))
+    gt[:, :, 0] = np.arange(n)[:, None] * 5.0  # constant velocity, 5 mm/frame
+    offsets = np.array([10.0] * 6 + [40.0] * 2 + [20.0] * 2)
+    pred = gt.copy()
+    pred[:, :, 1] += offsets[:, None]
+    action = np.array([0] * 6 + [1] * 2 + [-1] * 2)
+    visible = np.ones((n, j), dtype=np.uint8)
+    visible[:, 0] = 0
+    pred[:, 0, 1] += 100.0  # occluded joint is much worse
+    sequence_ids = np.array([0] * 7 + [1] * 3)
+    return dict(pred_mm=pred, gt_mm=gt, visible=visible, action=action, action_names=["walk", "crouch"],
+                sequence_ids=sequence_ids, sequence_names=["a", "b"])
+
+
+def test_totals_are_unweighted_means_of_action_means() -> None:
+    case = _case()
+    res = evaluate_predictions(**case)
+    assert set(res["per_action"]) == {"walk", "crouch", "unknown"}
+    per = {k: v["mpjpe"] for k, v in res["per_action"].items()}
+    assert per["walk"] == pytest.approx(10.0 + 100.0 / 16)
+    assert per["crouch"] == pytest.approx(40.0 + 100.0 / 16)
+    assert res["totals"]["mpjpe"] == pytest.approx(np.mean(list(per.values())))
+    assert res["frame_weighted"]["mpjpe"] == pytest.approx(mpjpe(case["pred_mm"], case["gt_mm"]))
+    assert res["per_action"]["walk"]["mpjpe_occluded"] == pytest.approx(110.0)
+
+
+def test_smoothness_never_pairs_frames_across_sequences() -> None:
+    case = _case()
+    # Within each sequence the offset changes only at the action boundaries: frames 6->7
+    # (seq a: 10 -> 40 mm) and 8->9 (seq b: 40 -> 20 mm). Frame 7 starts sequence b.
+    res = evaluate_predictions(**case)
+    # Speeds: gt 5 mm/frame; pred at the 6->7 jump sqrt(5^2 + 30^2).
+    jump = abs(np.hypot(5.0, 30.0) - 5.0)
+    assert res["per_action"]["crouch"]["e_smooth"] == pytest.approx(jump)  # only the pair 5->6 is valid
+    assert res["per_sequence"]["b"]["frames"] == 3
+
+
+def test_shape_mismatch_is_rejected() -> None:
+    case = _case()
+    case["action"] = case["action"][:-1]
+    with pytest.raises(ValueError, match="frames"):
+        evaluate_predictions(**case)
+
+
+@pytest.mark.parametrize("mode", ["--causal", "--non-causal"])
+def test_evaluate_cli_writes_consistent_report(training_runs: dict[str, Path], prepared_small: Path,
+                                               tmp_path: Path, mode: str) -> None:
+    out = tmp_path / "ev"
+    rc = main(["evaluate", "--checkpoint", str(training_runs["full"] / "checkpoint.pt"), "--data",
+               str(prepared_small), "--out", str(out), "--split", "all", mode, "--no-progress"])
+    assert rc == 0
+    report = json.loads((out / "metrics.json").read_text())
+    arrays = np.load(out / "predictions.npz")
+    assert report["frame_weighted"]["mpjpe"] == pytest.approx(mpjpe(arrays["pred_mm"], arrays["gt_mm"]), rel=1e-6)
+    assert report["frames"] == arrays["gt_mm"].shape[0]
+    assert "| total |" in (out / "metrics.md").read_text()
+    assert (out / "per_joint.png").stat().st_size > 1000
+    assert main(["evaluate", "--checkpoint", str(training_runs["full"] / "checkpoint.pt"), "--data",
+                 str(prepared_small), "--out", str(out)]) == 2  # exists, no --force

@@ -1,0 +1,224 @@
+"""e3dpsm quantize: artifacts, kept-float recurrence, state-aware calibration, bad input."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from _quantize_helpers import mean_pose_model, quant_data, tiny_graph  # noqa: F401  (fixtures)
+from e3dpsm.cli import main
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.errors import ConfigError, DataError, OutputExistsError
+from e3dpsm.graph_metadata import GraphMetadata, MetadataError
+from e3dpsm.quantize import QuantizeOptions, quantize_graph, recurrent_groups
+from e3dpsm.quantize.artifact import MAX_IR_VERSION, finalize
+from e3dpsm.quantize.calibration import frame_plan, record_calibration_set
+from e3dpsm.quantize.graph_groups import module_scopes
+from e3dpsm.quantize.holdout import accuracy_of, make_holdout
+from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8
+from e3dpsm.runtime import StepSession
+
+FAST = dict(frames=16, holdout_frames=40, max_rounds=1)
+
+
+@pytest.fixture(scope="session")
+def int8_dir(tmp_path_factory, tiny_graph, quant_data) -> Path:  # noqa: F811
+    out = tmp_path_factory.mktemp("q") / "int8"
+    quantize_graph(tiny_graph, quant_data, out, QuantizeOptions(mode="int8", **FAST))
+    return out
+
+
+@pytest.fixture(scope="session")
+def fp16_dir(tmp_path_factory, tiny_graph, quant_data) -> Path:  # noqa: F811
+    out = tmp_path_factory.mktemp("q") / "fp16"
+    quantize_graph(tiny_graph, quant_data, out, QuantizeOptions(mode="fp16", **FAST))
+    return out
+
+
+def test_int8_artifact_keeps_metadata_and_records_quantisation(int8_dir, tiny_graph):  # noqa: F811
+    model = onnx.load(str(int8_dir / "step_int8.onnx"))
+    source = GraphMetadata.from_onnx(onnx.load(str(tiny_graph)))
+    meta = GraphMetadata.from_onnx(model)
+    assert meta.states == source.states and meta.inputs == source.inputs and meta.config == source.config
+    q = meta.quantization
+    assert q["mode"] == "int8" and q["per_channel"] is True and q["format"] == "QDQ"
+    assert (q["activation_type"], q["weight_type"], q["calibration"]) == ("QUInt8", "QInt8", "minmax")
+    assert q["calibration_frames"] == 16 and q["state_source"] == "rollout"
+    assert {"s5_stage1", "s5_stage4", "fusion"} <= set(q["float_groups"])
+    assert q["QuantizeLinear"] > 0 and q["QuantizeLinear"] == sum(n.op_type == "QuantizeLinear" for n in model.graph.node)
+    assert model.ir_version <= MAX_IR_VERSION
+    assert {n.domain for n in model.graph.node} <= {"", "ai.onnx"}
+    report = json.loads((int8_dir / "report.json").read_text())
+    assert report["command"] == "quantize" and "versions" in report and "machine" in report
+    assert report["calibration"]["frames"] == 16 and report["calibration"]["calibrate_seconds"] > 0
+    assert report["sizes"]["output_bytes"] == (int8_dir / "step_int8.onnx").stat().st_size
+    assert report["nodes"]["output"] == len(model.graph.node)
+
+
+def test_int8_never_quantises_the_state_tensors(int8_dir):
+    model = onnx.load(str(int8_dir / "step_int8.onnx"))
+    meta = GraphMetadata.from_onnx(model)
+    states = {s.input_name for s in meta.states} | {s.output_name for s in meta.states}
+    quantised = {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"}
+    assert not quantised & states
+    # and the state update itself runs on float tensors: the producer of each new state is not a DQ
+    producers = {o: n.op_type for n in model.graph.node for o in n.output}
+    assert all(producers[s.output_name] != "DequantizeLinear" for s in meta.states)
+
+
+def test_int8_within_budget_and_runs_as_stream(int8_dir, quant_data):  # noqa: F811
+    report = json.loads((int8_dir / "report.json").read_text())
+    holdout = report["holdout"]
+    # The search's guarantee: the budgeted bound (distance to fp32 / fp32 MPJPE) within 1 %.
+    assert holdout["bound_pct"] <= 1.0
+    assert abs(holdout["loss_pct"]) <= holdout["bound_pct"] + 1e-9  # triangle inequality
+    session = StepSession(int8_dir / "step_int8.onnx", threads=1)
+    seq = PreparedData.open(quant_data).split("val")[0]
+    state = session.init_state(1)
+    for f in range(3):
+        out, state = session.step(np.asarray(seq.lnes[f : f + 1], np.float32), state, 20.0)
+    assert out["pose"].dtype == np.float32 and np.isfinite(out["pose"]).all()
+    assert state["fusion_initialised"].item() == 1.0
+
+
+def test_fp16_within_a_tenth_of_a_percent(fp16_dir):
+    report = json.loads((fp16_dir / "report.json").read_text())
+    assert report["holdout"]["bound_pct"] < 0.1
+    model = onnx.load(str(fp16_dir / "step_fp16.onnx"))
+    assert all(o.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for o in model.graph.output)
+    assert any(i.data_type == onnx.TensorProto.FLOAT16 for i in model.graph.initializer)
+    assert GraphMetadata.from_onnx(model).quantization["mode"] == "fp16"
+
+
+def test_recurrent_groups_cover_state_updates_and_stay_out_of_the_cnn(tiny_graph):  # noqa: F811
+    model = onnx.load(str(tiny_graph))
+    meta = GraphMetadata.from_onnx(model)
+    groups = {g.name: set(g.nodes) for g in recurrent_groups(model, meta)}
+    assert set(groups) == {"s5_stage1", "s5_stage4", "fusion"}
+    producers = {o: n.name for n in model.graph.node for o in n.output}
+    for spec in meta.states:
+        family = "fusion" if spec.name.startswith("fusion") else spec.name.rsplit("_", 1)[0]
+        assert producers[spec.output_name] in groups[family]
+    scopes = module_scopes(model)
+    op = {n.name: n.op_type for n in model.graph.node}
+    compute = {"Conv", "MatMul", "Gemm", "LayerNormalization", "GridSample", "Softmax", "BatchNormalization",
+               "InstanceNormalization", "Sigmoid"}
+    for name, nodes in groups.items():
+        # Shared constants and layout transposes at a module's edge may carry its scope; no
+        # compute op of the CNN, the attention or the decoder may be kept float by this rule.
+        leaked = {scopes[n] for n in nodes
+                  if op[n] in compute and scopes[n].startswith(("stages.", "attention.", "stem", "decoder"))}
+        assert not leaked, f"{name} reaches into {leaked}"
+
+
+def test_state_aware_calibration_beats_zero_and_random_states(tmp_path, tiny_graph, quant_data):  # noqa: F811
+    """With every node quantised (states included), calibrating with the states of FP32
+    rollouts moves the poses much less than calibrating with zero or random states.
+    With the recurrence kept in float (the default) the state tensors are never quantised,
+    and the state source matters little (measured: 0.21 / 0.18 / 0.21 mm), so that case
+    is only checked against blind calibration of the states."""
+    data = PreparedData.open(quant_data)
+    pre = tmp_path / "pre.onnx"
+    preprocess(tiny_graph, pre)
+    pre_model = onnx.load(str(pre))
+    meta = GraphMetadata.from_onnx(pre_model)
+    keep = [n for g in recurrent_groups(pre_model, meta) for n in g.nodes]
+    holdout = make_holdout(tiny_graph, data.split("val"), 20.0, 40)
+    runs = [("rollout", "none"), ("zeros", "none"), ("random", "none"), ("rollout", "recurrent")]
+    deviation: dict[tuple[str, str], float] = {}
+    for source, label in runs:
+        calib = record_calibration_set(tiny_graph, data.split("train"), 16, 20.0, state_source=source, seed=1)
+        out = tmp_path / f"{source}_{label}.onnx"
+        quantize_int8(pre, out, StaticConfig(), exclude=keep if label == "recurrent" else [], calibration=calib,
+                      cache=tmp_path / f"{source}_{label}.json")
+        onnx.save(finalize(onnx.load(str(out)), meta, {"mode": "int8"}), str(out))
+        deviation[source, label] = accuracy_of(out, holdout)["deviation_from_fp32_mm"]
+    print({f"{s}/{lab}": round(v, 4) for (s, lab), v in deviation.items()})
+    assert deviation["rollout", "none"] < 0.75 * min(deviation["zeros", "none"], deviation["random", "none"])
+    # The default (recurrence in float, rollout states) beats quantising the states blindly.
+    assert deviation["rollout", "recurrent"] < min(deviation["zeros", "none"], deviation["random", "none"])
+
+
+# -- bad input -----------------------------------------------------------------------------
+
+def _run_cli(capsys, *argv: str) -> tuple[int, str]:
+    code = main(["quantize", *argv])
+    return code, capsys.readouterr().err
+
+
+def test_graph_without_metadata_is_refused(tmp_path, capsys, tiny_graph, quant_data):  # noqa: F811
+    bare = onnx.load(str(tiny_graph))
+    del bare.metadata_props[:]
+    onnx.save(bare, str(tmp_path / "bare.onnx"))
+    with pytest.raises(MetadataError, match="no e3dpsm metadata"):
+        quantize_graph(tmp_path / "bare.onnx", quant_data, tmp_path / "out", QuantizeOptions(mode="fp16", **FAST))
+    code, err = _run_cli(capsys, "--model", str(tmp_path / "bare.onnx"), "--data", str(quant_data),
+                         "--out", str(tmp_path / "out"), "--mode", "fp16")
+    assert code == 2 and err.count("\n") == 1 and "metadata" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("override, message", [({"train_window_ms": 25.0}, "25 ms"),
+                                               ({"height": 96, "width": 128}, "96 x 128")])
+def test_data_from_another_window_or_resolution_is_refused(tmp_path, quant_data, override, message):  # noqa: F811
+    from e3dpsm.export import export_step
+
+    graph = export_step(mean_pose_model(quant_data, **override), tmp_path / "other.onnx")
+    with pytest.raises(DataError, match=message):
+        quantize_graph(graph, quant_data, tmp_path / "out", QuantizeOptions(mode="int8", **FAST))
+    assert not (tmp_path / "out").exists()
+
+
+def test_too_few_calibration_frames(tmp_path, capsys, tiny_graph, quant_data):  # noqa: F811
+    code, err = _run_cli(capsys, "--model", str(tiny_graph), "--data", str(quant_data),
+                         "--out", str(tmp_path / "out"), "--frames", "8")
+    assert code == 2 and "at least 16" in err
+    assert not (tmp_path / "out").exists()
+    data = PreparedData.open(quant_data)
+    short = [type("S", (), {"name": "s", "frames": 10})()]
+    with pytest.raises(DataError, match="only 10 frames"):
+        frame_plan(short, 16)
+    plan = frame_plan(data.split("train"), 20)
+    assert sum(map(len, plan.values())) == 20 and all(v[0] == 0 for v in plan.values())
+
+
+def test_existing_output_needs_force(int8_dir, tiny_graph, quant_data):  # noqa: F811
+    before = (int8_dir / "report.json").read_bytes()
+    with pytest.raises(OutputExistsError):
+        quantize_graph(tiny_graph, quant_data, int8_dir, QuantizeOptions(mode="fp16", **FAST))
+    assert (int8_dir / "report.json").read_bytes() == before
+
+
+def test_unknown_exclusion_and_mode(tmp_path, tiny_graph, quant_data):  # noqa: F811
+    with pytest.raises(ConfigError, match="unknown mode"):
+        QuantizeOptions(mode="int4")
+    with pytest.raises(ConfigError, match="neither a node nor a group"):
+        quantize_graph(tiny_graph, quant_data, tmp_path / "out",
+                       QuantizeOptions(mode="int8", exclude="attention.0,no_such_node", **FAST))
+    assert not (tmp_path / "out").exists()
+
+
+def test_greedy_search_adds_the_most_helpful_groups_until_within_budget():
+    from e3dpsm.quantize.exclusions import greedy_exclusions
+    from e3dpsm.quantize.graph_groups import NodeGroup
+
+    # Synthetic error model: each node kept in float removes a known share of the error.
+    cost = {"a1": 0.5, "a2": 0.5, "b1": 1.5, "c1": 0.1, "c2": 0.1, "c3": 0.1}
+    groups = [NodeGroup("a", "module", ("a1", "a2")), NodeGroup("b", "module", ("b1",)),
+              NodeGroup("c", "op_type", ("c1", "c2", "c3"))]
+
+    def evaluate(excluded, label):
+        return 3.0 - sum(cost.get(n, 0.0) for n in excluded)
+
+    result = greedy_exclusions(["r1"], groups, budget_pct=1.0, evaluate=evaluate)
+    assert result.chosen == ["b", "a"] and result.error_pct == pytest.approx(0.5)
+    assert result.excluded_nodes == ["r1", "b1", "a1", "a2"]
+    # within budget from the start: nothing added, one evaluation
+    easy = greedy_exclusions(["r1"], groups, budget_pct=5.0, evaluate=evaluate)
+    assert easy.chosen == [] and len(easy.trials) == 1
+    # no group helps: stop instead of adding useless groups
+    stuck = greedy_exclusions(["r1"], groups, budget_pct=0.1, evaluate=lambda ex, label: 2.0)
+    assert stuck.chosen == [] and stuck.error_pct == 2.0
