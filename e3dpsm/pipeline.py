@@ -7,6 +7,8 @@ redone on a rerun, so an interrupted pipeline resumes where it stopped.
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,7 +30,7 @@ class PipelineConfig:
     minutes: float = 10.0
     seed: int = 0
     sequences: int = 5          # 3 train, 1 val (calibration check), 1 test (held out)
-    seconds: float = 6.0
+    seconds: float = 4.0
     window_ms: float = 20.0
     seq_len: int = 16
     batch_size: int = 4
@@ -57,7 +59,7 @@ CHECKPOINT = "train/checkpoint.pt"
 GRAPH = "export/step.onnx"
 INT8 = "quantize/int8/step_int8.onnx"
 FP16 = "quantize/fp16/step_fp16.onnx"
-INT8_DYNAMIC = "quantize/int8-dynamic/step_int8-dynamic.onnx"
+INT8_DYNAMIC = "quantize/int8-dynamic/step_int8_dynamic.onnx"
 
 
 def _train_argv(cfg: PipelineConfig) -> list[str]:
@@ -127,8 +129,13 @@ def estimate_train_steps(cfg: PipelineConfig, probe_steps: int = 3) -> int:
     return max(20, steps)
 
 
+def run_stage(argv: list[str]) -> int:
+    """One stage in its own process, as a user would run it: thread pools, environment and
+    memory start clean (an OpenMP pool left busy by training would slow the next stage)."""
+    return subprocess.run([sys.executable, "-m", "e3dpsm", *argv], check=False).returncode
+
+
 def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dict]:
-    from e3dpsm.cli import main
     from e3dpsm.pipeline_report import write_index
 
     if cfg.variant not in ("tiny", "small", "paper"):
@@ -149,7 +156,7 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
         argv = stage.argv(cfg)
         log.info("%s: e3dpsm %s", header, " ".join(argv))
         start = time.perf_counter()
-        code = main(argv)
+        code = run_stage(argv)
         seconds = time.perf_counter() - start
         if code != 0:
             raise StageFailed(f"stage {stage.name} failed (exit {code}); fix it and rerun: finished stages are kept")

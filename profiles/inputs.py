@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from e3dpsm.errors import DataError
 from e3dpsm.events import events_to_lnes
 
 SENSOR_HW = (480, 640)
@@ -61,22 +60,14 @@ def synthetic_frames(count: int, height: int, width: int, window_ms: float, seed
 
 
 def prepared_frames(root: str | os.PathLike, count: int, height: int, width: int) -> Frames:
-    """The first `count` frames of the test split (else all sequences), in stream order."""
+    """The first `count` frames of the test split (else all sequences), in stream order; a
+    short folder is replayed (the states keep running)."""
     from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.data.streams import prepared_frames as stream_frames
 
     data = PreparedData.open(root)
     data.check_compatible(height=height, width=width)
-    sequences = [s for s in data.sequences if s.split == "test"] or list(data.sequences)
-    chunks, have = [], 0
-    for seq in sequences:
-        take = min(seq.frames, count - have)
-        chunks.append(np.asarray(seq.lnes[:take], dtype=np.float32))
-        have += take
-        if have >= count:
-            break
-    if not have:
-        raise DataError(f"{root} holds no frames")
-    lnes = np.concatenate(chunks)
-    if have < count:  # a short folder: loop it, the states keep running
-        lnes = np.concatenate([lnes] * (-(-count // have)))[:count]
-    return Frames(lnes, data.window_ms, f"prepared {root} ({', '.join(s.name for s in sequences[:3])}...)")
+    split = "test" if "test" in data.splits else None
+    lnes = np.stack(list(stream_frames(root, count, split)))
+    names = [s.name for s in (data.split(split) if split else data.sequences)]
+    return Frames(lnes, data.window_ms, f"prepared {root} ({', '.join(names[:3])}{'...' if len(names) > 3 else ''})")

@@ -42,13 +42,12 @@ def prepared_small_40ms(small_raw_data: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def training_runs(prepared_small: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """start: step 0 only; full: 8 steps straight; resumed: 8 steps, stopped at 4 then resumed."""
+    """full: 8 steps straight; resumed: 8 steps, stopped at 4 then resumed."""
     root = tmp_path_factory.mktemp("runs")
     data = ("--data", str(prepared_small), "--split", "all")
-    assert main(["train", *data, "--out", str(root / "start"), "--steps", "8", "--stop-at", "0", *FAST_TRAIN]) == 0
     assert main(["train", *data, "--out", str(root / "full"), "--steps", "8", *FAST_TRAIN]) == 0
     assert main(["train", *data, "--out", str(root / "resumed"), "--steps", "8", "--stop-at", "4", *FAST_TRAIN]) == 0
     shutil.copy(root / "resumed" / "checkpoint.pt", root / "step4.pt")
     assert main(["train", "--data", str(prepared_small), "--out", str(root / "resumed"), "--resume",
                  "--no-progress", "--variant", "tiny"]) == 0
-    return {"start": root / "start", "full": root / "full", "resumed": root / "resumed", "step4": root / "step4.pt"}
+    return {"full": root / "full", "resumed": root / "resumed", "step4": root / "step4.pt"}

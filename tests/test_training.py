@@ -66,25 +66,30 @@ def test_pose_loss_is_zero_for_perfect_prediction(prepared_small: Path) -> None:
     assert LossWeights().pose_3d == 0.01 and LossWeights().bone_angle == 1e-3
 
 
-def _fixed_batch_loss(checkpoint: Path, prepared: Path) -> float:
-    model, payload = load_checkpoint(checkpoint)
-    data = PreparedData.open(prepared)
+def test_training_step_fits_a_fixed_batch(prepared_small: Path) -> None:
+    """The model, the paper loss and the optimizer settings of `train` learn: 20 steps on
+    one batch cut its loss well below the mean-pose prior's. (A few dozen steps over the
+    whole set do not beat the prior on held windows yet; see the training benchmark.)"""
+    from e3dpsm.models import create_model
+    from e3dpsm.training.data import mean_pose_mm
+
+    torch.manual_seed(0)
+    data = PreparedData.open(prepared_small)
     dataset = WindowDataset(data.sequences, 3)
-    batch = {k: torch.stack([dataset[i][k] for i in range(0, len(dataset), 11)]) for k in dataset[0]}
-    loss = PoseLoss(FisheyeProjection(ee3d_default(), 0.2))
-    # Training-mode normalisation: after a few steps the BatchNorm running statistics are
-    # still near their initial values, so eval mode would measure them, not the learning.
-    model.train()
-    torch.manual_seed(0)  # same dropout masks for both checkpoints
-    with torch.no_grad():
-        out = model.forward_sequence(batch["lnes"], causal=False)
-        return float(loss(out, batch["j3d_mm"], batch["j2d_px"], batch["visible"])[0])
-
-
-def test_tiny_run_lowers_the_loss(training_runs: dict[str, Path], prepared_small: Path) -> None:
-    before = _fixed_batch_loss(training_runs["start"] / "checkpoint.pt", prepared_small)
-    after = _fixed_batch_loss(training_runs["full"] / "checkpoint.pt", prepared_small)
-    assert after < 0.9 * before, (before, after)
+    batch = {k: torch.stack([dataset[i][k] for i in (0, len(dataset) // 2)]) for k in dataset[0]}
+    model = create_model("tiny", height=data.height, width=data.width)
+    model.set_pose_prior(torch.from_numpy(mean_pose_mm(data.sequences)))
+    criterion = PoseLoss(FisheyeProjection(ee3d_default(), 0.2))
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(20):
+        loss, _ = criterion(model(batch["lnes"]), batch["j3d_mm"], batch["j2d_px"], batch["visible"])
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        losses.append(loss.item())
+    assert min(losses[-3:]) < 0.6 * losses[0], losses
 
 
 def test_resumed_run_continues_from_its_step(training_runs: dict[str, Path]) -> None:

@@ -39,6 +39,9 @@ POSE_ARRAYS: dict[str, tuple[Any, tuple[int, ...]]] = {  # name -> (dtype, shape
 _RUN_PREPARE = "run `e3dpsm prepare --data DATA --out {root}` to create it"
 
 
+ALL_SPLITS = "all"
+
+
 @dataclass(frozen=True)
 class PreparedSequence:
     """One prepared sequence; `lnes` is a read-only memory map, the pose arrays are loaded."""
@@ -119,10 +122,13 @@ class PreparedData:
         return tuple(dict.fromkeys(s.split for s in self.sequences))
 
     def split(self, name: str) -> list[PreparedSequence]:
-        """The sequences of split `name`; a `DataError` naming the present splits if none."""
+        """The sequences of split `name` ("all" for every sequence); a `DataError` naming the
+        present splits if none."""
+        if name == ALL_SPLITS:
+            return list(self.sequences)
         chosen = [s for s in self.sequences if s.split == name]
         if not chosen:
-            raise DataError(f"{self.root} has no sequences in split {name!r}; present splits: {list(self.splits)}")
+            raise DataError(f"{self.root} has no sequences in split {name!r}; present splits: {list(self.splits)} (or 'all')")
         return chosen
 
     def check_compatible(

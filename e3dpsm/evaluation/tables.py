@@ -27,14 +27,14 @@ def markdown_table(rows: Mapping[str, Mapping[str, Any]], columns: Sequence[str]
 
 def results_markdown(results: Mapping[str, Any], title: str) -> str:
     """The report of one evaluation: totals, per action, per joint, per sequence."""
-    parts = [f"# {title}\n", "All figures in mm (e_smooth: mm per frame). Totals: unweighted mean of the "
-             "per-action means; occl.: joints with visible == 0 only.\n",
-             "## Totals\n", markdown_table({"total": results["totals"],
+    parts = [f"# {title}\n\n", "All figures in mm (e_smooth: mm per frame). Totals: unweighted mean of the "
+             "per-action means; occl.: joints with visible == 0 only.\n\n",
+             "## Totals\n\n", markdown_table({"total": results["totals"],
                                             "frame-weighted": results["frame_weighted"]}, METRICS, "set"),
-             "\n## Per action\n", markdown_table(results["per_action"], (*METRICS, "frames"), "action"),
-             "\n## Per joint\n", markdown_table(results["per_joint"], ("mpjpe", "pa_mpjpe", "e_smooth", "mpjpe_occluded"), "joint"),
-             "\n## Per sequence\n", markdown_table(results["per_sequence"], (*METRICS, "frames"), "sequence"),
-             "\n## MPJPE along the sequences (tenths of each sequence)\n",
+             "\n## Per action\n\n", markdown_table(results["per_action"], (*METRICS, "frames"), "action"),
+             "\n## Per joint\n\n", markdown_table(results["per_joint"], ("mpjpe", "pa_mpjpe", "e_smooth", "mpjpe_occluded"), "joint"),
+             "\n## Per sequence\n\n", markdown_table(results["per_sequence"], (*METRICS, "frames"), "sequence"),
+             "\n## MPJPE along the sequences (tenths of each sequence)\n\n",
              markdown_table({f"{c:.2f}": {"mpjpe": m} for c, m in zip(results["error_over_time"]["bin_centres"],
                                                                     results["error_over_time"]["mpjpe"])},
                             ("mpjpe",), "position")]

@@ -67,15 +67,6 @@ def wrap_model(model: nn.Module, ctx: DistContext) -> nn.Module:
     return nn.parallel.DistributedDataParallel(model)
 
 
-def broadcast_flag(flag: bool, ctx: DistContext) -> bool:
-    """Rank 0's value of a boolean on every rank (e.g. 'a checkpoint failed to load')."""
-    if not ctx.enabled:
-        return flag
-    tensor = torch.tensor([1 if flag else 0], device=ctx.device)
-    dist.broadcast(tensor, src=0)
-    return bool(tensor.item())
-
-
 def teardown(ctx: DistContext) -> None:
     if ctx.enabled and dist.is_initialized():
         dist.destroy_process_group()
