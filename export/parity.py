@@ -149,7 +149,7 @@ def run_parity(
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(frames, desc=f"parity {runtime} {window_ms:g} ms", unit="step", leave=False)
+        iterator = tqdm(frames, desc=f"parity {runtime} {window_ms:g} ms", unit="step", leave=False, disable=None)
     with torch.no_grad():
         for step, frame in enumerate(iterator):
             lnes = np.ascontiguousarray(frame[None], dtype=np.float32)

@@ -21,12 +21,11 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, data: PreparedData, split
                         window_ms: float | None = None, progress: bool = False) -> tuple[dict[str, Any], SplitPredictions]:
     """Load a checkpoint, predict the split, compute every figure."""
     from e3dpsm.checkpoint import load_checkpoint
-    from e3dpsm.training.data import select_sequences
 
     model, payload = load_checkpoint(checkpoint)
     data.check_compatible(window_ms=window_ms, height=model.config.height, width=model.config.width)
     seq_len = int(payload.get("train_args", {}).get("seq_len", DEFAULT_CHUNK))
-    sequences = select_sequences(data, split)
+    sequences = data.split(split)
     preds = predict_split(model, sequences, causal, data.window_ms, chunk=DEFAULT_CHUNK if causal else seq_len,
                           progress=progress)
     results = evaluate_predictions(preds.pred_mm, preds.gt_mm, preds.visible, preds.action, data.action_names,

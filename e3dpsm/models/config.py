@@ -3,7 +3,7 @@ either rebuilds its model alone."""
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 from e3dpsm.errors import ConfigError

@@ -12,16 +12,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
-from e3dpsm.data.prepared import PreparedData, PreparedSequence
+from e3dpsm.data.prepared import PreparedSequence
 from e3dpsm.errors import DataError
-
-ALL_SPLITS = "all"
-
-
-def select_sequences(data: PreparedData, split: str) -> list[PreparedSequence]:
-    """The sequences of one split, or every sequence for split "all"."""
-    return list(data.sequences) if split == ALL_SPLITS else data.split(split)
-
 
 class WindowDataset(Dataset):
     """Item i = the window of `seq_len` frames starting at the i-th valid start; returns

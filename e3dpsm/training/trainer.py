@@ -26,7 +26,7 @@ from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import CheckpointError, ConfigError, OutputExistsError
 from e3dpsm.models import create_model
-from e3dpsm.training.data import SeededWindowSampler, WindowDataset, mean_pose_mm, select_sequences
+from e3dpsm.training.data import SeededWindowSampler, WindowDataset, mean_pose_mm
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
@@ -181,7 +181,7 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
         model = create_model(args.variant, **{**overrides, "train_window_ms": data.window_ms,
                                               "height": data.height, "width": data.width})
     data.check_compatible(height=model.config.height, width=model.config.width)
-    sequences = select_sequences(data, args.split)
+    sequences = data.split(args.split)
     dataset = WindowDataset(sequences, args.seq_len)
     if payload is None:
         model.set_pose_prior(torch.from_numpy(mean_pose_mm(sequences)))
