@@ -21,7 +21,7 @@ class Frames:
     source: str
 
 
-def synthetic_frames(count: int, height: int, width: int, window_ms: float, seed: int = 0,
+def moving_edge_frames(count: int, height: int, width: int, window_ms: float, seed: int = 0,
                      edges: int = 6, events_per_window: int = 4000, noise_fraction: float = 0.1) -> Frames:
     """`count` consecutive windows of events from `edges` line segments moving across the
     sensor (as limbs would) and uniform background noise, rendered to LNES."""

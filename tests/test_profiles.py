@@ -10,7 +10,7 @@ import pytest
 from e3dpsm.cli import main
 from e3dpsm.errors import ConfigError
 from e3dpsm.profiles.devices import Device, bytes_per_step, load_devices, roofline
-from e3dpsm.profiles.inputs import synthetic_frames
+from e3dpsm.profiles.inputs import moving_edge_frames
 from e3dpsm.profiles.latency import latency_summary, measure_side_by_side
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.targets import Target, availability, load_targets, select_targets
@@ -119,8 +119,8 @@ def test_rss_sampler_sees_an_allocation():
 
 
 def test_synthetic_frames_are_sparse_lnes_and_seeded():
-    a = synthetic_frames(4, 96, 128, 20.0, seed=3)
-    b = synthetic_frames(4, 96, 128, 20.0, seed=3)
+    a = moving_edge_frames(4, 96, 128, 20.0, seed=3)
+    b = moving_edge_frames(4, 96, 128, 20.0, seed=3)
     assert np.array_equal(a.lnes, b.lnes)
     assert a.lnes.shape == (4, 2, 96, 128) and a.lnes.dtype == np.float32
     active = (a.lnes > 0).mean()

@@ -57,7 +57,7 @@ def _existing(path: str | None, flag: str) -> Path | None:
 def run(args: argparse.Namespace) -> int:
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.profiles.flops_onnx import load_graph
-    from e3dpsm.profiles.inputs import prepared_frames, synthetic_frames
+    from e3dpsm.profiles.inputs import prepared_frames, moving_edge_frames
     from e3dpsm.profiles.profiler import ProfileSettings, profile_targets
     from e3dpsm.profiles.report import plot_latency, plot_macs, profile_markdown
     from e3dpsm.profiles.targets import load_targets, select_targets
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         height, width = meta.frame_hw
         frames_needed = args.steps + args.warmup
         frames = (prepared_frames(args.data, frames_needed, height, width) if args.data
-                  else synthetic_frames(min(frames_needed, 400), height, width, meta.train_window_ms))
+                  else moving_edge_frames(min(frames_needed, 400), height, width, meta.train_window_ms))
         settings = ProfileSettings(steps=args.steps, warmup=args.warmup, ort_profile_steps=args.profile_steps)
         log.info("profiling %d target(s) on %s", len(targets), frames.source)
         body, times = profile_targets(targets, graphs, model, frames, settings, checkpoint=args.checkpoint,
