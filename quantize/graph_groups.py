@@ -86,24 +86,21 @@ class GraphIndex:
 
     def descendants(self, tensors: Iterable[str]) -> set[str]:
         """Nodes reachable from the given tensors."""
-        seen: set[str] = set()
-        stack = [c for t in tensors for c in self.consumers.get(t, [])]
-        while stack:
-            name = stack.pop()
-            if name not in seen:
-                seen.add(name)
-                stack.extend(self.consumers_of(name))
-        return seen
+        return self._closure([c for t in tensors for c in self.consumers.get(t, [])], self.consumers_of)
 
     def ancestors(self, tensors: Iterable[str]) -> set[str]:
         """Nodes the given tensors depend on."""
+        return self._closure([self.producer[t] for t in tensors if t in self.producer], self.producers_of)
+
+    @staticmethod
+    def _closure(start: list[str], neighbours) -> set[str]:
         seen: set[str] = set()
-        stack = [self.producer[t] for t in tensors if t in self.producer]
+        stack = list(start)
         while stack:
             name = stack.pop()
             if name not in seen:
                 seen.add(name)
-                stack.extend(self.producers_of(name))
+                stack.extend(neighbours(name))
         return seen
 
 
