@@ -107,5 +107,11 @@ class GraphMetadata:
         """From an onnx.ModelProto."""
         return cls.from_props({p.key: p.value for p in model.metadata_props}, source)
 
+    def write_to(self, model: Any) -> None:
+        """Replace an onnx.ModelProto's `metadata_props` with this metadata."""
+        del model.metadata_props[:]
+        for key, value in self.to_props().items():
+            model.metadata_props.add(key=key, value=value)
+
     def with_quantization(self, info: dict[str, Any]) -> "GraphMetadata":
         return GraphMetadata(self.states, self.inputs, self.outputs, self.config, self.joints, info, dict(self.extra))

@@ -84,6 +84,11 @@ class StateSpec:
         )
 
 
+def initial_states(specs: Sequence[StateSpec], batch: int) -> dict[str, np.ndarray]:
+    """The initial value of every state, keyed by state name, for `batch` streams."""
+    return {s.name: s.initial_value(batch) for s in specs}
+
+
 def check_state_shapes(
     specs: Sequence[StateSpec], shapes: Mapping[str, Sequence[int]], batch: int | None = None
 ) -> int:

@@ -57,16 +57,22 @@ class ExportResult:
         return asdict(self)
 
 
-def _op_histogram(model: onnx.ModelProto) -> dict[str, int]:
+def op_histogram(model: onnx.ModelProto) -> dict[str, int]:
+    """Node count per op type, most frequent first."""
     hist: dict[str, int] = {}
     for node in model.graph.node:
         hist[node.op_type] = hist.get(node.op_type, 0) + 1
     return dict(sorted(hist.items(), key=lambda kv: -kv[1]))
 
 
+def foreign_ops(model: onnx.ModelProto) -> list[str]:
+    """`domain::op` of every node outside the default ONNX domain (none allowed)."""
+    return sorted({f"{n.domain}::{n.op_type}" for n in model.graph.node if n.domain not in ALLOWED_DOMAINS})
+
+
 def check_graph(model: onnx.ModelProto) -> None:
     """Full checker, strict shape inference, default-domain operators only."""
-    foreign = sorted({f"{n.domain}::{n.op_type}" for n in model.graph.node if n.domain not in ALLOWED_DOMAINS})
+    foreign = foreign_ops(model)
     if foreign:
         raise ExportError(f"graph uses non-standard operators {foreign}; only default-domain ONNX ops are allowed")
     try:
@@ -127,9 +133,7 @@ def export_step_with_report(
     seconds_simplify = time.perf_counter() - t1
 
     graph.ir_version = _IR_FOR_OPSET[opset]
-    del graph.metadata_props[:]
-    for key, value in graph_metadata(model, metadata_extra).to_props().items():
-        graph.metadata_props.add(key=key, value=value)
+    graph_metadata(model, metadata_extra).write_to(graph)
     graph.producer_name = "e3dpsm"
     graph.doc_string = f"E-3DPSM single-step graph, variant {model.config.variant}"
     check_graph(graph)
@@ -147,7 +151,7 @@ def export_step_with_report(
         path=str(path), opset=opset, ir_version=graph.ir_version, nodes_traced=nodes_traced,
         nodes_final=len(graph.graph.node), simplified=simplify, bytes=size,
         seconds_export=round(seconds_export, 3), seconds_simplify=round(seconds_simplify, 3),
-        op_types=_op_histogram(graph),
+        op_types=op_histogram(graph),
     )
 
 

@@ -73,11 +73,14 @@ class TensorDiff:
         return bool(math.isfinite(value) and value <= self.limit)
 
     def update(self, step: int, got: np.ndarray, ref: np.ndarray) -> None:
-        diff = float(np.max(np.abs(got.astype(np.float64) - ref.astype(np.float64)))) if ref.size else 0.0
+        if not ref.size:
+            return
+        diff = float(np.max(np.abs(got.astype(np.float64) - ref.astype(np.float64))))
         if not math.isfinite(diff):
             diff = math.inf
-        self.reference_scale = max(self.reference_scale, float(np.max(np.abs(ref))) if ref.size else 0.0)
-        rel = diff / max(float(np.max(np.abs(ref))) if ref.size else 0.0, 1e-6)
+        scale = float(np.max(np.abs(ref)))
+        self.reference_scale = max(self.reference_scale, scale)
+        rel = diff / max(scale, 1e-6)
         if diff > self.max_abs or self.peak_step < 0:
             self.max_abs, self.peak_step = diff, step
         self.max_rel = max(self.max_rel, rel)

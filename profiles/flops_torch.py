@@ -38,18 +38,19 @@ class _GroupTracker:
         self.start: dict[str, Counter] = {}
         self.totals: dict[str, Counter] = {g: Counter() for g in MODULE_GROUPS}
 
-    def _snapshot(self) -> Counter:
+    def snapshot(self) -> Counter:
+        """The counter's global per-op FLOPs so far."""
         return Counter({op: int(v) for op, v in self.counter.get_flop_counts().get("Global", {}).items()})
 
     def enter(self, group: str) -> None:
         if self.depth[group] == 0:
-            self.start[group] = self._snapshot()
+            self.start[group] = self.snapshot()
         self.depth[group] += 1
 
     def exit(self, group: str) -> None:
         self.depth[group] -= 1
         if self.depth[group] == 0:
-            self.totals[group].update(self._snapshot() - self.start.pop(group))
+            self.totals[group].update(self.snapshot() - self.start.pop(group))
 
     @contextlib.contextmanager
     def watching(self, model: nn.Module) -> Iterator[None]:
@@ -100,7 +101,7 @@ def count_torch(model: nn.Module) -> FlopCount:
     tracker = _GroupTracker(counter)
     with torch.no_grad(), counter, tracker.watching(probe):
         probe.step(lnes, state, cfg.train_window_ms)
-    total = Counter({op: int(v) for op, v in counter.get_flop_counts().get("Global", {}).items()})
+    total = tracker.snapshot()
 
     result = FlopCount("pytorch", notes=[
         "FlopCounterMode (2 x MACs of conv / mm / bmm / addmm) halved; GridSample by formula; "

@@ -15,7 +15,8 @@ import onnx
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
-from e3dpsm.quantize.artifact import finalize, op_counts, save_model
+from e3dpsm.export.onnx_export import op_histogram
+from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
 from e3dpsm.quantize.exclusions import greedy_exclusions, scratch_model_path
@@ -135,7 +136,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             "holdout": {"split": options.holdout_split, "frames": holdout.frames, **accuracy},
             "sizes": {"source_bytes": Path(model_path).stat().st_size, "output_bytes": size},
             "nodes": {"source": len(source.graph.node), "output": len(model.graph.node),
-                      "source_ops": op_counts(source), "output_ops": op_counts(model)},
+                      "source_ops": op_histogram(source), "output_ops": op_histogram(model)},
             **extra,
             "seconds": round(time.perf_counter() - started, 2),
         })

@@ -19,7 +19,7 @@ from torch import nn
 from e3dpsm.errors import InputError
 from e3dpsm.layers import DeformableTransformerBlock, EncoderStage, JointQueryDecoder, PoseFusion, S5Block
 from e3dpsm.models.config import E3DPSMConfig
-from e3dpsm.state import StateSpec, check_state_shapes
+from e3dpsm.state import StateSpec, check_state_shapes, initial_states
 
 State = dict[str, torch.Tensor]
 Outputs = dict[str, torch.Tensor]
@@ -94,7 +94,7 @@ class E3DPSM(nn.Module):
 
     def init_state(self, batch: int, device: torch.device | str | None = None) -> State:
         device = device or next(self.parameters()).device
-        return {s.name: torch.from_numpy(s.initial_value(batch)).to(device) for s in self.state_spec()}
+        return {name: torch.from_numpy(value).to(device) for name, value in initial_states(self.state_spec(), batch).items()}
 
     # -- input checks (user input: typed errors, not asserts) ------------------------------
     def _check_frames(self, lnes: torch.Tensor, leading: str) -> None:

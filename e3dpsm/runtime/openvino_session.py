@@ -15,6 +15,7 @@ import numpy as np
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.runtime.session import StateArrays, build_feeds
+from e3dpsm.state import initial_states
 
 
 def openvino_available() -> tuple[bool, str]:
@@ -54,7 +55,7 @@ class OpenVINOStepSession:
         return list(self._outputs)
 
     def init_state(self, batch: int = 1) -> StateArrays:
-        return {s.name: s.initial_value(batch) for s in self.meta.states}
+        return initial_states(self.meta.states, batch)
 
     def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray):
         feeds = build_feeds(self.meta, lnes, state, window_ms)

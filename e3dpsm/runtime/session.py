@@ -13,7 +13,7 @@ import numpy as np
 
 from e3dpsm.errors import DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.state import check_state_shapes
+from e3dpsm.state import check_state_shapes, initial_states
 
 StateArrays = dict[str, np.ndarray]
 
@@ -96,7 +96,7 @@ class StepSession:
         return list(self.output_names)
 
     def init_state(self, batch: int = 1) -> StateArrays:
-        return {s.name: s.initial_value(batch) for s in self.meta.states}
+        return initial_states(self.meta.states, batch)
 
     def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
         """The input dict of one step, checked against the metadata."""
