@@ -58,6 +58,22 @@ class DeformableAttention2d(nn.Module):
         nn.init.xavier_uniform_(self.output_proj.weight)
         nn.init.zeros_(self.output_proj.bias)
 
+    def _sampling_grid(self, tokens: torch.Tensor) -> torch.Tensor:
+        """grid_sample coordinates in [-1, 1], flat: [N, H*W, heads*points*2].
+
+        Offsets are in token units of this map, so the [-1, 1] grid is
+        (2 * reference - 1) + offsets * (2 / W, 2 / H). Folding the (2 / W, 2 / H) scale
+        into the offset projection's weights and laying the reference out at full width
+        leaves only parameter-only terms (constant-folded at export) and one same-shape Add.
+        The literal form, broadcasting [.., 2]-sized tensors, measured 3.3 ms of a 27.6 ms
+        `paper` step in ONNX Runtime 1.31 (slow broadcast path for tiny trailing dims).
+        """
+        slots = self.heads * self.points
+        scale = tokens.new_tensor([2.0 / self.width, 2.0 / self.height]).repeat(slots)
+        offsets = F.linear(tokens, self.sampling_offsets.weight * scale[:, None], self.sampling_offsets.bias * scale)
+        origin = (2.0 * self.reference - 1.0).repeat(1, slots)  # [H*W, slots*2], (x, y) per slot
+        return offsets + origin
+
     def forward(self, tokens: torch.Tensor) -> torch.Tensor:
         """tokens: [N, H*W, dim] -> [N, H*W, dim]."""
         n, num_tokens, _ = tokens.shape
@@ -65,11 +81,8 @@ class DeformableAttention2d(nn.Module):
         value = self.value_proj(tokens).view(n, self.height, self.width, heads, head_dim)
         value = value.permute(0, 3, 4, 1, 2).reshape(n * heads, head_dim, self.height, self.width)
 
-        offsets = self.sampling_offsets(tokens).view(n, num_tokens, heads, points, 2)
-        # Offsets are in token units of this map; normalise by (W, H) to the [0, 1] frame.
-        scale = tokens.new_tensor([1.0 / self.width, 1.0 / self.height])
-        locations = self.reference.view(1, num_tokens, 1, 1, 2) + offsets * scale
-        grid = (2.0 * locations - 1.0).permute(0, 2, 1, 3, 4).reshape(n * heads, num_tokens, points, 2)
+        grid = self._sampling_grid(tokens)
+        grid = grid.view(n, num_tokens, heads, points, 2).permute(0, 2, 1, 3, 4).reshape(n * heads, num_tokens, points, 2)
         sampled = F.grid_sample(value, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
         weights = self.attention_weights(tokens).view(n, num_tokens, heads, points).softmax(dim=-1)
