@@ -78,3 +78,27 @@ def test_evaluate_cli_writes_consistent_report(training_runs: dict[str, Path], p
     assert (out / "per_joint.png").stat().st_size > 1000
     assert main(["evaluate", "--checkpoint", str(training_runs["full"] / "checkpoint.pt"), "--data",
                  str(prepared_small), "--out", str(out)]) == 2  # exists, no --force
+
+
+def _ablation_row(mpjpe: float, e_smooth: float, over_time: list[float], non_causal: float) -> dict:
+    causal = {"mpjpe": mpjpe, "e_smooth": e_smooth, "error_over_time": over_time}
+    return {"causal": causal, "non_causal": {"mpjpe": non_causal, "e_smooth": e_smooth, "error_over_time": over_time}}
+
+
+def test_paper_claims_hold_and_fail_on_hand_made_ablation_rows() -> None:
+    from e3dpsm.evaluation.ablation import paper_claims
+
+    rows = {
+        "full": _ablation_row(100.0, 4.0, [100.0, 100.0], non_causal=98.0),
+        "naive_fusion": _ablation_row(300.0, 3.0, [100.0, 500.0], non_causal=290.0),
+        "direct_only": _ablation_row(105.0, 8.0, [105.0, 105.0], non_causal=104.0),
+    }
+    assert [c["holds"] for c in paper_claims(rows)] == [True, True, True, True]
+    assert paper_claims(rows)[2]["figures"]["ratio"] == pytest.approx(2.0)
+    assert paper_claims(rows)[3]["figures"]["gap_pct"] == pytest.approx(100.0 * 2.0 / 98.0)
+
+    rows["direct_only"] = _ablation_row(105.0, 5.0, [105.0, 105.0], non_causal=104.0)  # only 1.25x smoother
+    rows["naive_fusion"] = _ablation_row(90.0, 3.0, [100.0, 90.0], non_causal=90.0)    # no drift, better
+    rows["full"] = _ablation_row(100.0, 4.0, [100.0, 100.0], non_causal=80.0)           # 25% causal gap
+    assert [c["holds"] for c in paper_claims(rows)] == [False, False, False, False]
+    assert paper_claims({"naive_fusion": rows["naive_fusion"]}) == []
