@@ -1,7 +1,7 @@
 """Step latency and accuracy of fp32 / fp16 / int8-dynamic / int8 static, side by side.
 
     python benchmarks/bench_quantize.py --data PREPARED [--checkpoint CKPT | --variant paper]
-        [--accuracy-checkpoint CKPT_SMALL] [--threads 2] [--steps 100] [--frames 200]
+        [--accuracy-checkpoint CKPT_SMALL [--accuracy-data PREPARED]] [--threads 2] [--steps 100] [--frames 200]
 
 Latency: one graph per variant, real LNES frames of the test split, states carried,
 median (and p90) over `--steps` steps after `--warmup`; the variants are measured
@@ -30,7 +30,7 @@ MODES = ("int8", "fp16", "int8-dynamic")
 RESULTS = Path(__file__).resolve().parent / "results" / "quantize.json"
 
 
-def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str, out: Path) -> Path:
+def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str, out: Path, data: str) -> Path:
     import e3dpsm
     from e3dpsm.checkpoint import load_checkpoint
     from e3dpsm.export import export_step
@@ -38,8 +38,7 @@ def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str,
     if checkpoint:
         model, _ = load_checkpoint(checkpoint)
     else:
-        data = PreparedData.open(args.data)
-        mean = np.concatenate([s.j3d_mm for s in data.split("train")]).mean(axis=0)
+        mean = np.concatenate([s.j3d_mm for s in PreparedData.open(data).split("train")]).mean(axis=0)
         import torch
 
         model = e3dpsm.create_model(variant).eval()
@@ -47,34 +46,56 @@ def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str,
     return export_step(model, out)
 
 
-def quantise_all(graph: Path, args: argparse.Namespace, work: Path, label: str) -> dict[str, dict]:
+def quantise_all(graph: Path, args: argparse.Namespace, work: Path, label: str, data: str) -> dict[str, dict]:
     reports = {}
     for mode in MODES:
         options = QuantizeOptions(mode=mode, frames=args.frames, holdout_frames=args.holdout_frames,
                                   budget_pct=args.budget_pct, threads=args.threads)
-        reports[mode] = quantize_graph(graph, args.data, work / f"{label}_{mode}", options)
+        reports[mode] = quantize_graph(graph, data, work / f"{label}_{mode}", options)
         h = reports[mode]["holdout"]
         print(f"[{label}] {mode}: MPJPE {h['mpjpe_mm']:.3f} vs fp32 {h['fp32_mpjpe_mm']:.3f} mm "
               f"({h['loss_pct']:+.4f} %), distance to fp32 {h['deviation_from_fp32_mm']:.4f} mm", flush=True)
     return reports
 
 
-def latency(paths: dict[str, Path], lnes: np.ndarray, threads: int, steps: int, warmup: int) -> dict[str, dict]:
+def latency(paths: dict[str, Path], lnes: np.ndarray, threads: int, steps: int, warmup: int,
+            chunk: int = 25) -> dict[str, dict]:
+    """Rounds of `chunk` consecutive steps per variant, so load drifts hit every variant
+    alike while each one runs with its worker threads warm (alternating single steps
+    between sessions whose idle threads spin measured every variant up to 2x slower)."""
     sessions = {name: StepSession(p, threads=threads) for name, p in paths.items()}
     states = {name: s.init_state(1) for name, s in sessions.items()}
     times: dict[str, list[float]] = {name: [] for name in sessions}
-    for i in range(warmup + steps):
-        frame = np.asarray(lnes[i % len(lnes)][None], dtype=np.float32)
-        for name, session in sessions.items():  # interleaved: load spikes hit every variant
-            feeds = session.feeds(frame, states[name], 20.0)
-            t0 = time.perf_counter()
-            _, states[name] = session.run_feeds(feeds)
-            if i >= warmup:
+    frame = lambda i: np.asarray(lnes[i % len(lnes)][None], dtype=np.float32)  # noqa: E731
+    for name, session in sessions.items():
+        for i in range(warmup):
+            _, states[name] = session.run_feeds(session.feeds(frame(i), states[name], 20.0))
+    for start in range(warmup, warmup + steps, chunk):
+        for name, session in sessions.items():
+            for i in range(start, min(start + chunk, warmup + steps)):
+                feeds = session.feeds(frame(i), states[name], 20.0)
+                t0 = time.perf_counter()
+                _, states[name] = session.run_feeds(feeds)
                 times[name].append(time.perf_counter() - t0)
     base = float(np.median(times["fp32"]))
     return {name: {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
                    "speedup_vs_fp32": base / float(np.median(t)), "bytes": paths[name].stat().st_size}
             for name, t in times.items()}
+
+
+def op_profile(path: Path, lnes: np.ndarray, threads: int, steps: int, work: Path) -> dict:
+    """Where the step's time goes (ORT profiling, a separate session from the timed one),
+    with Amdahl's bound on what INT8 can gain when only Conv / MatMul / Gemm are quantised."""
+    from e3dpsm.profiles.latency import ort_session_options
+    from e3dpsm.profiles.ort_profile import summarize_trace
+
+    session = StepSession(path, threads=threads, options=ort_session_options(threads, str(work / path.stem)))
+    state = session.init_state(1)
+    for i in range(steps):
+        _, state = session.run_feeds(session.feeds(np.asarray(lnes[i % len(lnes)][None], np.float32), state, 20.0))
+    summary = summarize_trace(session.session.end_profiling())
+    summary["by_op_type_ms"] = dict(list(summary["by_op_type_ms"].items())[:15])
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", default="paper")
     parser.add_argument("--accuracy-checkpoint", help="trained model for the accuracy figures (e.g. small)")
     parser.add_argument("--accuracy-variant", default="small")
+    parser.add_argument("--accuracy-data", help="prepared data at the accuracy model's resolution (default --data)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--warmup", type=int, default=10)
@@ -96,16 +118,17 @@ def main(argv: list[str] | None = None) -> int:
     result = report_header("bench_quantize", vars(args))
     with tempfile.TemporaryDirectory(prefix="bench-quant-") as tmp:
         work = Path(tmp)
-        acc_graph = export_graph(args, args.accuracy_checkpoint, args.accuracy_variant, work / "acc_fp32.onnx")
-        acc = quantise_all(acc_graph, args, work, "accuracy")
+        acc_data = args.accuracy_data or args.data
+        acc_graph = export_graph(args, args.accuracy_checkpoint, args.accuracy_variant, work / "acc_fp32.onnx", acc_data)
+        acc = quantise_all(acc_graph, args, work, "accuracy", acc_data)
         result["accuracy"] = {
             "model": args.accuracy_checkpoint or f"{args.accuracy_variant} (untrained, mean-pose prior)",
             **{mode: {**r["holdout"], "calibration": r.get("calibration"),
                       "float_groups": r["quantization"].get("float_groups"),
                       "exclusion_search": r.get("exclusion_search")} for mode, r in acc.items()},
         }
-        speed_graph = export_graph(args, args.checkpoint, args.variant, work / "speed_fp32.onnx")
-        speed = quantise_all(speed_graph, args, work, "speed")
+        speed_graph = export_graph(args, args.checkpoint, args.variant, work / "speed_fp32.onnx", args.data)
+        speed = quantise_all(speed_graph, args, work, "speed", args.data)
         paths = {"fp32": speed_graph, **{m: work / f"speed_{m}" / artifact_name(m) for m in MODES}}
         lnes = PreparedData.open(args.data).split("test")[0].lnes
         result["latency"] = {
@@ -113,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
             "steps": args.steps, "warmup": args.warmup,
             **latency(paths, lnes, args.threads, args.steps, args.warmup),
         }
+        result["op_profile"] = {name: op_profile(paths[name], lnes, args.threads, 40, work) for name in ("fp32", "int8")}
         result["speed_model_accuracy"] = {m: r["holdout"] for m, r in speed.items()}
         result["calibration"] = {m: r.get("calibration") for m, r in speed.items() if r.get("calibration")}
     write_json_atomic(args.out, result)
@@ -121,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(row, dict):
             loss = result["accuracy"].get(name, {}).get("loss_pct", 0.0)
             print(f"{name:14s} {row['median_ms']:10.2f} {row['speedup_vs_fp32']:9.2f} {loss:13.4f}")
+    bound = result["op_profile"]["fp32"]["int8_speedup_bound"]
+    print(f"fp32 kernel time {bound['kernel_ms']:.2f} ms/step, Conv/MatMul/Gemm {bound['quantisable_ms']:.2f} ms "
+          f"({100 * bound['quantisable_share']:.0f}%): INT8 speed-up bound {bound['max_speedup']:.2f}x")
     print(f"-> {args.out}")
     return 0
 

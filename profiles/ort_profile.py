@@ -11,6 +11,9 @@ from typing import Any, Mapping
 import numpy as np
 
 _KERNEL_SUFFIX = "_kernel_time"
+# Float ops that static INT8 quantisation replaces (quantize.static.DEFAULT_OP_TYPES), with
+# the names ORT gives them after its own fusions.
+QUANTISABLE_OPS: frozenset[str] = frozenset({"Conv", "FusedConv", "MatMul", "FusedMatMul", "Gemm", "FusedGemm"})
 
 
 def summarize_trace(trace_path: str | os.PathLike, node_groups: Mapping[str, str] | None = None) -> dict[str, Any]:
@@ -43,6 +46,7 @@ def summarize_trace(trace_path: str | os.PathLike, node_groups: Mapping[str, str
         "steps": len(runs), "run_ms_median": run_ms, "kernel_ms_per_step": node_total / steps,
         "by_op_type_ms": per_step(by_op), "by_module_ms": per_step(by_group) if node_groups is not None else None,
         "by_provider_ms": per_step(by_provider),
+        "int8_speedup_bound": int8_speedup_bound(per_step(by_op)),
     }
 
 
@@ -52,3 +56,15 @@ def _group_of_node(node: str, node_groups: Mapping[str, str]) -> str:
     # ORT-fused nodes are named after the first node they absorb, plus a suffix.
     best = max((k for k in node_groups if node.startswith(k)), key=len, default=None)
     return node_groups[best] if best else "unmapped (ORT-created)"
+
+
+def int8_speedup_bound(by_op_type_ms: Mapping[str, float]) -> dict[str, float]:
+    """Amdahl's bound on an INT8 graph's speed-up over this float profile: only the
+    QUANTISABLE_OPS get faster, so even at zero cost for them (and for the Quantize /
+    DequantizeLinear pairs they bring) the step takes at least the rest's time."""
+    total = float(sum(by_op_type_ms.values()))
+    quantisable = float(sum(ms for op, ms in by_op_type_ms.items() if op in QUANTISABLE_OPS))
+    rest = total - quantisable
+    return {"kernel_ms": total, "quantisable_ms": quantisable, "float_rest_ms": rest,
+            "quantisable_share": quantisable / total if total else 0.0,
+            "max_speedup": total / rest if rest > 0 else float("inf")}

@@ -107,6 +107,12 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
             mod = mods[k] if k < len(mods) else ("", None)
             lines.append(f"| {op[0]} | {_g(op[1])} | {mod[0]} | {_g(mod[1])} |")
         lines.append("")
+        bound = prof.get("int8_speedup_bound") or {}
+        if bound.get("quantisable_ms"):
+            lines += [f"Ops that INT8 quantisation replaces (Conv / MatMul / Gemm): {bound['quantisable_ms']:.2f} ms "
+                      f"({100 * bound['quantisable_share']:.0f}%); the rest stays float ({bound['float_rest_ms']:.2f} ms), "
+                      f"so no INT8 graph of this model can beat this one by more than "
+                      f"**{bound['max_speedup']:.2f}x** (Amdahl, quantised ops at zero cost).", ""]
     if report.get("devices"):
         lines += ["## Reference devices: roofline ESTIMATE vs the paper's measured rate", "",
                   "Estimate = min(peak compute / FLOPs, bandwidth / bytes moved per step); an upper bound that "

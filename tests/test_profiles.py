@@ -181,3 +181,25 @@ def test_model_info_json(tmp_path, capsys, tiny_model):
     assert sum(m["params"] for m in counts["modules"].values()) == report["model"]["params"]
     assert report["model"]["params"] == sum(p.numel() for p in tiny_model.parameters())
     assert counts["flops"] == 2 * counts["macs"] == 2 * sum(m["macs"] for m in counts["modules"].values())
+
+
+def test_ort_trace_summary_and_int8_bound_on_a_hand_made_trace(tmp_path) -> None:
+    from e3dpsm.profiles.ort_profile import summarize_trace
+
+    def kernel(node: str, op: str, us: float) -> dict:
+        return {"cat": "Node", "name": f"{node}_kernel_time", "dur": us, "args": {"op_name": op, "provider": "CPU"}}
+
+    events = []
+    for _ in range(2):  # two steps: conv 6 ms + gemm 2 ms quantisable, grid sample 4 ms float
+        events += [{"cat": "Session", "name": "model_run", "dur": 12_500},
+                   kernel("/stem/Conv", "FusedConv", 6_000), kernel("/head/Gemm", "Gemm", 2_000),
+                   kernel("/attn/GridSample", "GridSample", 4_000)]
+    trace = tmp_path / "trace.json"
+    trace.write_text(json.dumps(events))
+    summary = summarize_trace(trace, {"/stem/Conv": "stem", "/head/Gemm": "head", "/attn/GridSample": "attention"})
+    assert summary["steps"] == 2 and summary["run_ms_median"] == pytest.approx(12.5)
+    assert summary["kernel_ms_per_step"] == pytest.approx(12.0)
+    assert summary["by_module_ms"] == pytest.approx({"stem": 6.0, "attention": 4.0, "head": 2.0})
+    bound = summary["int8_speedup_bound"]
+    assert bound["quantisable_ms"] == pytest.approx(8.0) and bound["float_rest_ms"] == pytest.approx(4.0)
+    assert bound["max_speedup"] == pytest.approx(3.0)
