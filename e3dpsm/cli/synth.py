@@ -25,6 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="parallel processes (default: up to 2)")
     p.add_argument("--preview", action="store_true", help="write preview PNGs into DIR/preview/")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
     return p
 
@@ -36,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     config = SynthConfig(seed=args.seed, seconds=args.seconds, pose_hz=args.pose_hz,
                          render_hz=args.render_hz, render_scale=args.render_scale)
     report = write_dataset(args.out, config, args.sequences, workers=args.workers,
-                           preview=args.preview, force=args.force)
+                           preview=args.preview, force=args.force, progress=not args.no_progress)
     r = report["realism"]
     print(json.dumps({
         "out": args.out, "events_per_20ms": r["events_per_20ms"], "background_share": round(r["background_share"], 3),
