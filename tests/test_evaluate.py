@@ -102,3 +102,23 @@ def test_paper_claims_hold_and_fail_on_hand_made_ablation_rows() -> None:
     rows["full"] = _ablation_row(100.0, 4.0, [100.0, 100.0], non_causal=80.0)           # 25% causal gap
     assert [c["holds"] for c in paper_claims(rows)] == [False, False, False, False]
     assert paper_claims({"naive_fusion": rows["naive_fusion"]}) == []
+
+
+def test_ablation_command_trains_evaluates_and_checks_the_claims(prepared_small: Path, tmp_path: Path) -> None:
+    out = tmp_path / "abl"
+    rc = main(["ablation", "--variant", "tiny", "--data", str(prepared_small), "--split", "all",
+               "--test-data", str(prepared_small), "--out", str(out), "--ablations", "full", "naive_fusion",
+               "direct_only", "--steps", "2", "--seq-len", "3", "--batch-size", "2", "--threads", "2"])
+    assert rc == 0
+    table = json.loads((out / "ablation.json").read_text())
+    assert list(table["rows"]) == ["full", "naive_fusion", "direct_only"]
+    assert table["rows"]["naive_fusion"]["overrides"] == {"fusion": "naive"}
+    full = table["rows"]["full"]
+    assert full["causal"]["mpjpe"] > 0 and full["non_causal"]["mpjpe"] > 0
+    claims = {c["claim"]: c for c in table["claims"]}
+    assert len(claims) == 4
+    smooth = next(c for name, c in claims.items() if "e_smooth" in name)
+    assert smooth["figures"]["ratio"] == pytest.approx(
+        table["rows"]["direct_only"]["causal"]["e_smooth"] / full["causal"]["e_smooth"])
+    md = (out / "ablation.md").read_text()
+    assert "The paper's claims" in md and "naive_fusion (causal)" in md
