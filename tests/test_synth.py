@@ -172,3 +172,19 @@ def test_cli_writes_a_layout_that_reads_back(tmp_path):
     # an existing folder is refused without --force
     res = _cli(*args)
     assert res.returncode == 2 and "--force" in res.stderr
+
+
+def test_room_pass_is_finite_and_exact_for_axis_aligned_rays() -> None:
+    """Rays with a component of exactly +0.0 (horizontal, or parallel to a wall) must hit
+    the right plane: a float division by +0.0 once sent such a ray 'behind' the floor."""
+    from e3dpsm.data.synth.motion import Room
+    from e3dpsm.data.synth.render import Renderer
+
+    room = Room(half_x=3.0, half_y=4.0, height=2.5)
+    renderer = Renderer(ee3d_default(), 0.25, room, np.random.default_rng(0))
+    rays = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [0.6, 0.0, -0.8]])
+    renderer.rays_t = np.ascontiguousarray(rays.T, dtype=np.float32)
+    cam = np.array([1.0, -1.0, 1.5])
+    with np.errstate(invalid="raise"):
+        shade = renderer._room_intensity(cam, np.eye(3))
+    assert np.all(np.isfinite(shade)) and np.all(shade > 0)

@@ -119,6 +119,7 @@ class Renderer:
         t_y = (np.copysign(half_y, d[1]) - c[1]) * inv[1]
         up = d[2] > 0
         t_z = (up * height - c[2]) * inv[2]
+        t_z[t_z <= 0] = np.inf  # a ray with d_z == +0.0 is horizontal: it meets a wall, not the floor
         t_wall = np.minimum(t_x, t_y)
         on_x, flat = t_x <= t_y, t_z <= t_wall  # hit an x wall (if not flat); floor/ceiling
         t = np.minimum(t_wall, t_z)
