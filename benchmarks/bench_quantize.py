@@ -12,17 +12,14 @@ benchmarks/results/quantize.json (and prints a table).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.quantize import QuantizeOptions, artifact_name, quantize_graph
-from e3dpsm.runtime import StepSession
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
 
@@ -58,42 +55,41 @@ def quantise_all(graph: Path, args: argparse.Namespace, work: Path, label: str, 
     return reports
 
 
-def latency(paths: dict[str, Path], lnes: np.ndarray, threads: int, steps: int, warmup: int,
-            chunk: int = 25) -> dict[str, dict]:
-    """Rounds of `chunk` consecutive steps per variant, so load drifts hit every variant
-    alike while each one runs with its worker threads warm (alternating single steps
-    between sessions whose idle threads spin measured every variant up to 2x slower)."""
-    sessions = {name: StepSession(p, threads=threads) for name, p in paths.items()}
-    states = {name: s.init_state(1) for name, s in sessions.items()}
-    times: dict[str, list[float]] = {name: [] for name in sessions}
-    frame = lambda i: np.asarray(lnes[i % len(lnes)][None], dtype=np.float32)  # noqa: E731
-    for name, session in sessions.items():
-        for i in range(warmup):
-            _, states[name] = session.run_feeds(session.feeds(frame(i), states[name], 20.0))
-    for start in range(warmup, warmup + steps, chunk):
-        for name, session in sessions.items():
-            for i in range(start, min(start + chunk, warmup + steps)):
-                feeds = session.feeds(frame(i), states[name], 20.0)
-                t0 = time.perf_counter()
-                _, states[name] = session.run_feeds(feeds)
-                times[name].append(time.perf_counter() - t0)
+def _runner(path: Path, threads: int, window_ms: float, profile_prefix: str | None = None):
+    """The profiler's ONNX Runtime step runner for one graph (CPU provider)."""
+    from e3dpsm.profiles.latency import OrtRunner
+    from e3dpsm.profiles.targets import Target
+
+    target = Target(name=path.stem, runtime="onnxruntime", provider="CPUExecutionProvider",
+                    precision="as-graph", graph=path.stem, threads=threads)
+    return OrtRunner(str(path), target, window_ms, profile_prefix=profile_prefix)
+
+
+def latency(paths: dict[str, Path], lnes: np.ndarray, window_ms: float, threads: int, steps: int,
+            warmup: int) -> dict[str, dict]:
+    """Measured the way `e3dpsm profile` measures: rounds of 25 consecutive steps per
+    variant, so load drifts hit every variant alike while each runs with its worker
+    threads warm (alternating single steps between sessions whose idle threads spin
+    measured every variant up to 2x slower)."""
+    from e3dpsm.profiles.latency import measure_side_by_side
+
+    runners = {name: _runner(p, threads, window_ms) for name, p in paths.items()}
+    times = measure_side_by_side(runners, np.asarray(lnes, dtype=np.float32), steps, warmup)
     base = float(np.median(times["fp32"]))
     return {name: {"median_ms": 1e3 * float(np.median(t)), "p90_ms": 1e3 * float(np.percentile(t, 90)),
                    "speedup_vs_fp32": base / float(np.median(t)), "bytes": paths[name].stat().st_size}
             for name, t in times.items()}
 
 
-def op_profile(path: Path, lnes: np.ndarray, threads: int, steps: int, work: Path) -> dict:
+def op_profile(path: Path, lnes: np.ndarray, window_ms: float, threads: int, steps: int, work: Path) -> dict:
     """Where the step's time goes (ORT profiling, a separate session from the timed one),
     with Amdahl's bound on what INT8 can gain when only Conv / MatMul / Gemm are quantised."""
-    from e3dpsm.profiles.latency import ort_session_options
     from e3dpsm.profiles.ort_profile import summarize_trace
 
-    session = StepSession(path, threads=threads, options=ort_session_options(threads, str(work / path.stem)))
-    state = session.init_state(1)
+    runner = _runner(path, threads, window_ms, profile_prefix=str(work / path.stem))
     for i in range(steps):
-        _, state = session.run_feeds(session.feeds(np.asarray(lnes[i % len(lnes)][None], np.float32), state, 20.0))
-    summary = summarize_trace(session.session.end_profiling())
+        runner.step(np.asarray(lnes[i % len(lnes)][None], dtype=np.float32))
+    summary = summarize_trace(runner.end_profiling())
     summary["by_op_type_ms"] = dict(list(summary["by_op_type_ms"].items())[:15])
     return summary
 
@@ -130,13 +126,14 @@ def main(argv: list[str] | None = None) -> int:
         speed_graph = export_graph(args, args.checkpoint, args.variant, work / "speed_fp32.onnx", args.data)
         speed = quantise_all(speed_graph, args, work, "speed", args.data)
         paths = {"fp32": speed_graph, **{m: work / f"speed_{m}" / artifact_name(m) for m in MODES}}
-        lnes = PreparedData.open(args.data).split("test")[0].lnes
+        speed_data = PreparedData.open(args.data)
+        lnes, window_ms = speed_data.split("test")[0].lnes, speed_data.window_ms
         result["latency"] = {
             "model": args.checkpoint or f"{args.variant} (untrained)", "threads": args.threads,
             "steps": args.steps, "warmup": args.warmup,
-            **latency(paths, lnes, args.threads, args.steps, args.warmup),
+            **latency(paths, lnes, window_ms, args.threads, args.steps, args.warmup),
         }
-        result["op_profile"] = {name: op_profile(paths[name], lnes, args.threads, 40, work) for name in ("fp32", "int8")}
+        result["op_profile"] = {name: op_profile(paths[name], lnes, window_ms, args.threads, 40, work) for name in ("fp32", "int8")}
         result["speed_model_accuracy"] = {m: r["holdout"] for m, r in speed.items()}
         result["calibration"] = {m: r.get("calibration") for m, r in speed.items() if r.get("calibration")}
     write_json_atomic(args.out, result)

@@ -203,3 +203,12 @@ def test_ort_trace_summary_and_int8_bound_on_a_hand_made_trace(tmp_path) -> None
     bound = summary["int8_speedup_bound"]
     assert bound["quantisable_ms"] == pytest.approx(8.0) and bound["float_rest_ms"] == pytest.approx(4.0)
     assert bound["max_speedup"] == pytest.approx(3.0)
+
+
+def test_int8_bound_counts_exactly_the_op_types_the_quantiser_replaces() -> None:
+    """QUANTISABLE_OPS is written out in profiles (which must not import the quantiser's
+    torch-heavy package); it must name each DEFAULT_OP_TYPES op and its ORT fusion only."""
+    from e3dpsm.profiles.ort_profile import QUANTISABLE_OPS
+    from e3dpsm.quantize.static import DEFAULT_OP_TYPES
+
+    assert QUANTISABLE_OPS == {name for op in DEFAULT_OP_TYPES for name in (op, f"Fused{op}")}

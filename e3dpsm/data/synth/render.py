@@ -101,9 +101,9 @@ class Renderer:
 
     # ---- background ---------------------------------------------------------------------
     def _room_intensity(self, cam_pos: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
-        # Component arrays [N] rather than [N, 3] (numpy reduces short last axes slowly),
-        # float32 throughout, and arithmetic blends in place of np.where (3x slower here):
-        # this pass runs for every pixel of every render and dominated generation time.
+        # Component arrays [N] rather than [N, 3] (numpy reduces short last axes slowly)
+        # and float32 throughout: this pass runs for every pixel of every render and
+        # dominated generation time.
         c = cam_pos.astype(np.float32)
         # World directions [3, N], written out: a BLAS matmul with an inner size of 3 is
         # slower than nine multiply-adds, and its thread pool fights the generator's
@@ -131,7 +131,7 @@ class Renderer:
         along = np.where(on_x, p[1] + np.float32(7.3) * np.sign(p[0]), p[0] + np.float32(3.1) * np.sign(p[1]))
         u = np.where(flat, p[0] * k_floor, along * k_wall)
         v = np.where(flat, p[1] * k_floor, p[2] * k_wall)
-        albedo = self.textures.sample(u, v, layer=(~flat).view(np.uint8).astype(np.int32))
+        albedo = self.textures.sample(u, v, layer=(~flat).astype(np.int32))
         ceiling = flat & up
         albedo[ceiling] *= np.float32(0.6)
         # Lambert with the light inside the room: cos(incidence) = distance from the light
