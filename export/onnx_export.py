@@ -146,7 +146,7 @@ def export_step_with_report(
     with atomic_path(path, suffix=".onnx") as tmp_path:
         onnx.save(graph, str(tmp_path))
     size = Path(path).stat().st_size
-    log.info("exported %s: %d -> %d nodes, %.1f MB", path, nodes_traced, len(graph.graph.node), size / 1e6)
+    log.debug("exported %s: %d -> %d nodes, %.1f MB", path, nodes_traced, len(graph.graph.node), size / 1e6)
     return ExportResult(
         path=str(path), opset=opset, ir_version=graph.ir_version, nodes_traced=nodes_traced,
         nodes_final=len(graph.graph.node), simplified=simplify, bytes=size,

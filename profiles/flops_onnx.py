@@ -18,8 +18,9 @@ from onnx import TensorProto, numpy_helper
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_graph import node_key
 from e3dpsm.profiles.flops import FlopCount, grid_sample_macs, recurrence_macs
-from e3dpsm.profiles.graph_groups import assign_groups, node_key
+from e3dpsm.profiles.graph_groups import assign_groups
 
 DENSE_OPS = ("Conv", "Gemm", "MatMul")
 # Nodes that do arithmetic on every output value (reported as "elementwise", not in MACs).

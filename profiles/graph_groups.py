@@ -12,11 +12,10 @@
 """
 from __future__ import annotations
 
-from collections import defaultdict
-
 import onnx
 from onnx import TensorProto
 
+from e3dpsm.onnx_graph import GraphIndex
 from e3dpsm.profiles.flops import OTHER, group_of
 
 # Activation types: float, and 8-bit for the quantised tensors of QDQ graphs. int64 / int32
@@ -37,58 +36,41 @@ def scope_group(name: str) -> str | None:
     return None
 
 
-def node_key(node: onnx.NodeProto) -> str:
-    return node.name or node.output[0]
-
-
 def assign_groups(model: onnx.ModelProto, dtypes: dict[str, int]) -> dict[str, str]:
     """node key (name, or first output if unnamed) -> group name."""
-    nodes = list(model.graph.node)
+    index = GraphIndex(model)
 
     def is_activation(tensor: str) -> bool:
         return dtypes.get(tensor, TensorProto.FLOAT) in _DATA_TYPES
 
-    producer: dict[str, int] = {}
-    consumers: dict[str, list[int]] = defaultdict(list)
-    for i, node in enumerate(nodes):
-        for tensor in node.output:
-            producer[tensor] = i
-        for tensor in node.input:
-            consumers[tensor].append(i)
+    def neighbours(key: str) -> list[str]:
+        return index.producers_of(key, is_activation) + index.consumers_of(key, is_activation)
 
-    def data_producers(i: int) -> list[int]:
-        return [producer[t] for t in nodes[i].input if t in producer and is_activation(t)]
-
-    def data_consumers(i: int) -> list[int]:
-        return [j for t in nodes[i].output if is_activation(t) for j in consumers.get(t, ())]
-
-    labels: list[str | None] = []
-    for node in nodes:
-        found = next((g for g in map(scope_group, [node.name, *node.output]) if g), None)
-        labels.append(found)
+    labels: dict[str, str | None] = {
+        key: next((g for g in map(scope_group, [node.name, *node.output]) if g), None)
+        for key, node in index.nodes.items()}
 
     # S5 anchors and their unscoped neighbourhood.
-    queue = [i for i, node in enumerate(nodes) if labels[i] is None and any(
+    queue = [key for key, node in index.nodes.items() if labels[key] is None and any(
         t.startswith(_SSM_STATE_PREFIX) for t in (*node.input, *node.output))]
-    for i in queue:
-        labels[i] = "ssm"
+    for key in queue:
+        labels[key] = "ssm"
     while queue:
-        i = queue.pop()
-        for j in (*data_producers(i), *data_consumers(i)):
-            if labels[j] is None and nodes[j].op_type != "Constant":
-                labels[j] = "ssm"
-                queue.append(j)
+        for other in neighbours(queue.pop()):
+            if labels[other] is None and index.nodes[other].op_type != "Constant":
+                labels[other] = "ssm"
+                queue.append(other)
 
     changed = True
     while changed:
         changed = False
-        for i in range(len(nodes)):
-            if labels[i] is not None:
+        for key in index.nodes:
+            if labels[key] is not None:
                 continue
-            for neighbours in (data_producers(i), data_consumers(i)):
-                found = {labels[j] for j in neighbours if labels[j] is not None}
+            for side in (index.producers_of(key, is_activation), index.consumers_of(key, is_activation)):
+                found = {labels[k] for k in side if labels[k] is not None}
                 if len(found) == 1:
-                    labels[i] = found.pop()
+                    labels[key] = found.pop()
                     changed = True
                     break
-    return {node_key(node): label or OTHER for node, label in zip(nodes, labels)}
+    return {key: label or OTHER for key, label in labels.items()}

@@ -94,8 +94,9 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
         lines.append("")
     peak = report.get("machine_peak")
     if peak:
-        lines += [f"Machine matmul peak ({peak['size']}^3 float32, {peak['threads']} threads, {peak['library']}): "
-                  f"{peak['gflops']:.1f} GFLOP/s.", ""]
+        each = ", ".join(f"{lib} {rate:.0f}" for lib, rate in peak.get("by_library", {}).items())
+        lines += [f"Machine matmul peak ({peak['size']}^3 float32, {peak['threads']} threads, best of the libraries "
+                  f"present: {each} GFLOP/s): **{peak['gflops']:.1f} GFLOP/s** ({peak['library']}).", ""]
     for name, prof in (report.get("ort_profiles") or {}).items():
         lines += [f"### Where time goes: {name} (onnxruntime profiling, ms per step)", "",
                   f"Kernel time {prof['kernel_ms_per_step']:.2f} ms / step over {prof['steps']} profiled steps.", "",

@@ -30,6 +30,7 @@ from typing import Iterable
 import onnx
 
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_graph import GraphIndex
 
 ELEMENTWISE = frozenset({
     "Add", "Sub", "Mul", "Div", "Pow", "Neg", "Exp", "Log", "Sqrt", "Reciprocal", "Abs", "Erf",
@@ -62,46 +63,11 @@ class NodeGroup:
         return len(self.nodes)
 
 
-class GraphIndex:
-    """Producer/consumer maps of one graph (node names are unique after export)."""
-
-    def __init__(self, model: onnx.ModelProto) -> None:
-        self.nodes = {n.name: n for n in model.graph.node}
-        if len(self.nodes) != len(model.graph.node):
-            raise ValueError("graph has duplicate or empty node names; re-export it")
-        self.producer: dict[str, str] = {}
-        self.consumers: dict[str, list[str]] = defaultdict(list)
-        for node in model.graph.node:
-            for out in node.output:
-                self.producer[out] = node.name
-            for inp in node.input:
-                if inp:
-                    self.consumers[inp].append(node.name)
-
-    def producers_of(self, name: str) -> list[str]:
-        return [self.producer[i] for i in self.nodes[name].input if i in self.producer]
-
-    def consumers_of(self, name: str) -> list[str]:
-        return [c for out in self.nodes[name].output for c in self.consumers.get(out, [])]
-
-    def descendants(self, tensors: Iterable[str]) -> set[str]:
-        """Nodes reachable from the given tensors."""
-        return self._closure([c for t in tensors for c in self.consumers.get(t, [])], self.consumers_of)
-
-    def ancestors(self, tensors: Iterable[str]) -> set[str]:
-        """Nodes the given tensors depend on."""
-        return self._closure([self.producer[t] for t in tensors if t in self.producer], self.producers_of)
-
-    @staticmethod
-    def _closure(start: list[str], neighbours) -> set[str]:
-        seen: set[str] = set()
-        stack = list(start)
-        while stack:
-            name = stack.pop()
-            if name not in seen:
-                seen.add(name)
-                stack.extend(neighbours(name))
-        return seen
+def _named_index(model: onnx.ModelProto) -> GraphIndex:
+    # The quantiser keeps nodes in float by name, so every node needs one.
+    if any(not node.name for node in model.graph.node):
+        raise ValueError("graph has unnamed nodes; re-export it")
+    return GraphIndex(model)
 
 
 def state_families(meta: GraphMetadata) -> dict[str, list]:
@@ -128,7 +94,7 @@ def _backward(index: GraphIndex, start: set[str], allowed) -> set[str]:
 def recurrent_groups(model: onnx.ModelProto, meta: GraphMetadata | None = None) -> list[NodeGroup]:
     """The state-carrying parts of the graph, one group per state family (module doc)."""
     meta = meta or GraphMetadata.from_onnx(model)
-    index = GraphIndex(model)
+    index = _named_index(model)
     frame_dependent = index.descendants([meta.frame_input["name"]])
     state_dependent = index.descendants(s.input_name for s in meta.states)
     groups = []
@@ -181,7 +147,7 @@ def module_scopes(model: onnx.ModelProto) -> dict[str, str]:
     tensor's name, else of a non-constant neighbour. Top-level exporter names (`/Mul_12`,
     the functional S5 step) stay unscoped: they belong to no module.
     """
-    index = GraphIndex(model)
+    index = _named_index(model)
 
     def scope_of(text: str) -> str:
         head = text.split("/")[1] if text.startswith("/") and text.count("/") >= 2 else ""

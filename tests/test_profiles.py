@@ -11,7 +11,7 @@ from e3dpsm.cli import main
 from e3dpsm.errors import ConfigError
 from e3dpsm.profiles.devices import Device, bytes_per_step, load_devices, roofline
 from e3dpsm.profiles.inputs import moving_edge_frames
-from e3dpsm.profiles.latency import latency_summary, measure_side_by_side
+from e3dpsm.profiles.latency import latency_summary, matmul_peak_gflops, measure_side_by_side
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.targets import Target, availability, load_targets, select_targets
 from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
@@ -19,7 +19,7 @@ from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixtu
 REQUIRED_TARGETS = {
     ("torch", "cpu", "fp32"), ("onnxruntime", "CPUExecutionProvider", "fp32"),
     ("onnxruntime", "CPUExecutionProvider", "int8"), ("onnxruntime", "CPUExecutionProvider", "fp16"),
-    ("openvino", "CPU", "fp32"), ("onnxruntime", "CUDAExecutionProvider", "fp32"),
+    ("openvino", "CPU", "fp32"), ("openvino", "CPU", "int8"), ("onnxruntime", "CUDAExecutionProvider", "fp32"),
     ("onnxruntime", "TensorrtExecutionProvider", "fp16"), ("onnxruntime", "TensorrtExecutionProvider", "int8"),
 }
 
@@ -108,6 +108,14 @@ def test_latency_summary_percentiles():
     assert summary["p50"] == pytest.approx(np.percentile(seconds * 1e3, 50))
     assert summary["p99"] == pytest.approx(np.percentile(seconds * 1e3, 99))
     assert summary["steps"] == 100
+
+
+def test_matmul_peak_is_the_best_library_measured():
+    peak = matmul_peak_gflops(threads=1, size=96, repeats=3)
+    libraries = {name.split()[0] for name in peak["by_library"]}
+    assert libraries == {"torch", "onnxruntime"}  # both are installed in the test environment
+    assert peak["gflops"] == max(peak["by_library"].values()) == peak["by_library"][peak["library"]]
+    assert all(rate > 0.1 for rate in peak["by_library"].values())
 
 
 def test_rss_sampler_sees_an_allocation():

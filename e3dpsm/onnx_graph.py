@@ -1,0 +1,57 @@
+"""Producer / consumer index of an ONNX graph, shared by the graph walkers of the profiler
+(which module a node belongs to) and the quantiser (which nodes carry state)."""
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Callable, Iterable
+
+import onnx
+
+
+def node_key(node: onnx.NodeProto) -> str:
+    """A node's name, or its first output's name if it has none (outputs are unique)."""
+    return node.name or node.output[0]
+
+
+class GraphIndex:
+    """Nodes by key (`node_key`), in graph order, with who produces and who consumes each tensor."""
+
+    def __init__(self, model: onnx.ModelProto) -> None:
+        self.nodes: dict[str, onnx.NodeProto] = {node_key(n): n for n in model.graph.node}
+        if len(self.nodes) != len(model.graph.node):
+            raise ValueError("graph has duplicate node names; re-export it")
+        self.producer: dict[str, str] = {}
+        self.consumers: dict[str, list[str]] = defaultdict(list)
+        for key, node in self.nodes.items():
+            for out in node.output:
+                self.producer[out] = key
+            for inp in node.input:
+                if inp:
+                    self.consumers[inp].append(key)
+
+    def producers_of(self, key: str, follow: Callable[[str], bool] = lambda tensor: True) -> list[str]:
+        """Nodes producing `key`'s inputs, through the tensors `follow` accepts."""
+        return [self.producer[t] for t in self.nodes[key].input if t in self.producer and follow(t)]
+
+    def consumers_of(self, key: str, follow: Callable[[str], bool] = lambda tensor: True) -> list[str]:
+        """Nodes consuming `key`'s outputs, through the tensors `follow` accepts."""
+        return [c for t in self.nodes[key].output if follow(t) for c in self.consumers.get(t, ())]
+
+    def descendants(self, tensors: Iterable[str]) -> set[str]:
+        """Nodes reachable from the given tensors."""
+        return self._closure([c for t in tensors for c in self.consumers.get(t, [])], self.consumers_of)
+
+    def ancestors(self, tensors: Iterable[str]) -> set[str]:
+        """Nodes the given tensors depend on."""
+        return self._closure([self.producer[t] for t in tensors if t in self.producer], self.producers_of)
+
+    @staticmethod
+    def _closure(start: list[str], neighbours: Callable[[str], list[str]]) -> set[str]:
+        seen: set[str] = set()
+        stack = list(start)
+        while stack:
+            key = stack.pop()
+            if key not in seen:
+                seen.add(key)
+                stack.extend(neighbours(key))
+        return seen
