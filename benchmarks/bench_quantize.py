@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--holdout-frames", type=int, default=200)
-    parser.add_argument("--budget-pct", type=float, default=1.0)
+    parser.add_argument("--budget-pct", type=float, default=None, help="default: the mode's (int8 1.0, fp16 0.1)")
     parser.add_argument("--out", default=str(RESULTS))
     args = parser.parse_args(argv)
 

@@ -96,7 +96,9 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
     if peak:
         each = ", ".join(f"{lib} {rate:.0f}" for lib, rate in peak.get("by_library", {}).items())
         lines += [f"Machine matmul peak ({peak['size']}^3 float32, {peak['threads']} threads, best of the libraries "
-                  f"present: {each} GFLOP/s): **{peak['gflops']:.1f} GFLOP/s** ({peak['library']}).", ""]
+                  f"present: {each} GFLOP/s): **{peak['gflops']:.1f} GFLOP/s** ({peak['library']}; best of the "
+                  f"measurements before and after the timed steps: "
+                  f"{', '.join(f'{g:.0f}' for g in peak.get('measured_gflops', [peak['gflops']]))}).", ""]
     for name, prof in (report.get("ort_profiles") or {}).items():
         lines += [f"### Where time goes: {name} (onnxruntime profiling, ms per step)", "",
                   f"Kernel time {prof['kernel_ms_per_step']:.2f} ms / step over {prof['steps']} profiled steps.", "",

@@ -5,7 +5,8 @@ float32 (onnxconverter-common inserts the Casts around them)."""
 from __future__ import annotations
 
 import copy
-from typing import Iterable
+from collections import defaultdict
+from typing import Callable, Iterable
 
 import onnx
 
@@ -45,13 +46,39 @@ def isolate_outputs(model: onnx.ModelProto) -> list[str]:
     return added
 
 
+def unshare_initializers(model: onnx.ModelProto, stays_float: Callable[[onnx.NodeProto], bool]) -> None:
+    """Give the float32-kept readers of an initializer their own copy when fp16 nodes read it too.
+
+    onnxsim merges identical initializers (zero-initialised attention weights of two blocks
+    become one tensor); the converter then casts the shared tensor for one reader and the
+    other reader meets the wrong type ("MatMul bound to different types").
+    """
+    initializers = {i.name: i for i in model.graph.initializer}
+    readers: dict[str, list[tuple[onnx.NodeProto, int]]] = defaultdict(list)
+    for node in model.graph.node:
+        for k, name in enumerate(node.input):
+            if name in initializers:
+                readers[name].append((node, k))
+    for name, uses in readers.items():
+        kept = [(node, k) for node, k in uses if stays_float(node)]
+        if kept and len(kept) < len(uses):
+            twin = onnx.TensorProto()
+            twin.CopyFrom(initializers[name])
+            twin.name = f"{name}__float32"
+            model.graph.initializer.append(twin)
+            for node, k in kept:
+                node.input[k] = twin.name
+
+
 def convert_fp16(model: onnx.ModelProto, keep_float: Iterable[str] = ()) -> onnx.ModelProto:
     """An fp16 copy of `model` (float32 I/O; `keep_float` nodes and blocked ops in float32)."""
     from onnxconverter_common import float16
 
+    keep_float = set(keep_float)
     model = copy.deepcopy(model)
     identities = isolate_outputs(model)
     block = sorted(set(float16.DEFAULT_OP_BLOCK_LIST) | set(FP16_OP_BLOCK_LIST))
+    unshare_initializers(model, lambda node: node.name in keep_float or node.op_type in block)
     converted = float16.convert_float_to_float16(
         model, keep_io_types=True, disable_shape_infer=False, op_block_list=block,
         node_block_list=sorted(set(keep_float) | set(identities)),

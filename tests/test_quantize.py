@@ -93,6 +93,36 @@ def test_fp16_within_a_tenth_of_a_percent(fp16_dir):
     assert GraphMetadata.from_onnx(model).quantization["mode"] == "fp16"
 
 
+def test_fp16_search_keeps_the_chosen_groups_in_float32(tmp_path, tiny_graph, quant_data):  # noqa: F811
+    """A budget no fp16 graph meets forces the search: each round must keep the group that
+    lowered the held-out error most in float32, and the artifact must say which."""
+    out = tmp_path / "fp16"
+    report = quantize_graph(tiny_graph, quant_data, out,
+                            QuantizeOptions(mode="fp16", budget_pct=1e-9, holdout_frames=40, max_rounds=1))
+    search = report["exclusion_search"]
+    base, *trials = search["trials"]
+    assert base["group"] is None and trials, "the search tried no group"
+    chosen = search["chosen_groups"]
+    if chosen:  # a group lowered the error: it is the best trial and it stays float32
+        best = min(trials, key=lambda t: t["error_pct"])
+        assert chosen == [best["group"]] and best["error_pct"] < base["error_pct"]
+        assert report["config"]["budget_pct"] == 1e-9
+        assert report["quantization"]["float_groups"][-1] == chosen[0]
+        model = onnx.load(str(out / "step_fp16.onnx"))
+        kept = set(report["excluded_nodes"])
+        weights = {i.name: i.data_type for i in model.graph.initializer}
+        kept_convs = [n for n in model.graph.node if n.name in kept and n.op_type == "Conv"]
+        assert kept_convs and all(weights[n.input[1]] == onnx.TensorProto.FLOAT for n in kept_convs)
+    else:
+        assert all(t["error_pct"] >= base["error_pct"] for t in trials)
+
+
+def test_quantize_budget_defaults_per_mode():
+    assert QuantizeOptions(mode="fp16").budget == 0.1
+    assert QuantizeOptions(mode="int8").budget == 1.0
+    assert QuantizeOptions(mode="fp16", budget_pct=0.5).budget == 0.5
+
+
 def test_recurrent_groups_cover_state_updates_and_stay_out_of_the_cnn(tiny_graph):  # noqa: F811
     model = onnx.load(str(tiny_graph))
     meta = GraphMetadata.from_onnx(model)

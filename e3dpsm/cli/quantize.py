@@ -23,8 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--exclude", default="auto",
                    help="float-kept nodes: auto (search), none, recurrent, or comma-separated group/node "
                    "names added to the recurrent groups (default auto)")
-    p.add_argument("--budget-pct", type=positive_float, default=1.0,
-                   help="--exclude auto: allowed held-out error relative to fp32 MPJPE, in %% (default 1.0)")
+    p.add_argument("--budget-pct", type=positive_float, default=None,
+                   help="--exclude auto: allowed held-out error (mean distance to the fp32 poses) relative to "
+                   "fp32 MPJPE, in %% (default 1.0 for int8, 0.1 for fp16)")
     p.add_argument("--split", default="train", help="split the calibration frames come from (default train)")
     p.add_argument("--holdout-split", default="val", help="split for the accuracy check (default val)")
     p.add_argument("--holdout-frames", type=positive_int, default=200, help="frames per held-out sequence (default 200)")
