@@ -162,6 +162,5 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
             raise StageFailed(f"stage {stage.name} failed (exit {code}); fix it and rerun: finished stages are kept")
         done.append({"stage": stage.name, "status": "ran", "seconds": round(seconds, 1)})
         log.info("%s: finished in %.0f s", header, seconds)
-    index_path = write_index(cfg.out, asdict(cfg), done)
-    log.info("report: %s", index_path)
+    write_index(cfg.out, asdict(cfg), done)
     return done
