@@ -27,10 +27,16 @@ class SearchResult:
     chosen: list[str]                      # candidate groups added, in order
     excluded_nodes: list[str]              # recurrent + chosen groups
     error_pct: float                       # budgeted error of the final choice
+    budget_pct: float
     trials: list[dict] = field(default_factory=list)
 
+    @property
+    def within_budget(self) -> bool:
+        return self.error_pct <= self.budget_pct
+
     def to_dict(self) -> dict:
-        return {"chosen_groups": self.chosen, "error_pct": self.error_pct, "trials": self.trials}
+        return {"chosen_groups": self.chosen, "error_pct": self.error_pct, "budget_pct": self.budget_pct,
+                "within_budget": self.within_budget, "trials": self.trials}
 
 
 def greedy_exclusions(
@@ -61,7 +67,12 @@ def greedy_exclusions(
         excluded, error = trial, best_err
         chosen.append(best.name)
         remaining = [g for g in remaining if g.name != best.name]
-    return SearchResult(chosen, excluded, error, trials)
+    result = SearchResult(chosen, excluded, error, budget_pct, trials)
+    if not result.within_budget:
+        # The artifact is still written (it is the best found); the report and this line say so.
+        log.warning("held-out error %.3f%% is above the %.3g%% budget after %d round(s); raise --budget-pct "
+                    "or keep more groups in float with --exclude", error, budget_pct, len(chosen))
+    return result
 
 
 def scratch_model_path(folder: str | os.PathLike, label: str) -> Path:

@@ -252,3 +252,4 @@ def test_greedy_search_adds_the_most_helpful_groups_until_within_budget():
     # no group helps: stop instead of adding useless groups
     stuck = greedy_exclusions(["r1"], groups, budget_pct=0.1, evaluate=lambda ex, label: 2.0)
     assert stuck.chosen == [] and stuck.error_pct == 2.0
+    assert result.to_dict()["within_budget"] and not stuck.to_dict()["within_budget"]

@@ -44,7 +44,9 @@ def run(args: argparse.Namespace) -> int:
         holdout_frames=args.holdout_frames, threads=args.threads)
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
+    search = report.get("exclusion_search") or {}
     print(json.dumps({"out": args.out, "artifact": report["artifact"], "mpjpe_mm": round(h["mpjpe_mm"], 3),
                       "fp32_mpjpe_mm": round(h["fp32_mpjpe_mm"], 3), "loss_pct": round(h["loss_pct"], 4),
+                      "distance_pct": round(h["bound_pct"], 4), "within_budget": search.get("within_budget"),
                       "bytes": report["sizes"]["output_bytes"]}))
     return 0
