@@ -8,7 +8,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import onnx
 
@@ -19,10 +19,10 @@ from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
-from e3dpsm.quantize.exclusions import greedy_exclusions, scratch_model_path
+from e3dpsm.quantize.exclusions import SearchResult, greedy_exclusions, scratch_model_path
 from e3dpsm.quantize.fp16 import convert_fp16
-from e3dpsm.quantize.graph_groups import candidate_groups, recurrent_groups
-from e3dpsm.quantize.holdout import accuracy_of, make_holdout
+from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
+from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8, quantised_node_count
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
@@ -171,31 +171,27 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                   calibration=calib, cache=cache)
     search = None
     if fixed is None:
-        def evaluate(excluded: list[str], label: str) -> float:
-            trial = scratch_model_path(work, label)
-            quantize_int8(pre, trial, config, exclude=excluded, cache=cache)
-            finalize_trial = onnx.load(str(trial))
-            finalize(finalize_trial, pre_meta, {"mode": "int8", "trial": label})
-            onnx.save(finalize_trial, str(trial))
-            error = accuracy_of(trial, holdout, options.threads)["bound_pct"]
-            trial.unlink()
-            return error
+        def build(excluded: list[str]) -> onnx.ModelProto:
+            path = scratch_model_path(work, "int8")
+            quantize_int8(pre, path, config, exclude=excluded, cache=cache)  # the cache: no re-calibration
+            model = onnx.load(str(path))
+            path.unlink()
+            return model
 
-        search = greedy_exclusions(keep, groups, options.budget, evaluate, options.max_rounds)
+        search = _search_float_groups(keep, groups, pre_meta, holdout, options, work, build)
         fixed = search.excluded_nodes
         quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
     info = {
         "mode": "int8", **config.to_dict(), "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
-        "exclude": options.exclude, "float_groups": [g.name for g in recurrent] + (search.chosen if search else []),
+        "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
         "excluded_nodes": fixed, **quantised_node_count(model),
     }
     extra = {
         "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
                         "frames": len(calib), "sequences": {k: len(v) for k, v in calib.frames.items()}},
-        "exclusion_search": search.to_dict() if search else None,
-        "groups": {g.name: {"kind": g.kind, "nodes": len(g)} for g in [*recurrent, *groups]},
+        **_search_report(search, [*recurrent, *groups]),
     }
     return model, info, extra
 
@@ -216,21 +212,38 @@ def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path):
     fixed = resolve_exclusions(options.exclude, keep, [*recurrent, *groups], {n.name for n in source.graph.node})
     search = None
     if fixed is None:
-        def evaluate(excluded: list[str], label: str) -> float:
-            trial = scratch_model_path(work, label)
-            candidate = convert_fp16(source, excluded)
-            finalize(candidate, meta, {"mode": "fp16", "trial": label})
-            save_model(candidate, trial)
-            error = accuracy_of(trial, holdout, options.threads)["bound_pct"]
-            trial.unlink()
-            return error
-
-        search = greedy_exclusions(keep, groups, options.budget, evaluate, options.max_rounds)
+        search = _search_float_groups(keep, groups, meta, holdout, options, work,
+                                      lambda excluded: convert_fp16(source, excluded))
         fixed = search.excluded_nodes
     model = convert_fp16(source, fixed)
     info = {"mode": "fp16", "precision": "float16", "io_types": "float32", "exclude": options.exclude,
-            "float_groups": [g.name for g in recurrent] + (search.chosen if search else []),
+            "float_groups": _float_group_names(recurrent, search),
             "kept_float32_nodes": len(fixed), "excluded_nodes": fixed}
-    extra = {"exclusion_search": search.to_dict() if search else None,
-             "groups": {g.name: {"kind": g.kind, "nodes": len(g)} for g in [*recurrent, *groups]}}
-    return model, info, extra
+    return model, info, _search_report(search, [*recurrent, *groups])
+
+
+def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
+                         options: QuantizeOptions, work: Path,
+                         build: Callable[[list[str]], onnx.ModelProto]) -> SearchResult:
+    """`--exclude auto` for either mode: each trial is `build(nodes kept in float)`, given the
+    source metadata, saved to a scratch file and measured on the held-out streams."""
+    def evaluate(excluded: list[str], label: str) -> float:
+        candidate = build(excluded)
+        finalize(candidate, meta, {"mode": options.mode, "trial": label})
+        trial = scratch_model_path(work, label)
+        save_model(candidate, trial)
+        try:
+            return accuracy_of(trial, holdout, options.threads)["bound_pct"]
+        finally:
+            trial.unlink()
+
+    return greedy_exclusions(keep, list(groups), options.budget, evaluate, options.max_rounds)
+
+
+def _float_group_names(recurrent: Sequence[NodeGroup], search: SearchResult | None) -> list[str]:
+    return [g.name for g in recurrent] + (search.chosen if search else [])
+
+
+def _search_report(search: SearchResult | None, groups: Sequence[NodeGroup]) -> dict[str, Any]:
+    return {"exclusion_search": search.to_dict() if search else None,
+            "groups": {g.name: {"kind": g.kind, "nodes": len(g)} for g in groups}}

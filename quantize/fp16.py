@@ -81,7 +81,7 @@ def convert_fp16(model: onnx.ModelProto, keep_float: Iterable[str] = ()) -> onnx
     unshare_initializers(model, lambda node: node.name in keep_float or node.op_type in block)
     converted = float16.convert_float_to_float16(
         model, keep_io_types=True, disable_shape_infer=False, op_block_list=block,
-        node_block_list=sorted(set(keep_float) | set(identities)),
+        node_block_list=sorted(keep_float | set(identities)),
     )
     _drop_round_trips(converted)
     _float_outputs(converted)
