@@ -66,6 +66,11 @@ class TensorDiff:
     reference_scale: float = 0.0
     limit: float = 0.0
     limit_kind: str = "abs"
+    # How far the reference itself moved over the rollout (max over elements of max - min
+    # over steps): a rollout stuck at one value proves nothing.
+    reference_spread: float = 0.0
+    _ref_min: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _ref_max: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def passed(self) -> bool:
@@ -79,6 +84,9 @@ class TensorDiff:
         if not math.isfinite(diff):
             diff = math.inf
         scale = float(np.max(np.abs(ref)))
+        self._ref_min = ref.copy() if self._ref_min is None else np.minimum(self._ref_min, ref)
+        self._ref_max = ref.copy() if self._ref_max is None else np.maximum(self._ref_max, ref)
+        self.reference_spread = float(np.max(self._ref_max.astype(np.float64) - self._ref_min))
         self.reference_scale = max(self.reference_scale, scale)
         rel = diff / max(scale, 1e-6)
         if diff > self.max_abs or self.peak_step < 0:
@@ -111,7 +119,8 @@ class ParityReport:
         return {
             "steps": self.steps, "window_ms": self.window_ms, "runtime": self.runtime, "passed": self.passed,
             "tolerances": self.tolerances,
-            "tensors": [dict(asdict(d), passed=d.passed) for d in self.diffs],
+            "tensors": [{k: v for k, v in dict(asdict(d), passed=d.passed).items() if not k.startswith("_")}
+                        for d in self.diffs],
         }
 
 

@@ -18,6 +18,7 @@ from e3dpsm.export import export_step, export_step_with_report
 from e3dpsm.export.parity import NameMismatchError, Tolerances, run_parity
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 from e3dpsm.runtime import StepSession
+from tests.conftest import sparse_lnes
 
 
 @pytest.fixture(scope="session")
@@ -74,7 +75,8 @@ def test_parity_1000_steps(tiny_graph, tiny_model, prepared_data, window_ms: flo
     # The rollout must actually move: the reference pose spans a real range, and the states
     # are not stuck at their initial values.
     assert by_name["pose"].reference_scale > 100.0
-    assert by_name["s5_stage1_re"].reference_scale > 0
+    assert by_name["pose"].reference_spread > 1.0  # mm: the pose itself varies over the steps
+    assert by_name["s5_stage1_re"].reference_spread > 0
 
 
 def test_parity_detects_a_wrong_model(tiny_graph, prepared_data) -> None:
@@ -82,6 +84,37 @@ def test_parity_detects_a_wrong_model(tiny_graph, prepared_data) -> None:
     session = StepSession(tiny_graph[0], threads=2, spin=False)
     report = run_parity(other, session, prepared_frames(prepared_data, 5), 20.0)
     assert not report.passed
+
+
+class _OffsetSession:
+    """A real session whose fused pose is shifted by `offset_mm`: a known parity error."""
+
+    def __init__(self, session: StepSession, offset_mm: float) -> None:
+        self.session, self.offset_mm, self.meta = session, offset_mm, session.meta
+
+    def input_names(self) -> list[str]:
+        return self.session.input_names()
+
+    def output_names_all(self) -> list[str]:
+        return self.session.output_names_all()
+
+    def init_state(self, batch: int = 1) -> dict:
+        return self.session.init_state(batch)
+
+    def step(self, lnes, state, window_ms):
+        out, state = self.session.step(lnes, state, window_ms)
+        return {**out, "pose": out["pose"] + np.float32(self.offset_mm)}, state
+
+
+@pytest.mark.parametrize("offset_mm, passes", [(0.05, False), (0.001, True)])
+def test_parity_tolerance_bites_near_the_threshold(tiny_graph, tiny_model, prepared_data, offset_mm, passes) -> None:
+    """At the default 0.01 mm: a 0.05 mm pose offset fails, a 0.001 mm one passes."""
+    runner = _OffsetSession(StepSession(tiny_graph[0], threads=1, spin=False), offset_mm)
+    report = run_parity(tiny_model, runner, prepared_frames(prepared_data, 20), 20.0)
+    by_name = {d.name: d for d in report.diffs}
+    assert report.passed is passes and by_name["pose"].passed is passes
+    assert by_name["pose"].max_abs == pytest.approx(offset_mm, abs=2e-3)
+    assert by_name["pose_direct"].passed  # only the shifted output is blamed
 
 
 def test_parity_refuses_a_graph_of_other_layout(tiny_graph, prepared_data) -> None:
@@ -184,3 +217,35 @@ def test_failed_export_leaves_no_file(tmp_path, tiny_model) -> None:
     with pytest.raises(ExportError):
         export_step(tiny_model, target, opset=12)
     assert not target.exists() and not list(tmp_path.iterdir())
+
+
+def test_paper_variant_exports_and_steps_like_pytorch(tmp_path) -> None:
+    """The full-size `paper` graph (2-D learned reference grid), three carried steps."""
+    model = e3dpsm.create_model("paper").eval()
+    with torch.no_grad():  # trained-like heads: poses that move with the input
+        model.direct_head.weight.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(0))
+    path = export_step(model, tmp_path / "paper.onnx")
+    session = StepSession(path, threads=2, spin=False)
+    frames = [f[0].numpy() for f in sparse_lnes((3, 1, 2, 192, 256), seed=12).unbind(0)]
+    report = run_parity(model, session, frames, 25.0)
+    assert report.steps == 3 and report.passed, [d.line() for d in report.diffs if not d.passed]
+    assert {d.name: d for d in report.diffs}["pose"].reference_spread > 1.0
+
+
+def test_simplification_check_catches_a_changed_graph(tiny_model, tiny_graph) -> None:
+    """The exporter's own check of onnxsim's result: identical graphs pass, a graph with one
+    weight nudged (what a wrong rewrite would do) is caught, naming the output."""
+    from e3dpsm.export.onnx_export import SIMPLIFY_RTOL, _max_relative_difference
+    from e3dpsm.export.spec import step_io_spec
+
+    graph = onnx.load(str(tiny_graph[0]))
+    spec, states = step_io_spec(tiny_model), tiny_model.state_spec()
+    assert _max_relative_difference(graph, graph, spec, states, 20.0)[1] == 0.0
+    nudged = onnx.ModelProto()
+    nudged.CopyFrom(graph)
+    head = next(i for i in nudged.graph.initializer if i.name.endswith("direct_head.bias"))
+    values = onnx.numpy_helper.to_array(head).copy()
+    values[0] += 0.01  # 0.01 of the head's metre unit: 10 mm on one coordinate
+    head.CopyFrom(onnx.numpy_helper.from_array(values, head.name))
+    name, rel = _max_relative_difference(graph, nudged, spec, states, 20.0)
+    assert name in spec.output_names and rel > 100 * SIMPLIFY_RTOL

@@ -34,7 +34,9 @@ def encoder_macs(cfg) -> int:
     total = conv_macs(h, w, cfg.in_channels, cfg.stem_width, 3)
     c_in = cfg.stem_width
     for c_out in cfg.widths:
-        block = lambda hh, ww, a, b: conv_macs(hh, ww, a, b, 3) + conv_macs(hh, ww, b, b, 3) + conv_macs(hh, ww, a, b, 1)  # noqa: E731
+        # two 3x3 convs, and a 1x1 shortcut conv only where the widths differ (identity otherwise)
+        block = lambda hh, ww, a, b: (conv_macs(hh, ww, a, b, 3) + conv_macs(hh, ww, b, b, 3)  # noqa: E731
+                                      + (conv_macs(hh, ww, a, b, 1) if a != b else 0))
         total += block(h, w, c_in, c_out) + block(h, w, c_out, c_out)
         h, w = h // 2, w // 2
         total += conv_macs(h, w, c_out, c_out, 3)

@@ -111,8 +111,10 @@ def test_fp16_search_keeps_the_chosen_groups_in_float32(tmp_path, tiny_graph, qu
         model = onnx.load(str(out / "step_fp16.onnx"))
         kept = set(report["excluded_nodes"])
         weights = {i.name: i.data_type for i in model.graph.initializer}
-        kept_convs = [n for n in model.graph.node if n.name in kept and n.op_type == "Conv"]
-        assert kept_convs and all(weights[n.input[1]] == onnx.TensorProto.FLOAT for n in kept_convs)
+        kept_weighted = [n for n in model.graph.node
+                         if n.name in kept and n.op_type in ("Conv", "MatMul", "Gemm") and n.input[1] in weights]
+        assert all(weights[n.input[1]] == onnx.TensorProto.FLOAT for n in kept_weighted)
+        assert kept_weighted or chosen[0].startswith("op:")  # a module group always holds weighted ops
     else:
         assert all(t["error_pct"] >= base["error_pct"] for t in trials)
 

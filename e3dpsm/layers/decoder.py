@@ -53,7 +53,7 @@ class JointQueryDecoder(nn.Module):
         super().__init__()
         if dim % heads:
             raise ValueError(f"decoder width {dim} is not divisible by {heads} heads")
-        self.queries = nn.Parameter(torch.randn(num_joints, dim) * 0.02)
+        self.queries = nn.Parameter(torch.randn(num_joints, dim))  # standard normal, as released
         self.layers = nn.ModuleList(DecoderLayer(dim, heads, ffn) for _ in range(layers))
 
     def forward(self, memory: torch.Tensor) -> torch.Tensor:

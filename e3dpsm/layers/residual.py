@@ -6,11 +6,8 @@ from torch import nn
 
 
 class PreActResBlock(nn.Module):
-    """BN-SiLU-conv3x3, BN-SiLU-conv3x3, plus a 1x1-conv shortcut.
-
-    The released blocks project the shortcut even when widths match; with that, the
-    `paper` variant's parameter count matches the release (FACTS section 3).
-    """
+    """BN-SiLU-conv3x3, BN-SiLU-conv3x3, plus the shortcut: the identity where the widths
+    match, a 1x1 conv only where they differ, as released (FACTS section 3)."""
 
     def __init__(self, in_ch: int, out_ch: int) -> None:
         super().__init__()
@@ -18,7 +15,7 @@ class PreActResBlock(nn.Module):
         self.conv1 = nn.Conv2d(in_ch, out_ch, 3, padding=1)
         self.norm2 = nn.BatchNorm2d(out_ch)
         self.conv2 = nn.Conv2d(out_ch, out_ch, 3, padding=1)
-        self.shortcut = nn.Conv2d(in_ch, out_ch, 1)
+        self.shortcut = nn.Conv2d(in_ch, out_ch, 1) if in_ch != out_ch else nn.Identity()
         self.act = nn.SiLU()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

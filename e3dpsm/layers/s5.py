@@ -14,10 +14,13 @@ model serves 20, 25 and 50 Hz.
 Bidirectional: a second readout C_b of a time-reversed scan (Lambda, B and the step are
 shared, as in the event-camera S5, whose C has 2P columns). In causal mode the backward
 branch sees the current frame alone from a zero state, i.e. x_b,t = B_bar u_t; the same
-definition serves `sequence(causal=True)` and `step`.
+definition serves `sequence(causal=True)` and `step`. In non-causal mode it is the full
+backward scan x_b,t = Lambda_bar x_b,t+1 + B_bar u_t from a zero state after the last
+frame; `backward_first_frame="own_input"` reproduces the released scan, whose first frame
+is gated by the carried backward state (zero at a stream's start), so that x_b,0 = B_bar u_0.
 
-Unlike the released code, whose carried state never reaches the output (FACTS section 4),
-the state carried here is exact: chunked and step-by-step runs reproduce whole runs.
+The released code's carried *forward* state never reaches the output (FACTS section 4);
+here the carried state is exact: chunked and step-by-step runs reproduce whole runs.
 """
 from __future__ import annotations
 
@@ -32,6 +35,9 @@ Discretization = Literal["bilinear", "zoh"]
 ComplexPair = tuple[torch.Tensor, torch.Tensor]
 
 _MIN_NEG_REAL = 1e-4  # |Re lambda| floor: keeps every mode strictly stable on unbounded streams
+BACKWARD_FIRST_FRAME: tuple[str, ...] = ("scan", "own_input")
+# JAX's truncated normal on [-2, 2] is rescaled by this so its variance is the requested one.
+_TRUNC_NORMAL_STD = 0.87962566103423978
 
 
 def hippo_legs_normal_eigs(order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -49,6 +55,14 @@ def hippo_legs_normal_eigs(order: int) -> tuple[np.ndarray, np.ndarray]:
     return lam, vecs
 
 
+def lecun_truncated_normal(shape: tuple[int, ...], fan_in: int, gen: torch.Generator | None) -> torch.Tensor:
+    """JAX's `lecun_normal` (variance 1 / fan_in, truncated at 2 std), as the released S5
+    initialises B (fan-in P) and C (fan-in H * P per readout half)."""
+    out = torch.empty(shape)
+    nn.init.trunc_normal_(out, 0.0, 1.0, -2.0, 2.0, generator=gen)
+    return out * (math.sqrt(1.0 / fan_in) / _TRUNC_NORMAL_STD)
+
+
 def _expand(coeff: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """[B, P] -> [B, 1, ..., 1, P] broadcastable against `like` [B, ..., P]."""
     return coeff.view(coeff.shape[0], *([1] * (like.dim() - 2)), coeff.shape[1])
@@ -63,6 +77,7 @@ class S5(nn.Module):
         bidirectional: bool = True,
         discretization: Discretization = "bilinear",
         bandlimit: float | None = 0.5,
+        backward_first_frame: str = "scan",
         step_min: float = 1e-3,
         step_max: float = 1e-1,
         seed: int | None = None,
@@ -70,38 +85,43 @@ class S5(nn.Module):
         super().__init__()
         if discretization not in ("bilinear", "zoh"):
             raise ValueError(f"unknown S5 discretisation {discretization!r}; use 'bilinear' or 'zoh'")
+        if backward_first_frame not in BACKWARD_FIRST_FRAME:
+            raise ValueError(f"unknown backward_first_frame {backward_first_frame!r}; use one of {BACKWARD_FIRST_FRAME}")
         self.dim, self.state_dim = dim, state_dim
         self.bidirectional, self.discretization = bidirectional, discretization
+        self.backward_first_frame = backward_first_frame
         gen = torch.Generator().manual_seed(seed) if seed is not None else None
 
+        # Initialisation as released (FACTS section 4): HiPPO-LegS normal-part eigenvalues;
+        # B = V^-1 B0 with B0 LeCun-normal of fan-in P; each readout C = C0 V with the real and
+        # imaginary parts of C0 LeCun-normal of fan-in H * P; D ~ U[0, 1).
         lam, vecs = hippo_legs_normal_eigs(state_dim)
         v_inv = torch.from_numpy(vecs.conj().T).to(torch.complex64)
         self.log_neg_lambda_re = nn.Parameter(torch.from_numpy(np.log(-lam.real)).float())
         self.lambda_im = nn.Parameter(torch.from_numpy(lam.imag).float())
 
-        b = torch.randn(state_dim, dim, generator=gen) / math.sqrt(dim)  # LeCun normal
-        b_tilde = v_inv @ b.to(torch.complex64)
+        b_tilde = v_inv @ lecun_truncated_normal((state_dim, dim), state_dim, gen).to(torch.complex64)
         self.b_re, self.b_im = nn.Parameter(b_tilde.real.clone()), nn.Parameter(b_tilde.imag.clone())
 
+        log_step = torch.rand(state_dim, generator=gen) * (math.log(step_max) - math.log(step_min)) + math.log(step_min)
+        # Band-limiting (Zubic et al. 2024): the readout columns of modes that would alias at
+        # the training step are zeroed once, here, as released; training may grow them back.
+        keep = torch.ones(state_dim)
+        if bandlimit is not None:
+            keep = (log_step.exp() * self.lambda_im.detach().abs() / (2 * math.pi) < bandlimit / 2).float()
+
         def readout() -> tuple[nn.Parameter, nn.Parameter]:
-            c = torch.complex(torch.randn(dim, state_dim, generator=gen), torch.randn(dim, state_dim, generator=gen))
-            c_tilde = (c / math.sqrt(2 * state_dim)) @ torch.from_numpy(vecs).to(torch.complex64)
+            fan_in = dim * state_dim
+            c = torch.complex(lecun_truncated_normal((dim, state_dim), fan_in, gen),
+                              lecun_truncated_normal((dim, state_dim), fan_in, gen))
+            c_tilde = (c @ torch.from_numpy(vecs).to(torch.complex64)) * keep
             return nn.Parameter(c_tilde.real.clone()), nn.Parameter(c_tilde.imag.clone())
 
         self.c_re, self.c_im = readout()
         if bidirectional:
             self.cb_re, self.cb_im = readout()
-        self.d = nn.Parameter(torch.randn(dim, generator=gen))
-        log_step = torch.rand(state_dim, generator=gen) * (math.log(step_max) - math.log(step_min)) + math.log(step_min)
+        self.d = nn.Parameter(torch.rand(dim, generator=gen))
         self.log_step = nn.Parameter(log_step)
-
-        # Band-limiting (Zubic et al. 2024): modes that would alias at the training step are
-        # silenced in the readout. Computed once at construction, as in the released code.
-        mask = torch.ones(state_dim)
-        if bandlimit is not None:
-            freq = log_step.exp() * self.lambda_im.detach().abs() / (2 * math.pi)
-            mask = (freq < bandlimit / 2).float()
-        self.register_buffer("readout_mask", mask, persistent=True)
 
     # -- discretisation ------------------------------------------------------------------
     def lambda_pair(self) -> ComplexPair:
@@ -141,8 +161,7 @@ class S5(nn.Module):
 
     def readout(self, x: ComplexPair, backward: bool = False) -> torch.Tensor:
         c_re, c_im = (self.cb_re, self.cb_im) if backward else (self.c_re, self.c_im)
-        mask = self.readout_mask
-        return x[0] @ (c_re * mask).t() - x[1] @ (c_im * mask).t()
+        return x[0] @ c_re.t() - x[1] @ c_im.t()
 
     # -- public API ----------------------------------------------------------------------
     def step(self, u: torch.Tensor, state: ComplexPair, step_scale: torch.Tensor) -> tuple[torch.Tensor, ComplexPair]:
@@ -184,6 +203,8 @@ class S5(nn.Module):
                     xb = self.transition(xb, bar, (v_re[:, t], v_im[:, t]))
                     back.append(xb)
                 back.reverse()
+                if self.backward_first_frame == "own_input":
+                    back[0] = (v_re[:, 0], v_im[:, 0])
                 xbs = (torch.stack([o[0] for o in back], 1), torch.stack([o[1] for o in back], 1))
                 y = y + self.readout(xbs, backward=True)
         return y, x
@@ -191,10 +212,10 @@ class S5(nn.Module):
 
 class S5Block(nn.Module):
     """Residual S5 block on a feature map [B, C, h, w] (per-location over time), as
-    released (FACTS section 3): n = LN x; h = n + GELU(S5(n)); out = h + GEGLU(LN h) with a
-    bias-free feed-forward of width C.
+    released (FACTS section 3): n = LN1 x; h = n + GELU(S5(n)); m = LN2 h; out = m + GEGLU(m)
+    with a bias-free feed-forward of width C.
 
-    The residual carries the *normed* input, so the block re-normalises the encoder's
+    Both residuals carry the *normed* tensor, so the block re-normalises the encoder's
     residual stream. This matters: the pre-activation residual blocks leave the stream
     unnormalised and it grows about 10x per stage. With a plain pre-norm residual
     (x + GELU(S5(LN x))) instead, the `small` model fed the decoder memory of magnitude
@@ -212,8 +233,9 @@ class S5Block(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.ff = GEGLU(dim, dim, bias=False)
 
-    def _ff(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.ff(self.norm2(x))
+    def _ff(self, h: torch.Tensor) -> torch.Tensor:
+        normed = self.norm2(h)
+        return normed + self.ff(normed)
 
     def step(self, x: torch.Tensor, state: ComplexPair, step_scale: torch.Tensor) -> tuple[torch.Tensor, ComplexPair]:
         """x: [B, C, h, w]; state: pair of [B, h, w, P]."""

@@ -7,7 +7,11 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 from e3dpsm.errors import ConfigError
+from e3dpsm.layers.deformable import ATTENTION_LAYOUTS
 from e3dpsm.layers.fusion import FUSION_MODES
+from e3dpsm.layers.s5 import BACKWARD_FIRST_FRAME
+
+INPUT_NORMS: tuple[str, ...] = ("none", "minmax")
 
 
 @dataclass(frozen=True)
@@ -25,6 +29,9 @@ class E3DPSMConfig:
     attn_heads: tuple[int, ...] = (4, 4, 4, 6)
     attn_head_dim: tuple[int, ...] = (8, 16, 32, 32)
     attn_points: int = 8
+    # "2d": the paper's learned 2-D reference grid; "1d": the release's (h*w) x 1 column with
+    # every reference point at (0.5, 0.5) (FACTS section 3).
+    attn_layout: str = "2d"
     # S5 blocks: after these stages (0-based). Released code: stages 1 and 4 -> (0, 3);
     # the paper's text: stages 2 and 4 -> (1, 3). State size P = width * ssm_state_ratio.
     ssm_stages: tuple[int, ...] = (0, 3)
@@ -32,6 +39,10 @@ class E3DPSMConfig:
     ssm_bidirectional: bool = True
     ssm_discretization: str = "bilinear"
     ssm_bandlimit: float | None = 0.5
+    # Non-causal backward branch at a sequence's first frame: "scan" (the full backward scan)
+    # or "own_input" (the release: its carried backward state, zero at a stream's start,
+    # gates that frame, which then sees its own input only; FACTS section 4).
+    ssm_backward_first_frame: str = "scan"
     # Joint-query decoder over the last stage's tokens (its width is widths[-1]).
     decoder_layers: int = 3
     decoder_heads: int = 4
@@ -40,7 +51,10 @@ class E3DPSMConfig:
     fusion: str = "learned"
     kalman_q_init: float = 1e-3
     kalman_r_init: float = 1e-2
-    # Heads predict metres; outputs are millimetres.
+    # "minmax": the release rescales its whole input tensor to [0, 1] (network.py); here per
+    # frame in causal runs and steps, over the whole tensor in non-causal runs.
+    input_norm: str = "none"
+    # Heads predict metres here (1000), millimetres in the release (1); outputs are mm.
     pose_unit_mm: float = 1000.0
     train_window_ms: float = 20.0
     seed: int = 0
@@ -58,6 +72,13 @@ class E3DPSMConfig:
             raise ConfigError(f"ssm_stages {self.ssm_stages} must index stages 0..{n - 1}")
         if self.fusion not in FUSION_MODES:
             raise ConfigError(f"unknown fusion {self.fusion!r}; choose from {list(FUSION_MODES)}")
+        for field, value, allowed in (
+            ("attn_layout", self.attn_layout, ATTENTION_LAYOUTS),
+            ("ssm_backward_first_frame", self.ssm_backward_first_frame, BACKWARD_FIRST_FRAME),
+            ("input_norm", self.input_norm, INPUT_NORMS),
+        ):
+            if value not in allowed:
+                raise ConfigError(f"unknown {field} {value!r}; choose from {list(allowed)}")
         if self.ssm_discretization not in ("bilinear", "zoh"):
             raise ConfigError("ssm_discretization must be 'bilinear' or 'zoh'")
         if self.widths[-1] % self.decoder_heads:

@@ -39,7 +39,7 @@ class E3DPSM(nn.Module):
         )
         self.attention = nn.ModuleList(
             DeformableTransformerBlock(
-                w, cfg.attn_heads[i], cfg.attn_head_dim[i], cfg.attn_points, *cfg.stage_hw(i)
+                w, cfg.attn_heads[i], cfg.attn_head_dim[i], cfg.attn_points, *cfg.stage_hw(i), layout=cfg.attn_layout
             )
             if cfg.deformable else nn.Identity()
             for i, w in enumerate(cfg.widths)
@@ -48,6 +48,7 @@ class E3DPSM(nn.Module):
             str(s): S5Block(
                 cfg.widths[s], cfg.ssm_state_dim(s), bidirectional=cfg.ssm_bidirectional,
                 discretization=cfg.ssm_discretization, bandlimit=cfg.ssm_bandlimit,
+                backward_first_frame=cfg.ssm_backward_first_frame,
                 seed=cfg.seed + 101 * (s + 1) if cfg.seed is not None else None,
             )
             for s in sorted(cfg.ssm_stages)
@@ -121,6 +122,16 @@ class E3DPSM(nn.Module):
             raise InputError(f"window_ms has {window_ms.shape[0]} values, expected 1 or the batch size {batch}")
         return window_ms / self.config.train_window_ms
 
+    def _normalise(self, frames: torch.Tensor, per_frame: bool) -> torch.Tensor:
+        """The release's min-max rescaling to [0, 1]: per frame ([N, C, H, W] -> each n), or
+        over the whole tensor. A constant frame (no events) stays at 0, where the release
+        divides by zero."""
+        if self.config.input_norm == "none":
+            return frames
+        dims = tuple(range(1, frames.dim())) if per_frame else tuple(range(frames.dim()))
+        low, high = frames.amin(dim=dims, keepdim=True), frames.amax(dim=dims, keepdim=True)
+        return (frames - low) / (high - low).clamp_min(torch.finfo(frames.dtype).tiny)
+
     # -- shared pieces -------------------------------------------------------------------
     def _encode(self, x: torch.Tensor, apply_ssm: Callable[[str, S5Block, torch.Tensor], torch.Tensor]) -> torch.Tensor:
         """Frames [N, 2, H, W] -> memory tokens [N, h*w, D]; `apply_ssm` runs the S5 blocks."""
@@ -169,7 +180,7 @@ class E3DPSM(nn.Module):
             new_state[f"s5_stage{int(key) + 1}_re"], new_state[f"s5_stage{int(key) + 1}_im"] = re, im
             return y
 
-        feats = self.decoder(self._encode(lnes, apply_ssm))
+        feats = self.decoder(self._encode(self._normalise(lnes, per_frame=True), apply_ssm))
         direct = self._direct_pose(feats)
         outputs, fusion_state = self._pose_update(feats, direct, state)
         new_state.update(fusion_state)
@@ -206,7 +217,8 @@ class E3DPSM(nn.Module):
             final[f"s5_stage{int(key) + 1}_re"], final[f"s5_stage{int(key) + 1}_im"] = re, im
             return y.flatten(0, 1)
 
-        feats = self.decoder(self._encode(lnes.flatten(0, 1), apply_ssm))
+        frames = self._normalise(lnes.flatten(0, 1), per_frame=causal)
+        feats = self.decoder(self._encode(frames, apply_ssm))
         feats = feats.view(batch, steps, *feats.shape[1:])
         direct = self._direct_pose(feats)
         fusion_state: Mapping[str, torch.Tensor] = state

@@ -1,4 +1,5 @@
-"""Registered variants. Parameter counts at the default 192 x 256 input."""
+"""Registered variants. Parameter counts at the default 192 x 256 input (Kalman log Q and
+log R, 96 values, included)."""
 from __future__ import annotations
 
 from e3dpsm.models.config import E3DPSMConfig
@@ -7,8 +8,20 @@ from e3dpsm.models.registry import register_model
 
 @register_model
 def paper() -> E3DPSMConfig:
-    """The released architecture (FACTS section 3)."""
+    """The released network where the paper is silent, the paper where it is explicit
+    (learned 2-D reference grid, exact carried state): 6,648,662 parameters."""
     return E3DPSMConfig(variant="paper")
+
+
+@register_model
+def released() -> E3DPSMConfig:
+    """The released network number for number (6,640,406 + 96 parameters), so that its
+    checkpoints import (`e3dpsm import --released`): 1-D attention layout, min-max input
+    normalisation, heads in millimetres, the released backward branch at t = 0."""
+    return E3DPSMConfig(
+        variant="released", attn_layout="1d", input_norm="minmax", pose_unit_mm=1.0,
+        ssm_backward_first_frame="own_input",
+    )
 
 
 @register_model
