@@ -37,6 +37,7 @@ class PipelineConfig:
     threads: int = 2
     parity_steps: int = 300
     profile_steps: int = 300
+    checkpoint: Path | None = None  # a trained or imported checkpoint: no training stage
 
     @property
     def train_budget_s(self) -> float:
@@ -53,6 +54,20 @@ class Stage:
 
 def _p(cfg: PipelineConfig, rel: str) -> str:
     return str(cfg.out / rel)
+
+
+def _ckpt(cfg: PipelineConfig) -> str:
+    return str(cfg.checkpoint) if cfg.checkpoint else _p(cfg, CHECKPOINT)
+
+
+def _frame_args(cfg: PipelineConfig) -> list[str]:
+    """Prepare the data at the given checkpoint's resolution (the variants' own by default)."""
+    if not cfg.checkpoint:
+        return []
+    from e3dpsm.checkpoint import read_checkpoint
+
+    model_cfg = read_checkpoint(cfg.checkpoint)["config"]
+    return ["--height", str(model_cfg["height"]), "--width", str(model_cfg["width"])]
 
 
 CHECKPOINT = "train/checkpoint.pt"
@@ -82,15 +97,16 @@ STAGES: tuple[Stage, ...] = (
         "synth", "--out", _p(c, "data"), "--sequences", str(c.sequences), "--seconds", str(c.seconds),
         "--seed", str(c.seed), "--preview", "--force"]),
     Stage("prepare", "prepared/report.json", lambda c: [
-        "prepare", "--data", _p(c, "data"), "--out", _p(c, "prepared"), "--window-ms", f"{c.window_ms:g}", "--force"]),
+        "prepare", "--data", _p(c, "data"), "--out", _p(c, "prepared"), "--window-ms", f"{c.window_ms:g}",
+        *_frame_args(c), "--force"]),
     Stage("train", "train/report.json", _train_argv),  # written when the run ends
     Stage("evaluate", "evaluate/metrics.json", lambda c: [
-        "evaluate", "--checkpoint", _p(c, CHECKPOINT), "--data", _p(c, "prepared"), "--out", _p(c, "evaluate"),
+        "evaluate", "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--out", _p(c, "evaluate"),
         "--split", "test", "--causal", "--threads", str(c.threads), "--force"]),
     Stage("export", GRAPH, lambda c: [
-        "export", "--checkpoint", _p(c, CHECKPOINT), "--out", _p(c, "export"), "--force"]),
+        "export", "--checkpoint", _ckpt(c), "--out", _p(c, "export"), "--force"]),
     Stage("parity", "parity/report.json", lambda c: [
-        "parity", "--model", _p(c, GRAPH), "--checkpoint", _p(c, CHECKPOINT), "--data", _p(c, "prepared"),
+        "parity", "--model", _p(c, GRAPH), "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"),
         "--split", "test", "--steps", str(c.parity_steps), "--window-ms", "20", "25", "50",
         "--threads", str(c.threads), "--report", _p(c, "parity/report.json")]),
     Stage("quantize-int8", INT8, _quantize("int8")),
@@ -98,10 +114,10 @@ STAGES: tuple[Stage, ...] = (
     Stage("quantize-int8-dynamic", INT8_DYNAMIC, _quantize("int8-dynamic")),
     Stage("validate", "validate/report.json", lambda c: [
         "validate", "--models", _p(c, GRAPH), _p(c, INT8), _p(c, FP16), _p(c, INT8_DYNAMIC),
-        "--checkpoint", _p(c, CHECKPOINT), "--data", _p(c, "prepared"), "--split", "test",
+        "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--split", "test",
         "--out", _p(c, "validate"), "--threads", str(c.threads), "--force"]),
     Stage("profile", "profile/report.json", lambda c: [
-        "profile", "--checkpoint", _p(c, CHECKPOINT), "--targets", "all", "--int8-model", _p(c, INT8),
+        "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),
         "--threads", str(c.threads), "--out", _p(c, "profile"), "--force"]),
 )
@@ -140,6 +156,10 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
 
     if cfg.variant not in ("tiny", "small", "paper"):
         raise ConfigError(f"unknown variant {cfg.variant!r}; use tiny, small or paper")
+    if cfg.checkpoint:
+        from e3dpsm.checkpoint import read_checkpoint
+
+        read_checkpoint(cfg.checkpoint)  # a clear error now, not at the evaluate stage
     cfg.out.mkdir(parents=True, exist_ok=True)
     done: list[dict] = []
     names = [s.name for s in STAGES]
@@ -149,6 +169,10 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
     for index, stage in enumerate(STAGES, 1):
         marker = cfg.out / stage.marker
         header = f"[{index}/{len(STAGES)}] {stage.name}"
+        if stage.name == "train" and cfg.checkpoint:
+            log.info("%s: skipped, --checkpoint %s given", header, cfg.checkpoint)
+            done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
+            continue
         if (only and stage.name not in only) or (marker.exists() and not only):
             log.info("%s: done before, skipped (%s exists)", header, stage.marker)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})

@@ -14,6 +14,7 @@ from e3dpsm.data.prepare import prepare_dataset
 from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
 
 SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
+TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
 
 
 def make_prepared(root: Path, seconds: float = 1.0) -> Path:
@@ -51,3 +52,14 @@ def tiny_graph(tmp_path_factory, quant_data) -> Path:
     from e3dpsm.export import export_step
 
     return export_step(mean_pose_model(quant_data), tmp_path_factory.mktemp("graphs") / "tiny.onnx")
+
+
+@pytest.fixture(scope="session")
+def trained_graph(tmp_path_factory) -> Path:
+    """The trained tiny of tests/fixtures/tiny_trained: poses that follow the input, for the
+    tests whose budgets would be vacuous on a model sitting at its pose prior."""
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.export import export_step
+
+    model, _ = load_checkpoint(TRAINED_TINY, variant="tiny")
+    return export_step(model, tmp_path_factory.mktemp("graphs") / "tiny_trained.onnx")

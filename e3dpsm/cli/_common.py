@@ -11,7 +11,7 @@ def add_model_source(parser: argparse.ArgumentParser, *, required: bool = True) 
     """--checkpoint CKPT | --variant NAME [--seed K]."""
     group = parser.add_mutually_exclusive_group(required=required)
     group.add_argument("--checkpoint", help="trained checkpoint (config inside)")
-    group.add_argument("--variant", help="registered variant with initial weights (paper, small, tiny)")
+    group.add_argument("--variant", help="registered variant with initial weights (paper, released, small, tiny)")
     parser.add_argument("--seed", type=int, default=0, help="weight seed with --variant (default 0)")
 
 

@@ -14,6 +14,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "profile -> OUT/report/index.md. Finished stages are skipped on a rerun.")
     p.add_argument("--out", default="runs/pipeline", help="output folder (default runs/pipeline)")
     p.add_argument("--variant", choices=("tiny", "small"), default="small")
+    p.add_argument("--checkpoint", type=Path, help="use this trained or imported checkpoint (e3dpsm import) instead "
+                                                     "of training; data are prepared at its resolution")
     p.add_argument("--minutes", type=positive_float, default=10.0,
                    help="rough total budget; about half of it trains (default 10)")
     p.add_argument("--seed", type=int, default=0)
@@ -27,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.pipeline import PipelineConfig, run_pipeline
 
     cfg = PipelineConfig(out=Path(args.out), variant=args.variant, minutes=args.minutes, seed=args.seed,
-                         threads=args.threads)
+                         threads=args.threads, checkpoint=args.checkpoint)
     run_pipeline(cfg, only=args.only)
     print(f"report: {cfg.out / 'report' / 'index.md'}")
     return 0

@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "the graph is exported here).")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", help="exported fp32 step graph (STEP.onnx); no PyTorch target then")
-    source.add_argument("--variant", help="registered variant with initial weights (paper, small, tiny)")
+    source.add_argument("--variant", help="registered variant with initial weights (paper, released, small, tiny)")
     source.add_argument("--checkpoint", help="trained checkpoint (config inside)")
     p.add_argument("--seed", type=int, default=0, help="weight seed with --variant (default 0)")
     p.add_argument("--targets", default="torch-eager-cpu,ort-cpu-fp32",

@@ -16,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "Writes RUN_DIR/checkpoint.pt, RUN_DIR/log.jsonl and RUN_DIR/report.json. Under torchrun "
         "every rank trains a share of each batch; rank 0 writes.",
     )
-    p.add_argument("--variant", default="small", help="model variant: paper, small, tiny (default small); "
+    p.add_argument("--variant", default="small", help="model variant: paper, released, small, tiny (default small); "
                    "on --resume it must match the checkpoint")
     p.add_argument("--ablation", default="full", choices=list(ABLATIONS), help="paper ablation (default full)")
     p.add_argument("--data", required=True, help="prepared folder (e3dpsm prepare)")
