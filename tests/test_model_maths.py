@@ -142,3 +142,21 @@ def test_exclusion_search_budgets_on_distance_to_fp32(monkeypatch, tmp_path: Pat
     result = api._search_float_groups([], [NodeGroup("stages.0", "module", ("n1",))], None, None, options, tmp_path,
                                       build=lambda excluded: None)
     assert result.error_pct == 3.0 and not result.within_budget
+
+
+def test_band_limit_zeroes_aliasing_readouts_once_at_construction() -> None:
+    """As released: modes with step * |Im lambda| / (2 pi) >= bandlimit / 2 get zero readout
+    columns at construction (numpy reference), and the readout uses C as it stands, so a
+    column trained back to non-zero counts (a mask applied at every readout would not)."""
+    s5 = S5(4, 32, bidirectional=True, bandlimit=0.5, seed=0)
+    freq = np.exp(s5.log_step.detach().double().numpy()) * np.abs(s5.lambda_im.detach().double().numpy()) / (2 * np.pi)
+    aliasing = freq >= 0.25
+    assert 0 < aliasing.sum() < aliasing.size  # both kinds of mode are present
+    for c in (s5.c_re, s5.c_im, s5.cb_re, s5.cb_im):
+        assert torch.all(c[:, torch.from_numpy(aliasing)] == 0) and torch.any(c[:, torch.from_numpy(~aliasing)] != 0)
+    mode = int(np.flatnonzero(aliasing)[0])
+    x = (torch.zeros(1, 32), torch.zeros(1, 32))
+    x[0][0, mode] = 1.0
+    with torch.no_grad():
+        s5.c_re[:, mode] = 1.0  # "trained back"
+    assert torch.equal(s5.readout(x), torch.ones(1, 4))
