@@ -162,3 +162,30 @@ def test_ablation_switches_keep_streaming_exact(overrides) -> None:
     names = {s.name for s in model.state_spec()}
     assert ("fusion_cov" in names) == (overrides.get("fusion", "learned") in ("learned", "static"))
     assert sum(n.startswith("s5_") for n in names) == 2 * len(overrides.get("ssm_stages", (0, 3)))
+
+
+RELEASED_LAYOUT = dict(attn_layout="1d", input_norm="minmax", ssm_backward_first_frame="own_input", pose_unit_mm=1.0)
+
+
+def test_released_layout_streams_exactly_and_survives_empty_frames() -> None:
+    """The `released` computation at tiny size: stepping equals the causal sequence (per-frame
+    min-max rescaling in both), chunks equal the whole run, and an empty frame (the release
+    would divide by zero) gives finite poses."""
+    model = e3dpsm.create_model("tiny", **RELEASED_LAYOUT).eval()
+    # two streams whose frames span different ranges: the rescaling is per frame and stream
+    lnes = sparse_lnes((2, 12, 2, 192, 256), seed=13) * torch.linspace(0.3, 1.0, 12).view(1, 12, 1, 1, 1)
+    lnes[1] *= 0.5
+    lnes[:, 5] = 0.0  # a window without events
+    with torch.no_grad():
+        whole, whole_state = model.forward_sequence(lnes, causal=True, return_state=True)
+        state, steps = model.init_state(2), []
+        for t in range(lnes.shape[1]):
+            out, state = model.step(lnes[:, t], state)
+            steps.append(out["pose"])
+        first, mid = model.forward_sequence(lnes[:, :4], causal=True, return_state=True)
+        rest = model.forward_sequence(lnes[:, 4:], causal=True, state=mid)
+    assert torch.isfinite(whole["pose"]).all()
+    assert (torch.stack(steps, 1) - whole["pose"]).abs().max().item() <= 1e-3
+    assert (torch.cat([first["pose"], rest["pose"]], 1) - whole["pose"]).abs().max().item() <= 1e-3
+    for name, value in whole_state.items():
+        assert torch.allclose(state[name], value, rtol=1e-5, atol=1e-5), name

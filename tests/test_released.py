@@ -136,7 +136,7 @@ def test_import_report_accounts_for_every_key(imported, manifest) -> None:
     released_keys = {e["key"].split("event_3d_posenet.")[-1] for e in manifest["layout"]}
     used = {k for source in report["mapping"] for k in source.split(" + ")}
     identities = set(checks["kalman_identities_checked"])
-    assert used | identities == {k if not k.startswith("kalman_filter") else k for k in released_keys}
+    assert used | identities == released_keys
     assert not used & identities
     model_keys = set(e3dpsm.create_model("released").state_dict())
     filled = {k for targets in report["mapping"].values() for k in targets}
