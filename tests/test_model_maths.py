@@ -160,3 +160,17 @@ def test_band_limit_zeroes_aliasing_readouts_once_at_construction() -> None:
     with torch.no_grad():
         s5.c_re[:, mode] = 1.0  # "trained back"
     assert torch.equal(s5.readout(x), torch.ones(1, 4))
+
+
+@pytest.mark.parametrize("height, width, samples", [(2, 4, False), (3, 3, True)])
+def test_attention_skips_sampling_on_maps_of_at_most_points_tokens(height: int, width: int, samples: bool) -> None:
+    """As released: with h*w <= points tokens the block uses the value projection alone."""
+    from e3dpsm.layers import DeformableTransformerBlock
+
+    block = DeformableTransformerBlock(8, 2, 4, 8, height, width, layout="1d").eval()
+    x = torch.randn(1, 8, height, width, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        before = block(x)
+        for p in block.attn.parameters():
+            p.add_(0.5)
+        assert torch.equal(block(x), before) is not samples

@@ -125,7 +125,7 @@ class DeformableTransformerBlock(nn.Module):
     ) -> None:
         super().__init__()
         inner = heads * head_dim
-        self.samples = height * width > points
+        self.uses_sampling = height * width > points
         self.norm = nn.GroupNorm(groups, channels)
         self.proj_in = nn.Conv2d(channels, inner, 1)
         self.attn_norm = nn.LayerNorm(inner)
@@ -141,6 +141,6 @@ class DeformableTransformerBlock(nn.Module):
         t = self.proj_in(self.norm(x)).flatten(2).transpose(1, 2)  # [n, h*w, inner]
         query = self.attn_norm(t)
         value = self.attn_value_proj(query)
-        t = t + self.attn_output_proj(self.attn(query, value) if self.samples else value)
+        t = t + self.attn_output_proj(self.attn(query, value) if self.uses_sampling else value)
         t = t + self.ff(self.ff_norm(t))
         return x + self.proj_out(t.transpose(1, 2).reshape(n, -1, h, w))
