@@ -69,8 +69,12 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
     out = Path(out)
     report_dir = out / "report"
     parity = _load(out / "parity/report.json") or {}
+    export = _load(out / "export/export.json") or {}
+    variant = (export.get("model") or {}).get("variant", config.get("variant"))
+    model = (f"Checkpoint `{config['checkpoint']}` (variant `{variant}`, not trained here)" if config.get("checkpoint")
+             else f"Variant `{variant}`")
     lines = ["# E-3DPSM pipeline report", "",
-             f"Variant `{config.get('variant')}`, synthetic data (seed {config.get('seed')}), "
+             f"{model}, synthetic data (seed {config.get('seed')}), "
              f"{config.get('window_ms')} ms windows. Accuracy on the held-out test sequences, streamed "
              "with states never reset; latency on this machine with the stated thread count.", "",
              "## Accuracy and speed of each variant", "", *key_table(out), ""]

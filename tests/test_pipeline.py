@@ -29,3 +29,15 @@ def test_a_bad_checkpoint_is_refused_before_any_stage_runs(tmp_path) -> None:
     with pytest.raises(CheckpointError):
         run_pipeline(PipelineConfig(out=tmp_path / "run", checkpoint=bad))
     assert not (tmp_path / "run" / "data").exists()
+
+
+def test_report_names_the_given_checkpoint_and_its_variant(tmp_path) -> None:
+    import json
+
+    from e3dpsm.pipeline_report import write_index
+
+    (tmp_path / "export").mkdir()
+    (tmp_path / "export" / "export.json").write_text(json.dumps({"model": {"variant": "released"}}))
+    write_index(tmp_path, {"checkpoint": "imported/checkpoint.pt", "variant": "small", "seed": 0, "window_ms": 20.0}, [])
+    header = (tmp_path / "report" / "index.md").read_text().splitlines()[2]
+    assert header.startswith("Checkpoint `imported/checkpoint.pt` (variant `released`, not trained here)")
