@@ -17,7 +17,6 @@ from typing import Any, Mapping
 
 from e3dpsm.errors import DataError
 
-KINDS: tuple[str, ...] = ("latency", "mpjpe", "size")
 UNITS = {"latency": "ms", "mpjpe": "mm", "size": "MB"}
 
 

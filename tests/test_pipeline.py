@@ -1,14 +1,12 @@
 """`e3dpsm pipeline --checkpoint`: every stage after training takes the given checkpoint."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 
+from _quantize_helpers import TRAINED_TINY
 from e3dpsm.checkpoint import CheckpointError
 from e3dpsm.pipeline import STAGES, PipelineConfig, run_pipeline
-
-TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
 
 
 def test_stages_use_the_given_checkpoint_and_its_resolution(tmp_path) -> None:
