@@ -1,7 +1,6 @@
 """`e3dpsm pipeline --checkpoint`: every stage after training takes the given checkpoint."""
 from __future__ import annotations
 
-
 import pytest
 
 from _quantize_helpers import TRAINED_TINY
