@@ -2,8 +2,15 @@
 
 Every S5 state (real and imaginary parts) and the fusion state (pose, covariance,
 initialised flag) are explicit inputs and outputs with paired names (`x_in` -> `x_out`);
-the batch axis is dynamic; only default-domain operators are allowed, so the same file runs
-on ONNX Runtime (CPU, CUDA, TensorRT) and OpenVINO.
+the batch axis is dynamic (or fixed to 1 with `static_batch`); only default-domain operators
+are allowed, so the same file runs on ONNX Runtime (CPU, CUDA, TensorRT) and OpenVINO.
+
+Deformable attention exports in its literal GridSample form by default; `attention_form=
+"gather"` selects the export form of layers/deformable.py (channels-last corner gathers, one
+weighted MatMul, folded projections; no GridSample), equal to float32 round-off. The gather
+form is not the default: in ONNX Runtime 1.31 it measured only a few per cent faster
+(benchmarks/results/deformable.md), and the MAC counters and the INT8 quantiser's float set
+know the GridSample form.
 """
 from __future__ import annotations
 
@@ -23,8 +30,9 @@ import torch
 from e3dpsm.errors import E3DPSMError
 from e3dpsm.export.spec import StepIOSpec, graph_metadata, step_io_spec
 from e3dpsm.export.wrapper import StepGraph
+from e3dpsm.layers.deformable import SAMPLERS, export_attention_form
 from e3dpsm.models import E3DPSM
-from e3dpsm.state import StateSpec, initial_states
+from e3dpsm.state import BATCH_AXIS, StateSpec, initial_states
 from e3dpsm.utils.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -54,6 +62,8 @@ class ExportResult:
     seconds_export: float
     seconds_simplify: float
     op_types: dict[str, int]
+    attention_form: str = "grid_sample"
+    static_batch: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -138,15 +148,21 @@ def _eval_mode(model: torch.nn.Module):
 
 def export_step_with_report(
     model: E3DPSM, path: str | os.PathLike, opset: int | None = None, simplify: bool = True,
-    metadata_extra: dict[str, Any] | None = None,
+    metadata_extra: dict[str, Any] | None = None, attention_form: str = "grid_sample", static_batch: bool = False,
 ) -> ExportResult:
+    """`attention_form`: "grid_sample" (the literal form) or "gather" (the export form);
+    `static_batch`: fix the batch axis to 1 (fewer shape ops, for single-stream devices)."""
     opset = opset or DEFAULT_OPSET
     if opset not in _IR_FOR_OPSET:
         raise ExportError(f"opset {opset} is not supported; use one of {sorted(_IR_FOR_OPSET)}")
-    spec = step_io_spec(model)
+    if attention_form not in SAMPLERS:
+        raise ExportError(f"unknown attention form {attention_form!r}; choose from {SAMPLERS}")
+    batch = 1 if static_batch else BATCH_AXIS
+    spec = step_io_spec(model, batch)
     wrapper = StepGraph(model)
     t0 = time.perf_counter()
-    with _eval_mode(model), torch.no_grad(), tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+    with _eval_mode(model), torch.no_grad(), tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(), \
+            export_attention_form(model, sampler=attention_form, fold_projections=attention_form == "gather"):
         # Shape checks in `step` are Python-level and trace to constants: expected.
         warnings.simplefilter("ignore", category=torch.jit.TracerWarning)
         warnings.simplefilter("ignore", category=DeprecationWarning)
@@ -166,7 +182,7 @@ def export_step_with_report(
     seconds_simplify = time.perf_counter() - t1
 
     graph.ir_version = _IR_FOR_OPSET[opset]
-    graph_metadata(model, metadata_extra).write_to(graph)
+    graph_metadata(model, {"attention_form": attention_form, **(metadata_extra or {})}, batch).write_to(graph)
     graph.producer_name = "e3dpsm"
     graph.doc_string = f"E-3DPSM single-step graph, variant {model.config.variant}"
     check_graph(graph)
@@ -184,7 +200,7 @@ def export_step_with_report(
         path=str(path), opset=opset, ir_version=graph.ir_version, nodes_traced=nodes_traced,
         nodes_final=len(graph.graph.node), simplified=simplify, bytes=size,
         seconds_export=round(seconds_export, 3), seconds_simplify=round(seconds_simplify, 3),
-        op_types=op_histogram(graph),
+        op_types=op_histogram(graph), attention_form=attention_form, static_batch=static_batch,
     )
 
 

@@ -49,26 +49,29 @@ class StepIOSpec:
         return {t.name: t.dynamic_axes for t in (*self.inputs, *self.outputs) if t.dynamic_axes}
 
 
-def step_io_spec(model: E3DPSM) -> StepIOSpec:
+def step_io_spec(model: E3DPSM, batch: int | str = BATCH_AXIS) -> StepIOSpec:
+    """`batch`: the dynamic "batch" axis, or a fixed batch size (a static-batch graph)."""
     cfg = model.config
     states = model.state_spec()
-    pose_shape = (BATCH_AXIS, cfg.num_joints, 3)
+    pose_shape = (batch, cfg.num_joints, 3)
     inputs = (
-        TensorSpec(FRAME_INPUT, (BATCH_AXIS, cfg.in_channels, cfg.height, cfg.width)),
-        TensorSpec(WINDOW_INPUT, (BATCH_AXIS,)),
-        *(TensorSpec(s.input_name, (BATCH_AXIS, *s.shape), s.dtype) for s in states),
+        TensorSpec(FRAME_INPUT, (batch, cfg.in_channels, cfg.height, cfg.width)),
+        TensorSpec(WINDOW_INPUT, (batch,)),
+        *(TensorSpec(s.input_name, (batch, *s.shape), s.dtype) for s in states),
     )
     outputs = (
         *(TensorSpec(name, pose_shape) for name in OUTPUT_NAMES),
-        *(TensorSpec(s.output_name, (BATCH_AXIS, *s.shape), s.dtype) for s in states),
+        *(TensorSpec(s.output_name, (batch, *s.shape), s.dtype) for s in states),
     )
     return StepIOSpec(inputs, outputs)
 
 
-def graph_metadata(model: E3DPSM, extra: dict[str, Any] | None = None) -> GraphMetadata:
-    """The DESIGN.md metadata contract for `model`'s step graph."""
+def graph_metadata(model: E3DPSM, extra: dict[str, Any] | None = None, batch: int | str = BATCH_AXIS) -> GraphMetadata:
+    """The DESIGN.md metadata contract for `model`'s step graph. With a fixed `batch`, the
+    frame, window and output shapes say it; state entries keep the "batch" axis of the
+    state layout contract (StateSpec), the config records `static_batch`."""
     cfg = model.config
-    spec = step_io_spec(model)
+    spec = step_io_spec(model, batch)
     frame = spec.inputs[0]
     inputs = {
         "frame": {
@@ -78,7 +81,7 @@ def graph_metadata(model: E3DPSM, extra: dict[str, Any] | None = None) -> GraphM
             "sensor_hw": [480, 640],
         },
         "window": {
-            "name": WINDOW_INPUT, "shape": [BATCH_AXIS], "dtype": "float32", "unit": "ms",
+            "name": WINDOW_INPUT, "shape": [batch], "dtype": "float32", "unit": "ms",
             "train_window_ms": cfg.train_window_ms,
             "doc": "length T of the window each frame covers; one graph serves 20, 25 and 50 ms",
         },
@@ -89,7 +92,7 @@ def graph_metadata(model: E3DPSM, extra: dict[str, Any] | None = None) -> GraphM
     ]
     config = {
         "variant": cfg.variant, "train_window_ms": cfg.train_window_ms, "fusion": cfg.fusion,
-        "model_config": cfg.to_dict(), **(extra or {}),
+        "model_config": cfg.to_dict(), **({} if isinstance(batch, str) else {"static_batch": batch}), **(extra or {}),
     }
     return GraphMetadata(
         states=model.state_spec(), inputs=inputs, outputs=outputs, config=config,

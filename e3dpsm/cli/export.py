@@ -8,16 +8,26 @@ from e3dpsm.cli._common import add_model_source, load_model_from_args
 
 log = logging.getLogger(__name__)
 GRAPH_NAME = "step.onnx"
+ORT_GRAPH_NAME = "step.ort.onnx"  # ONNX Runtime pre-optimised copy: version and provider specific
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export the stateful single-step graph to ONNX",
                        description="Write OUT/step.onnx (states as explicit inputs/outputs, metadata "
-                                   "inside) and OUT/export.json.")
+                                   "inside), OUT/step.ort.onnx (ONNX Runtime's pre-optimised copy, for edge "
+                                   "start-up) and OUT/export.json.")
     add_model_source(p)
     p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
     p.add_argument("--opset", type=int, default=None, help="ONNX opset (default 17; 17-21 supported)")
     p.add_argument("--no-simplify", action="store_true", help="skip onnxsim simplification")
+    p.add_argument("--static-batch", action="store_true",
+                   help="fix the batch axis to 1 (fewer shape operators; single-stream devices)")
+    p.add_argument("--attention-form", choices=("grid_sample", "gather"), default="grid_sample",
+                   help="deformable attention in the graph: 'grid_sample' (the literal GridSample form; default) "
+                        "or 'gather' (corner gathers, one weighted MatMul, folded projections)")
+    p.add_argument("--ort-optimized", choices=("none", "basic", "extended", "all"), default="extended",
+                   help=f"also write {ORT_GRAPH_NAME}, ONNX Runtime's CPU-optimised graph at this level "
+                        "(default extended; 'all' adds the CPU's NCHWc layout: same-machine only; none: skip)")
     p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=run)
@@ -28,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from e3dpsm.export import export_step_with_report
+    from e3dpsm.export.ort_optimized import write_ort_optimized
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
@@ -37,16 +48,22 @@ def run(args: argparse.Namespace) -> int:
     with atomic_dir(args.out, force=args.force) as tmp:
         result = export_step_with_report(
             model, tmp / GRAPH_NAME, opset=args.opset, simplify=not args.no_simplify, metadata_extra={"source": source},
+            attention_form=args.attention_form, static_batch=args.static_batch,
         )
+        ort_graph = (write_ort_optimized(tmp / GRAPH_NAME, tmp / ORT_GRAPH_NAME, args.ort_optimized)
+                     if args.ort_optimized != "none" else None)
         report = report_header("export", {**vars(args), "func": None})
         report.update(
             model=model.config.to_dict(),
             params=sum(p.numel() for p in model.parameters()),
             result={**result.to_dict(), "path": GRAPH_NAME},
             states=[s.to_metadata() for s in model.state_spec()],
+            ort_optimized=ort_graph,
         )
         write_json_atomic(tmp / "export.json", report)
     print(f"wrote {args.out}/{GRAPH_NAME}: {result.nodes_traced} nodes traced, {result.nodes_final} after "
           f"simplification, {result.bytes / 1e6:.2f} MB, opset {result.opset}, IR {result.ir_version}, "
-          f"{result.seconds_export + result.seconds_simplify:.1f} s")
+          f"{result.seconds_export + result.seconds_simplify:.1f} s"
+          + (f"; {ORT_GRAPH_NAME} (ONNX Runtime {ort_graph['onnxruntime']}, {ort_graph['level']})"
+             if ort_graph else ""))
     return 0

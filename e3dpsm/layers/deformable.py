@@ -10,18 +10,28 @@ Two sampling layouts of the same weights:
 The block wiring is the release's in both layouts (its `BasicTransformerBlock` around an
 mmcv `MultiScaleDeformableAttention`): an outer value and output projection around mmcv's
 own value and output projections, and mmcv's identity term (its query) added inside.
+
+Two samplers of the same sum: "grid_sample" (the literal form: the reference, training and
+the default export) and "gather" (layers/gather_sampling.py: channels-last corner gathers and
+one weighted MatMul, no GridSample). `export_attention_form` switches a model to the gather
+sampler with the block's chained projections folded (`e3dpsm export --attention-form
+gather`); it equals the literal form to float32 round-off (tests/test_deformable_export.py).
 """
 from __future__ import annotations
 
+import contextlib
 import math
+from typing import Iterator
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from e3dpsm.layers.feedforward import GEGLU
+from e3dpsm.layers.gather_sampling import bilinear_gather
 
 ATTENTION_LAYOUTS: tuple[str, ...] = ("2d", "1d")
+SAMPLERS: tuple[str, ...] = ("grid_sample", "gather")
 
 
 def uniform_reference_grid(height: int, width: int) -> torch.Tensor:
@@ -40,13 +50,18 @@ class DeformableAttention(nn.Module):
     reference points (module docstring).
     """
 
-    def __init__(self, dim: int, heads: int, points: int, height: int, width: int, layout: str = "2d") -> None:
+    def __init__(
+        self, dim: int, heads: int, points: int, height: int, width: int, layout: str = "2d",
+        sampler: str = "grid_sample",
+    ) -> None:
         super().__init__()
         if dim % heads:
             raise ValueError(f"deformable attention width {dim} is not divisible by {heads} heads")
         if layout not in ATTENTION_LAYOUTS:
             raise ValueError(f"unknown attention layout {layout!r}; choose from {ATTENTION_LAYOUTS}")
-        self.dim, self.heads, self.points, self.layout = dim, heads, points, layout
+        if sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler {sampler!r}; choose from {SAMPLERS}")
+        self.dim, self.heads, self.points, self.layout, self.sampler = dim, heads, points, layout, sampler
         if layout == "2d":
             self.map_hw = (height, width)
             self.reference = nn.Parameter(uniform_reference_grid(height, width))
@@ -92,8 +107,50 @@ class DeformableAttention(nn.Module):
         origin = (2.0 * self.reference - 1.0).repeat(1, slots)  # [H*W or 1, slots*2], (x, y) per slot
         return offsets + origin
 
+    def pixel_offset_projection(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(weight, bias, origin) giving the sampling points in pixel units of the sampled map
+        (grid_sample's align_corners=False convention), x of every slot first, then y:
+        xy = query @ weight.T + bias + origin, [.., 2 * heads * points]; origin is
+        [H*W or 1, 2 * slots]. Parameter-only: constant-folded at export.
+
+        mmcv samples at reference + offset / (W, H) in [0, 1], i.e. at pixel
+        reference * (W, H) - 0.5 + offset: the offsets need no scale in pixel units.
+        """
+        height, width = self.map_hw
+        slots = self.heads * self.points
+        weight = self.sampling_offsets.weight.view(slots, 2, -1).transpose(0, 1).reshape(2 * slots, -1)
+        bias = self.sampling_offsets.bias.view(slots, 2).t().reshape(2 * slots)
+        centre = self.reference * self.reference.new_tensor([width, height]) - 0.5  # [H*W or 1, 2]
+        origin = centre.t().repeat_interleave(slots, dim=0).t()  # [H*W or 1, 2 * slots]
+        return weight, bias, origin
+
+    def sample(self, value: torch.Tensor, xy: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """The attention-weighted sampling by `self.sampler`: value [N, H*W, dim] (projected),
+        xy [N, L, 2 * slots] pixel coordinates (x block, then y block), logits [N, L, slots]
+        -> [N, L, dim]."""
+        n, num_tokens, _ = xy.shape
+        heads, points, head_dim = self.heads, self.points, self.dim // self.heads
+        height, width = self.map_hw
+        x, y = xy.view(n, num_tokens, 2, heads, points).unbind(dim=2)
+        weights = logits.view(n, num_tokens, heads, points).softmax(dim=-1)
+        if self.sampler == "gather":
+            value = value.view(n, value.shape[1], heads, head_dim)
+            return bilinear_gather(value, self.map_hw, x, y, weights).reshape(n, num_tokens, self.dim)
+        value = value.view(n, height, width, heads, head_dim).permute(0, 3, 4, 1, 2)
+        grid = torch.stack([(2.0 * x + 1.0) / width - 1.0, (2.0 * y + 1.0) / height - 1.0], dim=-1)
+        grid = grid.transpose(1, 2).reshape(n * heads, num_tokens, points, 2)
+        sampled = F.grid_sample(value.reshape(n * heads, head_dim, height, width), grid, mode="bilinear",
+                                padding_mode="zeros", align_corners=False)
+        out = (sampled * weights.transpose(1, 2).reshape(n * heads, 1, num_tokens, points)).sum(dim=-1)
+        return out.view(n, self.dim, num_tokens).transpose(1, 2)
+
     def forward(self, query: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
         """query, value: [N, L, dim] tokens (row-major over the h x w map) -> [N, L, dim]."""
+        if self.sampler == "gather":
+            weight, bias, origin = self.pixel_offset_projection()
+            xy = F.linear(query, weight, bias) + origin
+            out = self.sample(self.value_proj(value), xy, self.attention_weights(query))
+            return self.output_proj(out) + query
         n, num_tokens, _ = query.shape
         heads, points, head_dim = self.heads, self.points, self.dim // self.heads
         height, width = self.map_hw
@@ -117,6 +174,11 @@ class DeformableTransformerBlock(nn.Module):
     out = x + proj_out(t), with a GEGLU feed-forward of 4x width.
 
     As released, a map of at most `points` tokens skips the sampling: attn(q, v) = v.
+
+    With `fold_projections` (the export form, `export_attention_form`), the chained linear
+    maps are multiplied out: every projection of q (value, offsets, attention logits and the
+    identity term through the outer output projection) is one matrix product, the sampled
+    values meet one folded output projection; `attn.sampler` still picks the sampler.
     """
 
     def __init__(
@@ -135,12 +197,53 @@ class DeformableTransformerBlock(nn.Module):
         self.ff_norm = nn.LayerNorm(inner)
         self.ff = GEGLU(inner, ff_mult * inner)
         self.proj_out = nn.Conv2d(inner, channels, 1)
+        self.fold_projections = False
+
+    def _folded_attention(self, query: torch.Tensor) -> torch.Tensor:
+        """attn_output_proj(attn(query, attn_value_proj(query))) with its linear maps folded:
+        Wo2 (Wo1 s + bo1 + q) + bo2 = (Wo2 Wo1) s + Wo2 q + (Wo2 bo1 + bo2), and
+        Wv (Wv' q + bv') + bv = (Wv Wv') q + (Wv bv' + bv). Parameter-only products fold at export."""
+        attn, inner = self.attn, self.attn.dim
+        offset_w, offset_b, origin = attn.pixel_offset_projection()
+        value_w = attn.value_proj.weight @ self.attn_value_proj.weight
+        value_b = attn.value_proj.weight @ self.attn_value_proj.bias + attn.value_proj.bias
+        weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
+        bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
+        slots = attn.heads * attn.points
+        value, xy, logits, identity = F.linear(query, weight, bias).split([inner, 2 * slots, slots, inner], dim=-1)
+        sampled = attn.sample(value, xy + origin, logits)
+        out_w = self.attn_output_proj.weight @ attn.output_proj.weight
+        out_b = self.attn_output_proj.weight @ attn.output_proj.bias + self.attn_output_proj.bias
+        return F.linear(sampled, out_w, out_b) + identity
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, _, h, w = x.shape
         t = self.proj_in(self.norm(x)).flatten(2).transpose(1, 2)  # [n, h*w, inner]
         query = self.attn_norm(t)
-        value = self.attn_value_proj(query)
-        t = t + self.attn_output_proj(self.attn(query, value) if self.uses_sampling else value)
+        if self.uses_sampling and self.fold_projections:
+            t = t + self._folded_attention(query)
+        else:
+            value = self.attn_value_proj(query)
+            t = t + self.attn_output_proj(self.attn(query, value) if self.uses_sampling else value)
         t = t + self.ff(self.ff_norm(t))
         return x + self.proj_out(t.transpose(1, 2).reshape(n, -1, h, w))
+
+
+@contextlib.contextmanager
+def export_attention_form(
+    model: nn.Module, sampler: str = "gather", fold_projections: bool = True,
+) -> Iterator[nn.Module]:
+    """Within the block, every deformable block of `model` runs the given sampler and
+    (optionally) its folded projections; the previous settings come back on exit."""
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; choose from {SAMPLERS}")
+    blocks = [m for m in model.modules() if isinstance(m, DeformableTransformerBlock)]
+    saved = [(b.attn.sampler, b.fold_projections) for b in blocks]
+    try:
+        for block in blocks:
+            block.attn.sampler = sampler
+            block.fold_projections = fold_projections
+        yield model
+    finally:
+        for block, (old_sampler, old_fold) in zip(blocks, saved):
+            block.attn.sampler, block.fold_projections = old_sampler, old_fold
