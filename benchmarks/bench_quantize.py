@@ -2,6 +2,7 @@
 
     python benchmarks/bench_quantize.py --data PREPARED [--checkpoint CKPT | --variant paper]
         [--accuracy-checkpoint CKPT_SMALL [--accuracy-data PREPARED]] [--threads 2] [--steps 100] [--frames 200]
+    python benchmarks/bench_quantize.py --changes --data PREPARED [--graph STEP.onnx] [--repeats 3] [--with-search]
 
 Latency: one graph per variant, real LNES frames of the test split, states carried,
 median (and p90) over `--steps` steps after `--warmup`; the variants are measured
@@ -20,11 +21,13 @@ import numpy as np
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.quantize import QuantizeOptions, artifact_name, quantize_graph
+from e3dpsm.quantize.static import ELEMENTWISE_OP_TYPES as ELEMENTWISE_OPS
 from e3dpsm.utils.env import report_header
-from e3dpsm.utils.io import write_json_atomic
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
 MODES = ("int8", "fp16", "int8-dynamic")
 RESULTS = Path(__file__).resolve().parent / "results" / "quantize.json"
+RESULTS_CHANGES = RESULTS.with_name("quantize.changes.json")
 
 
 def export_graph(args: argparse.Namespace, checkpoint: str | None, variant: str, out: Path, data: str) -> Path:
@@ -94,6 +97,79 @@ def op_profile(path: Path, lnes: np.ndarray, window_ms: float, threads: int, ste
     return summary
 
 
+# Graph-level INT8 changes, each measured against fp32 and the base INT8 graph (--changes).
+# (label, QuantizeOptions overrides); every one keeps only the recurrent groups in float so
+# the graph change, not the exclusion search, is what differs.
+ALL_INT8_OPS = (*ELEMENTWISE_OPS, "Softmax", "Concat", "Transpose", "Reshape", "GridSample",
+                "LayerNormalization", "InstanceNormalization")
+CHANGES: tuple[tuple[str, dict], ...] = (
+    ("int8 Conv/MatMul/Gemm (before)", {"op_types": ("Conv", "MatMul", "Gemm"), "batchnorm_as_conv": False}),
+    ("+ Add/Mul/Sigmoid in int8", {"op_types": ELEMENTWISE_OPS}),
+    ("+ BatchNorm as depthwise Conv", {"op_types": ELEMENTWISE_OPS, "batchnorm_as_conv": True}),
+    ("+ Softmax/Concat/Transpose/Reshape/GridSample/norms", {"op_types": ALL_INT8_OPS, "batchnorm_as_conv": True}),
+)
+
+
+def bench_changes(args: argparse.Namespace) -> int:
+    """INT8 p50, fp32 p50, their ratio and the held-out distance per graph change, all graphs
+    timed side by side (interleaved chunks, same frames and threads), `--repeats` fresh
+    sessions, medians of the per-repeat medians. Writes RESULTS_CHANGES(.json, .md)."""
+    from e3dpsm.profiles.latency import measure_side_by_side
+    from e3dpsm.quantize.latency import _StepRunner
+
+    result = report_header("bench_quantize_changes", vars(args))
+    with tempfile.TemporaryDirectory(prefix="bench-quant-changes-") as tmp:
+        work = Path(tmp)
+        graph = Path(args.graph) if args.graph else export_graph(args, args.checkpoint, args.variant,
+                                                                 work / "fp32.onnx", args.data)
+        data = PreparedData.open(args.data)
+        paths, rows = {"fp32": graph}, {}
+        for i, (label, overrides) in enumerate(CHANGES):
+            options = QuantizeOptions(mode="int8", exclude="recurrent", frames=args.frames,
+                                      holdout_frames=args.holdout_frames, threads=args.threads, **overrides)
+            report = quantize_graph(graph, args.data, work / f"change{i}", options)
+            paths[label] = work / f"change{i}" / artifact_name("int8")
+            rows[label] = {"overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()},
+                           "distance_pct": report["holdout"]["bound_pct"],
+                           "quantize_linear": report["quantization"]["QuantizeLinear"],
+                           "dequantize_linear": report["quantization"]["DequantizeLinear"]}
+            print(f"{label}: distance {rows[label]['distance_pct']:.3f}%", flush=True)
+        if args.with_search:
+            label = "defaults (--exclude auto, objective latency)"
+            report = quantize_graph(graph, args.data, work / "auto", QuantizeOptions(
+                mode="int8", frames=args.frames, holdout_frames=args.holdout_frames, threads=args.threads))
+            paths[label] = work / "auto" / artifact_name("int8")
+            rows[label] = {"distance_pct": report["holdout"]["bound_pct"], "search": report["search"]}
+        frames = np.asarray(data.split("test")[0].lnes, dtype=np.float32)
+        per_repeat: dict[str, list[float]] = {k: [] for k in paths}
+        for _ in range(args.repeats):
+            runners = {k: _StepRunner(p, args.threads, data.window_ms) for k, p in paths.items()}
+            times = measure_side_by_side(runners, frames, args.steps, args.warmup, chunk=10)
+            for k, t in times.items():
+                per_repeat[k].append(1e3 * float(np.median(t)))
+            del runners
+    fp32 = float(np.median(per_repeat["fp32"]))
+    for k, row in rows.items():
+        row.update({"int8_p50_ms": float(np.median(per_repeat[k])), "fp32_p50_ms": fp32,
+                    "speedup_vs_fp32": fp32 / float(np.median(per_repeat[k])), "per_repeat_ms": per_repeat[k]})
+    result.update({"graph": args.graph or f"{args.variant} (untrained, torch seed 0 weights)",
+                   "fp32_per_repeat_ms": per_repeat["fp32"], "changes": rows})
+    out = Path(args.out)
+    write_json_atomic(out, result)
+    lines = [f"# INT8 graph changes on `{args.variant}` ({result['machine'].get('cpu_model')}, "
+             f"{args.threads} threads, shared machine)", "",
+             f"Side by side in one process: {args.steps} steps after {args.warmup} warm-up per graph, interleaved "
+             f"in chunks of 10, {args.repeats} repeats with fresh sessions; medians of the per-repeat medians. "
+             "Held-out distance: mean joint distance to the fp32 poses / fp32 MPJPE (val split).", "",
+             "| change | INT8 p50 ms | fp32 p50 ms | ratio | held-out distance to fp32 % |", "|---|---|---|---|---|"]
+    for k, row in rows.items():
+        lines.append(f"| {k} | {row['int8_p50_ms']:.2f} | {fp32:.2f} | {row['speedup_vs_fp32']:.2f} | "
+                     f"{row['distance_pct']:.3f} |")
+    write_text_atomic(out.with_suffix(".md"), "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True)
@@ -108,8 +184,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--holdout-frames", type=int, default=200)
     parser.add_argument("--budget-pct", type=float, default=None, help="default: the mode's (int8 1.0, fp16 0.1)")
-    parser.add_argument("--out", default=str(RESULTS))
+    parser.add_argument("--out", default=None, help=f"default {RESULTS} ({RESULTS_CHANGES} with --changes)")
+    parser.add_argument("--changes", action="store_true",
+                        help="measure the graph-level INT8 changes (CHANGES) instead of the mode comparison")
+    parser.add_argument("--graph", help="--changes: an exported fp32 step graph instead of exporting --variant")
+    parser.add_argument("--repeats", type=int, default=3, help="--changes: fresh-session repeats")
+    parser.add_argument("--with-search", action="store_true", help="--changes: add the --exclude auto default")
     args = parser.parse_args(argv)
+    if args.changes:
+        args.out = args.out or str(RESULTS_CHANGES)
+        return bench_changes(args)
+    args.out = args.out or str(RESULTS)
 
     result = report_header("bench_quantize", vars(args))
     with tempfile.TemporaryDirectory(prefix="bench-quant-") as tmp:

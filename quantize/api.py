@@ -21,8 +21,11 @@ from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
 from e3dpsm.quantize.exclusions import SearchResult, greedy_exclusions, scratch_model_path
 from e3dpsm.quantize.fp16 import convert_fp16
+from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
+from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
+from e3dpsm.quantize.latency import SideBySideTimer, StepTimer
 from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8, quantised_node_count
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
@@ -50,10 +53,22 @@ class QuantizeOptions:
     state_source: str = "rollout"
     threads: int | None = None
     seed: int = 0
+    # `--exclude auto`: among the candidates within the budget, the fastest (latency) or the
+    # greedy search's own choice (accuracy); timing costs `timing_steps` steps per candidate.
+    objective: str = "latency"
+    timing_steps: int = 30
+    max_timed: int = 6
+    # INT8 graph choices; None: StaticConfig's defaults (benchmarks/bench_quantize.py `changes`).
+    op_types: tuple[str, ...] | None = None
+    batchnorm_as_conv: bool | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"unknown mode {self.mode!r}; choose from {list(MODES)}")
+        if self.objective not in OBJECTIVES:
+            raise ConfigError(f"unknown objective {self.objective!r}; choose from {list(OBJECTIVES)}")
+        if self.timing_steps < 1 or self.max_timed < 1:
+            raise ConfigError("timing_steps and max_timed must be positive")
         if self.budget_pct is not None and not self.budget_pct > 0:
             raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
 
@@ -101,7 +116,9 @@ def resolve_exclusions(spec: str, recurrent: list[str], groups: Sequence, node_n
 
 
 def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, out_dir: str | os.PathLike,
-                   options: QuantizeOptions, *, force: bool = False) -> dict[str, Any]:
+                   options: QuantizeOptions, *, force: bool = False, timer: StepTimer | None = None) -> dict[str, Any]:
+    """`timer` ({label: graph} -> {label: p50 ms}) times the search's candidates; default a
+    side-by-side timer on the held-out frames at `options.threads` (tests inject timings)."""
     started = time.perf_counter()
     source, meta = load_source(model_path)
     data = PreparedData.open(data_dir)
@@ -117,12 +134,14 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
     with atomic_dir(out_dir, force=force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-quant-") as work:
         work = Path(work)
         holdout = make_holdout(model_path, holdout_seqs, window_ms, options.holdout_frames, options.threads)
+        timing = _Timing(timer or SideBySideTimer(holdout.lnes[0], window_ms, options.threads,
+                                                  steps=options.timing_steps), Path(model_path))
         info: dict[str, Any] = {"mode": options.mode, "source": Path(model_path).name}
         extra: dict[str, Any] = {}
         if options.mode == "int8":
-            model, info, extra = _static(model_path, source, calib_seqs, holdout, window_ms, options, work)
+            model, info, extra = _static(model_path, source, calib_seqs, holdout, window_ms, options, work, timing)
         elif options.mode == "fp16":
-            model, info, extra = _fp16(source, meta, holdout, options, work)
+            model, info, extra = _fp16(source, meta, holdout, options, work, timing)
         else:
             keep = [n for g in recurrent_groups(source, meta) for n in g.nodes]
             dyn = work / "dynamic.onnx"
@@ -130,6 +149,8 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             model = onnx.load(str(dyn))
             info["excluded_nodes"] = keep
             info["mode"] = options.mode
+        # The graph carries its accuracy budget: `golden check` holds it to that budget.
+        info["budget_pct"] = options.budget
         finalize(model, meta, info)
         out_path = tmp / artifact_name(options.mode)
         size = save_model(model, out_path)
@@ -147,15 +168,25 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             "seconds": round(time.perf_counter() - started, 2),
         })
         write_json_atomic(tmp / REPORT_FILE, report)
+        write_search_outputs(report, tmp)
     log.info("%s: holdout MPJPE %.2f mm (fp32 %.2f, %+.3f%%) -> %s", options.mode, accuracy["mpjpe_mm"],
              accuracy["fp32_mpjpe_mm"], accuracy["loss_pct"], Path(out_dir) / artifact_name(options.mode))
     return report
 
 
-def _static(model_path, source, calib_seqs, holdout, window_ms, options: QuantizeOptions, work: Path):
-    config = StaticConfig(calibration=options.calibration)
+@dataclass(frozen=True)
+class _Timing:
+    timer: StepTimer
+    reference: Path  # the fp32 graph, timed beside the candidates
+
+
+def _static(model_path, source, calib_seqs, holdout, window_ms, options: QuantizeOptions, work: Path,
+            timing: _Timing):
+    overrides = {k: v for k, v in (("op_types", options.op_types), ("batchnorm_as_conv", options.batchnorm_as_conv))
+                 if v is not None}
+    config = StaticConfig(calibration=options.calibration, **overrides)
     pre = work / "pre.onnx"
-    preprocess(model_path, pre)
+    preprocess(model_path, pre, config)
     pre_model = onnx.load(str(pre))
     pre_meta = GraphMetadata.from_onnx(pre_model)
     recurrent = recurrent_groups(pre_model, pre_meta)
@@ -169,7 +200,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     out = work / "int8.onnx"
     calib_seconds = quantize_int8(pre, out, config, exclude=keep if fixed is None else fixed,
                                   calibration=calib, cache=cache)
-    search = None
+    search = latency = None
     if fixed is None:
         def build(excluded: list[str]) -> onnx.ModelProto:
             path = scratch_model_path(work, "int8")
@@ -178,7 +209,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             path.unlink()
             return model
 
-        search = _search_float_groups(keep, groups, pre_meta, holdout, options, work, build)
+        search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing)
         fixed = search.excluded_nodes
         quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
@@ -191,12 +222,12 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     extra = {
         "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
                         "frames": len(calib), "sequences": {k: len(v) for k, v in calib.frames.items()}},
-        **_search_report(search, [*recurrent, *groups]),
+        **_search_report(search, [*recurrent, *groups], latency),
     }
     return model, info, extra
 
 
-def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path):
+def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path, timing: _Timing):
     """FP16 with the recurrent groups in float32 and, under `--exclude auto`, the smallest set
     of further groups in float32 that keeps the held-out error within the FP16 budget.
 
@@ -210,28 +241,33 @@ def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path):
     keep = [n for g in recurrent for n in g.nodes]
     groups = candidate_groups(source, keep)
     fixed = resolve_exclusions(options.exclude, keep, [*recurrent, *groups], {n.name for n in source.graph.node})
-    search = None
+    search = latency = None
     if fixed is None:
-        search = _search_float_groups(keep, groups, meta, holdout, options, work,
-                                      lambda excluded: convert_fp16(source, excluded))
+        search, latency = _latency_search(keep, groups, meta, holdout, options, work,
+                                          lambda excluded: convert_fp16(source, excluded), timing)
         fixed = search.excluded_nodes
     model = convert_fp16(source, fixed)
     info = {"mode": "fp16", "precision": "float16", "io_types": "float32", "exclude": options.exclude,
             "float_groups": _float_group_names(recurrent, search),
             "kept_float32_nodes": len(fixed), "excluded_nodes": fixed}
-    return model, info, _search_report(search, [*recurrent, *groups])
+    return model, info, _search_report(search, [*recurrent, *groups], latency)
 
 
 def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
-                         options: QuantizeOptions, work: Path,
-                         build: Callable[[list[str]], onnx.ModelProto]) -> SearchResult:
+                         options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
+                         built: list[tuple[list[str], Path]] | None = None) -> SearchResult:
     """`--exclude auto` for either mode: each trial is `build(nodes kept in float)`, given the
-    source metadata, saved to a scratch file and measured on the held-out streams."""
+    source metadata, saved to a scratch file and measured on the held-out streams. With
+    `built`, each trial's (excluded nodes, scratch file) is appended there and the file kept
+    (the caller times and removes them); otherwise the file is removed at once."""
     def evaluate(excluded: list[str], label: str) -> float:
         candidate = build(excluded)
         finalize(candidate, meta, {"mode": options.mode, "trial": label})
         trial = scratch_model_path(work, label)
         save_model(candidate, trial)
+        if built is not None:
+            built.append((list(excluded), trial))
+            return accuracy_of(trial, holdout, options.threads)["bound_pct"]
         try:
             return accuracy_of(trial, holdout, options.threads)["bound_pct"]
         finally:
@@ -240,10 +276,37 @@ def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: Gra
     return greedy_exclusions(keep, list(groups), options.budget, evaluate, options.max_rounds)
 
 
+def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
+                    options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
+                    timing: _Timing) -> tuple[SearchResult, LatencySearch]:
+    """The greedy search, then a bounded number of its trial graphs timed beside the fp32
+    graph and one picked by the objective (front.py). The returned result's `chosen` /
+    `excluded_nodes` / `error_pct` are that final choice; its trials are the greedy's."""
+    built: list[tuple[list[str], Path]] = []
+    try:
+        greedy = _search_float_groups(keep, groups, meta, holdout, options, work, build, built)
+        candidates = candidates_from_search(greedy, built)
+        info = getattr(timing.timer, "describe", lambda: {"kind": "injected"})()
+        latency = latency_aware_choice(greedy, candidates, timing.timer, options.objective, options.budget,
+                                       max_timed=options.max_timed, reference=timing.reference, timer_info=info)
+    finally:
+        for _, path in built:
+            path.unlink(missing_ok=True)
+    for cand in latency.candidates:
+        cand.path = None
+    chosen = latency.chosen
+    final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.budget,
+                         greedy.trials)
+    return final, latency
+
+
 def _float_group_names(recurrent: Sequence[NodeGroup], search: SearchResult | None) -> list[str]:
     return [g.name for g in recurrent] + (search.chosen if search else [])
 
 
-def _search_report(search: SearchResult | None, groups: Sequence[NodeGroup]) -> dict[str, Any]:
+def _search_report(search: SearchResult | None, groups: Sequence[NodeGroup],
+                   latency: LatencySearch | None = None) -> dict[str, Any]:
+    # "search" is the stable block the pipeline index reads (front, chosen); None for a fixed --exclude.
     return {"exclusion_search": search.to_dict() if search else None,
+            "search": latency.to_dict() if latency else None,
             "groups": {g.name: {"kind": g.kind, "nodes": len(g)} for g in groups}}

@@ -13,7 +13,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         description="Quantise the step graph. INT8 static calibrates on frames of real sequences "
         "paired with the states a continuous FP32 rollout carried into them; the S5 recurrences "
         "and the Kalman fusion stay in float; --exclude auto keeps more node groups in float "
-        "until the held-out error is within --budget-pct. Writes DIR/step_<mode>.onnx and DIR/report.json.")
+        "until the held-out error is within --budget-pct and, by default, picks the fastest such graph "
+        "(--objective). Writes DIR/step_<mode>.onnx, DIR/report.json, DIR/report.md and DIR/front.png.")
     p.add_argument("--model", required=True, help="fp32 step graph from `e3dpsm export`")
     p.add_argument("--data", required=True, help="prepared folder (`e3dpsm prepare`) at the graph's window and size")
     p.add_argument("--out", required=True, help="output folder (must not exist unless --force)")
@@ -26,6 +27,15 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--budget-pct", type=positive_float, default=None,
                    help="--exclude auto: allowed held-out error (mean distance to the fp32 poses) relative to "
                    "fp32 MPJPE, in %% (default 1.0 for int8, 0.1 for fp16)")
+    p.add_argument("--objective", choices=("latency", "accuracy"), default="latency",
+                   help="--exclude auto: among the candidate graphs within the budget pick the fastest "
+                   "(latency, default; candidates are timed side by side with the fp32 graph) or the "
+                   "search's fewest-float-groups choice (accuracy)")
+    p.add_argument("--timing-steps", type=positive_int, default=30,
+                   help="--exclude auto: timed steps per candidate graph (default 30)")
+    p.add_argument("--int8-elementwise", action="store_true",
+                   help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
+                   "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")
     p.add_argument("--split", default="train", help="split the calibration frames come from (default train)")
     p.add_argument("--holdout-split", default="val", help="split for the accuracy check (default val)")
     p.add_argument("--holdout-frames", type=positive_int, default=200, help="frames per held-out sequence (default 200)")
@@ -37,16 +47,20 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize.static import ELEMENTWISE_OP_TYPES
 
     options = QuantizeOptions(
         mode=args.mode, calibration=args.calibration, frames=args.frames, exclude=args.exclude,
         budget_pct=args.budget_pct, split=args.split, holdout_split=args.holdout_split,
-        holdout_frames=args.holdout_frames, threads=args.threads)
+        holdout_frames=args.holdout_frames, threads=args.threads, objective=args.objective,
+        timing_steps=args.timing_steps,
+        **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
     search = report.get("exclusion_search") or {}
     print(json.dumps({"out": args.out, "artifact": report["artifact"], "mpjpe_mm": round(h["mpjpe_mm"], 3),
                       "fp32_mpjpe_mm": round(h["fp32_mpjpe_mm"], 3), "loss_pct": round(h["loss_pct"], 4),
                       "distance_pct": round(h["bound_pct"], 4), "within_budget": search.get("within_budget"),
+                      "p50_ms": (report.get("search") or {}).get("chosen", {}).get("p50_ms"),
                       "bytes": report["sizes"]["output_bytes"]}))
     return 0

@@ -1,0 +1,85 @@
+"""The search's front as a Markdown table (report.md) and a plot (front.png)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.utils.io import atomic_path, write_text_atomic
+
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def front_table(search: dict[str, Any], rows_key: str = "candidates") -> str:
+    """Markdown table of the search block's candidates (or its `front`)."""
+    lines = ["| candidate | float groups (beyond recurrent) | distance to fp32 % | p50 ms | speed-up vs fp32 "
+             "| within budget | on front | chosen |", "|---|---|---|---|---|---|---|---|"]
+    for r in search[rows_key]:
+        lines.append(f"| {r['label']} | {', '.join(r['float_groups']) or '-'} | {_fmt(r['distance_pct'], 3)} | "
+                     f"{_fmt(r['p50_ms'])} | {_fmt(r['speedup_vs_fp32'])} | {'yes' if r['within_budget'] else 'no'} | "
+                     f"{'yes' if r['on_front'] else ''} | {'**yes**' if r['chosen'] else ''} |")
+    return "\n".join(lines)
+
+
+def markdown_report(report: dict[str, Any]) -> str:
+    h = report["holdout"]
+    lines = [f"# e3dpsm quantize: {report['mode']}", "",
+             f"Artifact `{report['artifact']}`; held-out ({h['split']}, {h['frames']} frames) MPJPE "
+             f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
+             f"{h['bound_pct']:.3f}% of fp32 MPJPE.", ""]
+    search = report.get("search")
+    if search:
+        fp32 = search["fp32_p50_ms"]
+        timer = search.get("timer") or {}
+        lines += [f"## Exclusion search (objective: {search['objective']}, budget {search['budget_pct']:g}%)", "",
+                  f"Candidates timed side by side with the fp32 graph ({_fmt(fp32)} ms/step): "
+                  f"{timer.get('steps', '?')} steps after {timer.get('warmup', '?')} warm-up, "
+                  f"{timer.get('threads') or 'all'} threads, interleaved in chunks of {timer.get('chunk', '?')}; "
+                  "untimed candidates show '-'.", "", front_table(search), "", "Plot: `front.png`.", ""]
+    return "\n".join(lines)
+
+
+def plot_front(search: dict[str, Any], path: str | os.PathLike) -> Path | None:
+    """Distance to fp32 vs p50 step latency of every timed candidate; the front joined, the
+    chosen one circled, the budget as a vertical line. None when nothing was timed."""
+    rows = [r for r in search["candidates"] if r["p50_ms"] is not None]
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for r in rows:
+        colour = "tab:green" if r["within_budget"] else "tab:red"
+        ax.scatter(r["distance_pct"], r["p50_ms"], color=colour, s=28, zorder=3)
+        ax.annotate(r["label"], (r["distance_pct"], r["p50_ms"]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+    front = sorted(search["front"], key=lambda r: r["distance_pct"])
+    ax.plot([r["distance_pct"] for r in front], [r["p50_ms"] for r in front], "-", color="tab:blue",
+            label="front", zorder=2)
+    chosen = search["chosen"]
+    if chosen["p50_ms"] is not None:
+        ax.scatter(chosen["distance_pct"], chosen["p50_ms"], s=160, facecolors="none", edgecolors="black",
+                   label="chosen", zorder=4)
+    ax.axvline(search["budget_pct"], color="grey", linestyle="--", label=f"budget {search['budget_pct']:g}%")
+    if search["fp32_p50_ms"]:
+        ax.axhline(search["fp32_p50_ms"], color="black", linestyle=":", label="fp32")
+    ax.set_xlabel("held-out distance to fp32 (% of fp32 MPJPE)")
+    ax.set_ylabel("p50 step latency (ms)")
+    ax.set_title(f"quantisation candidates (objective: {search['objective']})")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def write_search_outputs(report: dict[str, Any], folder: str | os.PathLike) -> None:
+    folder = Path(folder)
+    write_text_atomic(folder / "report.md", markdown_report(report))
+    if report.get("search"):
+        plot_front(report["search"], folder / "front.png")
