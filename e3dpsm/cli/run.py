@@ -11,6 +11,7 @@ window) is an error rather than an empty CSV: a pipeline waiting for poses shoul
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import os
 import sys
@@ -35,8 +36,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "an all-zero frame. A JSON report is written next to the CSV.",
     )
     parser.add_argument("--model", required=True, help="step graph written by `e3dpsm export` (or quantize)")
-    parser.add_argument("--events", required=True, help="event file: .h5/.hdf5 (EE3D layout) or .npz (x, y, t, p)")
-    parser.add_argument("--out", required=True, help="CSV of poses to write (report: <stem>.report.json)")
+    parser.add_argument("--events", required=True, nargs="+",
+                        help="event file: .h5/.hdf5 (EE3D layout) or .npz (x, y, t, p); several files are run as "
+                        "independent streams batched through one session")
+    parser.add_argument("--out", required=True,
+                        help="CSV of poses to write (report: <stem>.report.json); with several --events files a "
+                        "folder getting <event file stem>.csv each and one run.report.json")
     parser.add_argument("--window-ms", type=float, default=None,
                         help="window length T in ms (default: the graph's training window, 20)")
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: ORT's)")
@@ -46,6 +51,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         help=f"events handed to the runtime per chunk (default {DEFAULT_CHUNK_EVENTS})")
     parser.add_argument("--force", action="store_true", help="replace an existing --out file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--render", default=None, metavar="PATH",
+                        help="also write a video (.gif; .mp4 with imageio + imageio-ffmpeg) of each window's LNES "
+                        "frame with the predicted skeleton (gold) and the ground truth (green) when the events' "
+                        "folder has it (gt.npz or the EE3D pickle)")
+    parser.add_argument("--render-max-frames", type=int, default=None, metavar="N",
+                        help="render only the first N poses (the CSV still holds every pose)")
     parser.set_defaults(func=run)
     return parser
 
@@ -60,6 +71,13 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.runtime import StepSession, StreamingPoseEstimator
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
+    if len(args.events) > 1 and (args.render is not None or args.render_max_frames is not None):
+        raise ConfigError("--render draws one stream: pass a single --events file")
+    if len(args.events) > 1:  # several streams, one session: e3dpsm/cli/_run_many.py
+        from e3dpsm.cli._run_many import run_many
+
+        return run_many(args)
+    args.events = args.events[0]  # one file: exactly the single-stream command below
     out = Path(args.out)
     if args.chunk_events <= 0:
         raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
@@ -70,25 +88,37 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise OutputExistsError(f"{out} exists; pass --force to replace it")
     _check_writable_folder(out.parent)  # fail before minutes of inference, not after
+    if args.render is None and args.render_max_frames is not None:
+        raise ConfigError("--render-max-frames needs --render PATH")
+    if args.render is not None:  # a missing .mp4 encoder is reported before the stream runs
+        from e3dpsm.runtime.render import check_render_path
+
+        check_render_path(args.render, force=args.force, max_frames=args.render_max_frames)
+        _check_writable_folder(Path(args.render).parent)
 
     session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
     # The file's own sensor size (attributes or event_meta.json) wins over the graph's default.
     stream = read_events(args.events)
     estimator = StreamingPoseEstimator(
         session, window_ms=args.window_ms, start_us=args.start_us, sensor_hw=stream.sensor_hw,
+        keep_frames=args.render is not None,
     )
+    video = _stream_render(args, estimator)
     chunks = _chunks(stream, args.chunk_events)
     if not args.no_progress and sys.stderr.isatty():
         chunks = _with_progress(chunks, len(stream))
 
     # Rows go to the temporary CSV as they come (memory stays flat on long recordings); both
     # files appear under their names only once the whole stream ran.
-    with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path(out), suffix=".json") as tmp_report:
+    with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path(out), suffix=".json") as tmp_report, \
+            video or contextlib.nullcontext():
         with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
             writer = csv.writer(fh)
             writer.writerow(["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")])
             for pose in estimator.run(chunks):
                 writer.writerow([pose.t_us, *(f"{v:.4f}" for v in pose.pose.reshape(-1).tolist())])
+                if video is not None:
+                    video.add(pose)
         if estimator.stats.windows == 0:  # documented choice: an error, not an empty CSV
             raise _no_window_error(args.events, stream, estimator)
         report = _report(args, out, estimator, len(stream))
@@ -97,7 +127,20 @@ def run(args: argparse.Namespace) -> int:
         f"{report['windows']} poses ({report['empty_windows']} empty windows, {report['events']} events) at "
         f"{report['mean_step_ms']:.2f} ms/step + {report['overhead_ms']:.2f} ms runtime overhead -> {out}"
     )
+    if video is not None:
+        done = video.video.summary()
+        first = f" (the first {done.frames} of {done.poses_seen} poses)" if done.frames < done.poses_seen else ""
+        print(f"render: {done.frames} frames{first}, {done.frames_with_ground_truth} with ground truth -> {done.path}")
     return 0
+
+
+def _stream_render(args: argparse.Namespace, estimator: StreamingPoseEstimator):  # -> StreamRender | None
+    if args.render is None:
+        return None
+    from e3dpsm.runtime.render_stream import StreamRender
+
+    return StreamRender(args.render, args.events, estimator.window_us, estimator.sensor_hw,
+                        max_frames=args.render_max_frames, force=args.force)
 
 
 def _report(args: argparse.Namespace, out: Path, estimator: StreamingPoseEstimator, events_in_file: int) -> dict:

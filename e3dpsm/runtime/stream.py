@@ -53,6 +53,7 @@ class PoseEstimate:
     t_start_us: int
     events: int  # events in the window (0 for an empty window)
     outputs: dict[str, np.ndarray]  # "pose" (fused), "pose_direct", "pose_delta": float32 [J, 3]
+    lnes: np.ndarray | None = None  # the window's LNES frame [2, H, W], only with keep_frames=True
 
     @property
     def pose(self) -> np.ndarray:
@@ -200,6 +201,7 @@ class StreamingPoseEstimator:
         start_us: int | None = None,
         sensor_hw: tuple[int, int] | None = None,
         threads: int | None = None,
+        keep_frames: bool = False,
     ) -> None:
         self.session = model if isinstance(model, StepSession) else StepSession(model, threads=threads)
         meta = self.session.meta
@@ -215,6 +217,7 @@ class StreamingPoseEstimator:
         self.sensor_hw = (int(sensor_hw[0]), int(sensor_hw[1]))
         self.joints: list[str] = list(meta.joints)
         self._start_us = start_us
+        self.keep_frames = keep_frames  # PoseEstimate.lnes for rendering (`e3dpsm run --render`)
         self.reset()
 
     def reset(self) -> None:
@@ -278,4 +281,5 @@ class StreamingPoseEstimator:
         return PoseEstimate(
             t_us=start_us + self.window_us, t_start_us=start_us, events=int(t.size),
             outputs={name: value[0] for name, value in outputs.items()},
+            lnes=frame if self.keep_frames else None,
         ), seconds
