@@ -105,6 +105,32 @@ class OpenVinoRunner:
         self.state = {s.input_name: by_name[s.output_name] for s in self.meta.states}
 
 
+class OpenVinoStatefulRunner:
+    """The same graph converted to a stateful IR (batch 1): states stay inside the request as
+    OpenVINO variables, a step feeds only the frame and the window length."""
+
+    def __init__(self, path: str, target: Target, window_ms: float) -> None:
+        import openvino as ov
+
+        from e3dpsm.export.openvino_ir import convert_step_graph
+        from e3dpsm.runtime.openvino_stateful import metadata_from_ir
+
+        model, _ = convert_step_graph(path, stateful=True, batch=1)  # in memory; no IR file needed to time it
+        meta = metadata_from_ir(model, path)
+        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY"}
+        if target.precision in ("fp32", "int8"):
+            config["INFERENCE_PRECISION_HINT"] = "f32"  # as OpenVinoRunner: no silent bf16 / fp16
+        self.request = ov.Core().compile_model(model, target.provider, config).create_infer_request()
+        self.frame_name, self.window_name = meta.frame_input["name"], meta.window_input["name"]
+        self.window = np.full((1,), window_ms, np.float32)
+
+    def reset(self) -> None:
+        self.request.reset_state()
+
+    def step(self, lnes: np.ndarray) -> None:
+        self.request.infer({self.frame_name: lnes, self.window_name: self.window})
+
+
 def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, steps: int, warmup: int,
                          chunk: int = 25, on_chunk: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Seconds per step for every runner: `warmup` untimed steps each, then `steps` timed

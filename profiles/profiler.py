@@ -17,8 +17,8 @@ from e3dpsm.profiles.flops import CATEGORIES, relative_difference
 from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
-from e3dpsm.profiles.latency import (OpenVinoRunner, OrtRunner, TorchRunner, latency_summary, matmul_peak_gflops,
-                                     measure_side_by_side)
+from e3dpsm.profiles.latency import (OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner, latency_summary,
+                                     matmul_peak_gflops, measure_side_by_side)
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.ort_profile import summarize_trace
 from e3dpsm.profiles.targets import Target, availability
@@ -56,6 +56,8 @@ def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any,
     path = str(graphs[target.graph])
     if target.runtime == "onnxruntime":
         return OrtRunner(path, target, window_ms, profile_prefix)
+    if target.runtime == "openvino-stateful":
+        return OpenVinoStatefulRunner(path, target, window_ms)
     return OpenVinoRunner(path, target, window_ms)
 
 

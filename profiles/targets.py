@@ -15,7 +15,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-RUNTIMES = ("torch", "onnxruntime", "openvino")
+# openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables)
+RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful")
 PRECISIONS = ("fp32", "fp16", "int8")
 GRAPHS = ("none", "fp32", "fp16", "int8")
 GRAPH_HINTS = {
@@ -103,7 +104,8 @@ def select_targets(known: Mapping[str, Target], spec: str, threads: int | None =
 
 def runtime_availability(target: Target) -> Availability:
     """Can this machine run the target's runtime and provider (independent of any graph)?"""
-    module = {"torch": "torch", "onnxruntime": "onnxruntime", "openvino": "openvino"}[target.runtime]
+    module = {"torch": "torch", "onnxruntime": "onnxruntime", "openvino": "openvino",
+              "openvino-stateful": "openvino"}[target.runtime]
     if importlib.util.find_spec(module) is None:
         return Availability(False, f"{module} is not installed")
     if target.runtime == "onnxruntime":
@@ -112,7 +114,7 @@ def runtime_availability(target: Target) -> Availability:
         providers = ort.get_available_providers()
         if target.provider not in providers:
             return Availability(False, f"{target.provider} not in onnxruntime.get_available_providers() {providers}")
-    elif target.runtime == "openvino":
+    elif target.runtime in ("openvino", "openvino-stateful"):
         import openvino as ov
 
         devices = ov.Core().available_devices

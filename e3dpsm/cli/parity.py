@@ -1,8 +1,9 @@
-"""`e3dpsm parity`: ONNX (or OpenVINO) vs PyTorch, every output and state at every step."""
+"""`e3dpsm parity`: ONNX (or OpenVINO, plain or stateful) vs PyTorch, every output and state at every step."""
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from e3dpsm.cli._common import add_model_source, load_model_from_args, positive_float, positive_int
 
@@ -11,14 +12,17 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("parity", help="check an exported graph against PyTorch over a long rollout",
                        description="Runs the graph and the PyTorch step side by side, each carrying its own "
                                    "states; exits 1 when a tolerance is exceeded.")
-    p.add_argument("--model", required=True, help="exported step graph (step.onnx)")
+    p.add_argument("--model", required=True,
+                   help="exported step graph (step.onnx); with --runtime openvino-stateful also a stateful IR (.xml)")
     add_model_source(p)
     p.add_argument("--data", help="prepared folder for the frames (default: a synthetic sequence made on the fly)")
     p.add_argument("--split", default=None, help="split of --data to use (default: all sequences)")
     p.add_argument("--steps", type=positive_int, default=1000)
     p.add_argument("--window-ms", type=positive_float, nargs="+", default=[20.0],
                    help="one or more window lengths, e.g. 20 25 50")
-    p.add_argument("--runtime", choices=("onnxruntime", "openvino"), default="onnxruntime")
+    p.add_argument("--runtime", choices=("onnxruntime", "openvino", "openvino-stateful"), default="onnxruntime",
+                   help="openvino-stateful converts an .onnx to a stateful IR in a temporary folder and compares "
+                        "the states read back from its variables")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--pose-atol-mm", type=positive_float, default=0.01)
     p.add_argument("--state-rtol", type=positive_float, default=1e-4)
@@ -27,7 +31,18 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def make_runner(path: str, runtime: str, threads: int):
+def make_runner(path: str, runtime: str, threads: int, workdir: Path | None = None):
+    if runtime == "openvino-stateful":
+        from e3dpsm.runtime.openvino_stateful import ExplicitStateView, OpenVINOStatefulSession
+
+        if Path(path).suffix != ".xml":
+            from e3dpsm.export.openvino_ir import convert_step_graph, save_ir
+
+            if workdir is None:
+                raise ValueError("converting an ONNX graph needs a work folder")
+            model, _ = convert_step_graph(path, stateful=True, batch=1)
+            path = str(save_ir(model, workdir / f"{Path(path).stem}.xml")[0])
+        return ExplicitStateView(OpenVINOStatefulSession(path, threads=threads))
     if runtime == "openvino":
         from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 
@@ -39,20 +54,27 @@ def make_runner(path: str, runtime: str, threads: int):
 
 def run(args: argparse.Namespace) -> int:
     import os
+    import tempfile
 
     # PyTorch and the graph alternate on the same cores: OpenMP workers that busy-wait after
     # each PyTorch step would starve the other runtime (only effective before torch loads).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
+    torch.set_num_threads(args.threads)
+    # The stateful runtime reads an IR: an .onnx given is converted into this folder first.
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-parity-") as workdir:
+        runner = make_runner(args.model, args.runtime, args.threads, Path(workdir))  # metadata is checked first
+        return _run_checks(args, runner)
+
+
+def _run_checks(args: argparse.Namespace, runner: Any) -> int:
     from e3dpsm.data.streams import prepared_frames, synthetic_frames
     from e3dpsm.errors import CheckpointError
     from e3dpsm.export.parity import Tolerances, run_parity
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic
 
-    torch.set_num_threads(args.threads)
-    runner = make_runner(args.model, args.runtime, args.threads)  # metadata is checked first
     model = load_model_from_args(args)
     graph_variant = runner.meta.config.get("variant")
     if graph_variant != model.config.variant:

@@ -1,0 +1,56 @@
+"""`e3dpsm convert openvino`: an exported step graph as OpenVINO IR, optionally stateful."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from e3dpsm.cli._common import positive_int
+
+REPORT_NAME = "convert.json"
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("convert", help="convert an exported step graph for another runtime (OpenVINO IR)",
+                       description="Convert a step graph written by `e3dpsm export` or `e3dpsm quantize` "
+                                   "(fp32, fp16 or INT8 QDQ) for another runtime.")
+    formats = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
+    ov = formats.add_parser(
+        "openvino", help="OpenVINO IR (xml + bin)",
+        description="Write OUT/<stem>.xml + .bin and OUT/convert.json. With --stateful the recurrent states "
+                    "become OpenVINO variables (ReadValue / Assign) with their initial values inside the IR, the "
+                    "batch is fixed to 1 (one stream per infer request), and only the frame and window_ms remain "
+                    "inputs: any OpenVINO application steps a stream with a plain infer request "
+                    "(reset_state() starts a new one). The e3dpsm metadata travels in the IR's rt_info.")
+    ov.add_argument("--model", required=True, help="step graph (.onnx) from e3dpsm export or e3dpsm quantize")
+    ov.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
+    ov.add_argument("--stateful", action="store_true", help="states inside the IR as variables (per-stream)")
+    ov.add_argument("--batch", type=positive_int, default=None,
+                    help="fix the batch to N streams (default: the graph's dynamic batch; a stateful IR is "
+                         "batch 1, one stream per infer request)")
+    ov.add_argument("--force", action="store_true", help="replace an existing output folder")
+    ov.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import time
+
+    from e3dpsm.export.openvino_ir import convert_step_graph, save_ir
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import atomic_dir, write_json_atomic
+
+    started = time.perf_counter()
+    model, info = convert_step_graph(args.model, stateful=args.stateful, batch=args.batch)  # checks input first
+    stem = Path(args.model).stem
+    with atomic_dir(args.out, force=args.force) as tmp:
+        xml, weights = save_ir(model, tmp / f"{stem}.xml")
+        report = report_header("convert", {k: v for k, v in vars(args).items() if k != "func"})
+        report.update(
+            format="openvino", source=str(args.model), xml=xml.name, bin=weights.name,
+            bytes={"xml": xml.stat().st_size, "bin": weights.stat().st_size},
+            seconds=time.perf_counter() - started, conversion=info.to_dict(),
+        )
+        write_json_atomic(tmp / REPORT_NAME, report)
+    kind = f"stateful, batch {info.batch}, {len(info.variables)} variables" if info.stateful else "explicit states"
+    print(f"wrote {Path(args.out) / xml.name} ({kind}, {info.precision}) and {REPORT_NAME}")
+    return 0
