@@ -36,6 +36,7 @@ class PipelineConfig:
     batch_size: int = 4
     threads: int = 2
     parity_steps: int = 300
+    golden_steps: int = 200
     profile_steps: int = 300
     checkpoint: Path | None = None  # a trained or imported checkpoint: no training stage
 
@@ -77,6 +78,15 @@ FP16 = "quantize/fp16/step_fp16.onnx"
 INT8_DYNAMIC = "quantize/int8-dynamic/step_int8_dynamic.onnx"
 
 
+def _held_out_events(cfg: PipelineConfig) -> str:
+    """The first test sequence's event file (the split files `synth` writes)."""
+    split = cfg.out / "data" / "test.txt"
+    names = split.read_text().split() if split.is_file() else []
+    if not names:
+        raise ConfigError(f"{split} names no test sequence; rerun the synth stage")
+    return str(cfg.out / "data" / names[0] / "events.h5")
+
+
 def _train_argv(cfg: PipelineConfig) -> list[str]:
     steps = estimate_train_steps(cfg)
     return ["train", "--variant", cfg.variant, "--data", _p(cfg, "prepared"), "--out", _p(cfg, "train"),
@@ -116,6 +126,20 @@ STAGES: tuple[Stage, ...] = (
         "validate", "--models", _p(c, GRAPH), _p(c, INT8), _p(c, FP16), _p(c, INT8_DYNAMIC),
         "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--split", "test",
         "--out", _p(c, "validate"), "--threads", str(c.threads), "--force"]),
+    Stage("golden-record", "golden/record/golden.json", lambda c: [
+        "golden", "record", "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--split", "test",
+        "--steps", str(c.golden_steps), "--threads", str(c.threads), "--out", _p(c, "golden/record"), "--force"]),
+    # Every graph on both runtimes, torch-free, as a device would check them; verdicts go to
+    # the report (a failing compressed graph is a finding of the run, not a crash).
+    Stage("golden-check", "golden/checks/summary.json", lambda c: [
+        "golden", "check", "--model", _p(c, GRAPH), _p(c, INT8), _p(c, FP16), _p(c, INT8_DYNAMIC),
+        "--runtime", "onnxruntime", "openvino", "--golden", _p(c, "golden/record"), "--threads", str(c.threads),
+        "--out", _p(c, "golden/checks"), "--exit-zero"]),
+    # A clip to watch: the held-out sequence streamed through the fp32 graph, torch-free.
+    Stage("clip", "clip/poses.gif", lambda c: [
+        "run", "--model", _p(c, GRAPH), "--events", _held_out_events(c), "--out", _p(c, "clip/poses.csv"),
+        "--render", _p(c, "clip/poses.gif"), "--render-max-frames", "100", "--threads", str(c.threads),
+        "--no-progress", "--force"]),
     Stage("profile", "profile/report.json", lambda c: [
         "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),

@@ -17,10 +17,13 @@ STAGE_REPORTS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate/metrics.md", "evaluate/metrics.json"),
     "export": ("export/export.json", "export/export.json"),
     "parity": ("parity/report.json", "parity/report.json"),
-    "quantize-int8": ("quantize/int8/report.json", "quantize/int8/report.json"),
+    "quantize-int8": ("quantize/int8/report.md", "quantize/int8/report.json"),
     "quantize-fp16": ("quantize/fp16/report.json", "quantize/fp16/report.json"),
     "quantize-int8-dynamic": ("quantize/int8-dynamic/report.json", "quantize/int8-dynamic/report.json"),
     "validate": ("validate/validation.md", "validate/report.json"),
+    "golden-record": ("golden/record/golden.json", "golden/record/golden.json"),
+    "golden-check": ("golden/checks/summary.md", "golden/checks/summary.json"),
+    "clip": ("clip/poses.gif", "clip/poses.report.json"),
     "profile": ("profile/report.md", "profile/report.json"),
 }
 # Which profile target measures which validated variant.
@@ -83,6 +86,30 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
         runs = ", ".join(f"{r['window_ms']:g} ms" for r in parity.get("runs", []))
         lines += [f"Parity ONNX Runtime vs PyTorch ({runs}): **{status}** (details in "
                   "[parity/report.json](../parity/report.json)).", ""]
+    quantised = (_load(out / "quantize/int8/report.json") or {}).get("search")
+    if quantised:
+        from e3dpsm.quantize.front_report import front_table
+
+        lines += [f"## INT8 exclusion search (objective: {quantised['objective']}, budget {quantised['budget_pct']:g}%)",
+                  "", "Candidate graphs timed side by side with the fp32 graph "
+                  f"({_fmt(quantised['fp32_p50_ms'])} ms/step); the front of (held-out distance to fp32, latency) "
+                  "and the chosen graph ([quantize/int8/report.md](../quantize/int8/report.md)).", "",
+                  front_table(quantised, "front"), ""]
+    golden = _load(out / "golden/checks/summary.json")
+    if golden:
+        record = _load(out / "golden/record/golden.json") or {}
+        lines += ["## Golden checks", "",
+                  f"Every graph against the golden rollout ({record.get('steps')} steps of the test split recorded "
+                  "from the PyTorch checkpoint), torch-free, on each runtime; fp32 at the parity tolerances, "
+                  "compressed graphs at their accuracy budget "
+                  "([golden/checks/summary.json](../golden/checks/summary.json)).", ""]
+        summary_md = out / "golden/checks/summary.md"
+        lines += [summary_md.read_text().rstrip() if summary_md.is_file() else "(no summary table)", ""]
+    if (out / "clip/poses.gif").is_file():
+        lines += ["## Poses you can watch", "",
+                  "The first two seconds of the held-out sequence through the exported graph: LNES events "
+                  "(red positive, blue negative), predicted skeleton in gold, ground truth in green.", "",
+                  "![held-out clip](../clip/poses.gif)", ""]
     lines += ["## Stages", "", "| stage | status | seconds | report |", "|---|---|---:|---|"]
     for s in stages:
         human, machine = STAGE_REPORTS.get(s["stage"], ("", ""))

@@ -7,6 +7,8 @@ import torch
 
 import e3dpsm
 
+pytest_plugins = ["e3dpsm.testing"]  # the e3dpsm_golden fixture, registered as users register it
+
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
 # between steps, which starves ONNX Runtime when both alternate in one process (parity).
 torch.set_num_threads(1)

@@ -1,8 +1,11 @@
 """`e3dpsm pipeline --checkpoint`: every stage after training takes the given checkpoint."""
 from __future__ import annotations
 
+import json
+
 import pytest
 
+from _profile_helpers import tiny_step_graph  # noqa: F401  (fixture)
 from _quantize_helpers import TRAINED_TINY
 from e3dpsm.checkpoint import CheckpointError
 from e3dpsm.pipeline import STAGES, PipelineConfig, run_pipeline
@@ -10,9 +13,10 @@ from e3dpsm.pipeline import STAGES, PipelineConfig, run_pipeline
 
 def test_stages_use_the_given_checkpoint_and_its_resolution(tmp_path) -> None:
     cfg = PipelineConfig(out=tmp_path / "run", checkpoint=TRAINED_TINY)
-    argvs = {s.name: s.argv(cfg) for s in STAGES if s.name != "train"}
+    # train is skipped with a checkpoint; clip reads the test split synth writes, so it is built at run time
+    argvs = {s.name: s.argv(cfg) for s in STAGES if s.name not in ("train", "clip")}
     using = {name: argv[argv.index("--checkpoint") + 1] for name, argv in argvs.items() if "--checkpoint" in argv}
-    assert set(using) == {"evaluate", "export", "parity", "validate", "profile"}
+    assert set(using) == {"evaluate", "export", "parity", "validate", "golden-record", "profile"}
     assert set(using.values()) == {str(TRAINED_TINY)}
     prepare = argvs["prepare"]
     assert prepare[prepare.index("--height") + 1] == "192" and prepare[prepare.index("--width") + 1] == "256"
@@ -29,8 +33,6 @@ def test_a_bad_checkpoint_is_refused_before_any_stage_runs(tmp_path) -> None:
 
 
 def test_report_names_the_given_checkpoint_and_its_variant(tmp_path) -> None:
-    import json
-
     from e3dpsm.pipeline_report import write_index
 
     (tmp_path / "export").mkdir()
@@ -38,3 +40,23 @@ def test_report_names_the_given_checkpoint_and_its_variant(tmp_path) -> None:
     write_index(tmp_path, {"checkpoint": "imported/checkpoint.pt", "variant": "small", "seed": 0, "window_ms": 20.0}, [])
     header = (tmp_path / "report" / "index.md").read_text().splitlines()[2]
     assert header.startswith("Checkpoint `imported/checkpoint.pt` (variant `released`, not trained here)")
+
+
+def test_clip_stage_renders_the_held_out_sequence_into_the_report(tmp_path, synthetic_data,
+                                                                   tiny_step_graph) -> None:  # noqa: F811
+    import shutil
+
+    from PIL import Image
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "data").symlink_to(synthetic_data, target_is_directory=True)
+    (run / "export").mkdir()
+    shutil.copy(tiny_step_graph, run / "export" / "step.onnx")
+    run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY), only=["clip"])
+    held_out = (synthetic_data / "test.txt").read_text().split()[0]
+    report = json.loads((run / "clip" / "poses.report.json").read_text())
+    assert held_out in report["config"]["events"]
+    with Image.open(run / "clip" / "poses.gif") as gif:
+        assert gif.n_frames == min(100, report["windows"])
+    assert "![held-out clip](../clip/poses.gif)" in (run / "report" / "index.md").read_text()

@@ -19,7 +19,7 @@ from e3dpsm.errors import E3DPSMError
 # Order shown in --help: the order of the flow.
 COMMANDS: tuple[str, ...] = (
     "pipeline", "synth", "prepare", "model_info", "train", "import_weights", "evaluate", "ablation", "export",
-    "parity", "quantize", "validate", "profile", "compare", "run",
+    "parity", "quantize", "validate", "convert", "golden", "diagnose", "profile", "compare", "run",
 )
 
 

@@ -1,0 +1,157 @@
+"""`e3dpsm golden record|check`: a reference rollout recorded once, checked anywhere.
+
+`check` imports no torch: copy `step.onnx` and the golden folder to a device with numpy and
+onnxruntime (or OpenVINO) and run it there. Exit codes: 0 pass, 1 fail, 2 bad input.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from e3dpsm.cli._common import positive_float, positive_int
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("golden", help="record a golden rollout, or check a graph against one (torch-free)",
+                       description="record: step a checkpoint (or an fp32 graph) over prepared sequences and keep "
+                                   "the exact input frames, every output and the states at every step. check: run "
+                                   "a graph over the same frames carrying its own states and compare step by step.")
+    actions = p.add_subparsers(dest="golden_action", metavar="ACTION")
+    rec = actions.add_parser("record", help="record a reference rollout")
+    source = rec.add_mutually_exclusive_group(required=True)
+    source.add_argument("--checkpoint", help="trained checkpoint (PyTorch step is the reference)")
+    source.add_argument("--model", help="fp32 step graph (ONNX Runtime is the reference; no torch needed)")
+    source.add_argument("--variant", help="registered variant with initial weights (tests and demos)")
+    rec.add_argument("--seed", type=int, default=0, help="weight seed with --variant")
+    rec.add_argument("--data", required=True, help="prepared folder (`e3dpsm prepare`)")
+    rec.add_argument("--split", default="all", help="split of --data (default: all sequences, in order)")
+    rec.add_argument("--steps", type=positive_int, default=1000)
+    rec.add_argument("--window-ms", type=positive_float, default=None,
+                     help="window length fed to the model (default: the data's window)")
+    rec.add_argument("--all-states", action="store_true",
+                     help="keep every state in full at every step (large); default: sampled elements at every "
+                          "step, whole states at steps 0, 1, 2, 5, 10, 20, 50, ... and the last")
+    rec.add_argument("--threads", type=int, default=2)
+    rec.add_argument("--out", required=True, help="golden folder to write")
+    rec.add_argument("--force", action="store_true", help="replace an existing --out folder")
+    rec.set_defaults(func=run_record)
+
+    chk = actions.add_parser("check", help="check a graph against a golden record (torch-free)")
+    chk.add_argument("--model", required=True, nargs="+",
+                     help="step graph(s) to check (fp32, fp16 or INT8); with several graphs or runtimes each "
+                          "check goes to OUT/<graph>-<runtime>/ and OUT/summary.json lists the verdicts")
+    chk.add_argument("--golden", required=True, help="golden folder written by `golden record`")
+    chk.add_argument("--out", required=True, help="folder for check.json and check.png")
+    chk.add_argument("--runtime", choices=("onnxruntime", "openvino"), nargs="+", default=["onnxruntime"])
+    chk.add_argument("--exit-zero", action="store_true",
+                     help="exit 0 even when a check fails (the verdicts are in the reports), e.g. in a pipeline")
+    chk.add_argument("--providers", nargs="+", default=None,
+                     help="ONNX Runtime execution providers, e.g. CUDAExecutionProvider CPUExecutionProvider")
+    chk.add_argument("--profile", choices=("fp32", "fp16", "int8"), default=None,
+                     help="tolerance profile (default: the graph's precision from its metadata)")
+    chk.add_argument("--budget-pct", type=positive_float, default=None,
+                     help="accuracy budget of the fp16/int8 profiles (default: the profile's, 0.1 / 1 %%)")
+    chk.add_argument("--threads", type=int, default=2)
+    chk.set_defaults(func=run_check)
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    return p
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.golden.record import onnx_reference, record_golden, torch_reference
+    from e3dpsm.utils.env import report_header
+
+    data = PreparedData.open(args.data)  # bad data fails before any model loads
+    if args.model:
+        reference = onnx_reference(args.model, threads=args.threads)
+    else:
+        import torch
+
+        from e3dpsm.cli._common import load_model_from_args
+
+        torch.set_num_threads(args.threads)
+        model = load_model_from_args(args)
+        reference = torch_reference(model, "checkpoint" if args.checkpoint else "variant", args.checkpoint)
+    window_ms = args.window_ms or data.window_ms
+    header = report_header("golden record", {k: v for k, v in vars(args).items() if k != "func"})
+    manifest = record_golden(reference, args.data, args.out, steps=args.steps, window_ms=window_ms, split=args.split,
+                             all_states=args.all_states, force=args.force, header=header, progress=True)
+    size = sum(f.stat().st_size for f in Path(args.out).iterdir())
+    print(f"golden record: {manifest['steps']} steps of {reference.variant} ({reference.kind}) at {window_ms:g} ms, "
+          f"{size / 1e6:.2f} MB in {args.out} ({manifest['record_seconds']:.1f} s)")
+    return 0
+
+
+def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> None:
+    print(f"golden check {model} on {runtime}, profile {result.profile.name}: {result.summary()}")
+    for tensor in result.tensors:
+        if tensor.kind == "output" or not tensor.passed:
+            print("  " + tensor.line())
+    states_ok = sum(t.passed for t in result.tensors if t.kind == "state")
+    states = sum(t.kind == "state" for t in result.tensors)
+    print(f"  states within limits: {states_ok}/{states}; {report['ms_per_step']:.2f} ms per step; "
+          f"wrote {out / 'check.json'}")
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from e3dpsm.errors import ConfigError, DataError
+    from e3dpsm.golden.store import load_golden
+    from e3dpsm.golden.verify import verify_graph
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+
+    load_golden(args.golden)  # a broken golden is bad input before any graph runs
+    for model in args.model:
+        if not Path(model).is_file():
+            raise DataError(f"model {model} does not exist")
+    config = {k: v for k, v in vars(args).items() if k != "func"}
+    out = Path(args.out)
+    single = len(args.model) == 1 and len(args.runtime) == 1
+    verdicts = []
+    for model in args.model:
+        for runtime in args.runtime:
+            folder = out if single else out / f"{Path(model).stem}-{runtime}"
+            try:
+                result, report = verify_graph(
+                    model, args.golden, folder, runtime=runtime, providers=args.providers, threads=args.threads,
+                    profile=args.profile, budget_pct=args.budget_pct, progress=True,
+                    header=report_header("golden check", {**config, "model": model, "runtime": runtime}))
+            except ConfigError as exc:  # e.g. OpenVINO not installed: a verdict, not a crash, among several
+                if single:
+                    raise
+                print(f"golden check {model} on {runtime}: skipped ({exc})")
+                verdicts.append({"model": model, "runtime": runtime, "status": "skipped", "reason": str(exc)})
+                continue
+            _print_check(model, runtime, result, report, folder)
+            pose = next(t for t in result.tensors if t.name == "pose")
+            verdicts.append({
+                "model": model, "runtime": runtime, "status": "passed" if result.passed else "failed",
+                "profile": result.profile.name, "first_failure": result.first_failure,
+                "pose_max": float(pose.errors.max()), "pose_mean": pose.mean, "pose_measure": pose.measure,
+                "ms_per_step": report["ms_per_step"], "report": str(folder / "check.json"),
+            })
+    failed = [v for v in verdicts if v["status"] == "failed"]
+    if not single:
+        summary = report_header("golden check", config)
+        summary.update(passed=not failed, checks=verdicts)
+        write_json_atomic(out / "summary.json", summary)
+        write_text_atomic(out / "summary.md", summary_markdown(verdicts))
+        print(f"golden check: {len(verdicts) - len(failed)}/{len(verdicts)} passed or skipped; "
+              f"wrote {out / 'summary.json'}")
+    return 0 if not failed or args.exit_zero else 1
+
+
+def summary_markdown(verdicts: list[dict]) -> str:
+    lines = ["| graph | runtime | profile | verdict | pose error (max / mean) | first failure | ms/step |",
+             "|---|---|---|---|---:|---|---:|"]
+    for v in verdicts:
+        if v["status"] == "skipped":
+            lines.append(f"| {Path(v['model']).name} | {v['runtime']} | - | skipped: {v['reason']} | - | - | - |")
+            continue
+        unit = "mm max abs" if v["pose_measure"] == "max_abs_mm" else "mm to golden"
+        first = v["first_failure"]
+        where = f"step {first['step']}, {first['tensor']}" if first else "-"
+        lines.append(f"| {Path(v['model']).name} | {v['runtime']} | {v['profile']} | **{v['status']}** | "
+                     f"{v['pose_max']:.3g} / {v['pose_mean']:.3g} {unit} | {where} | {v['ms_per_step']:.1f} |")
+    return "\n".join(lines) + "\n"

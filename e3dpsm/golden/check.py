@@ -1,0 +1,273 @@
+"""`golden check`: run a graph over a golden record's frames, carrying its own states, and
+compare every output and state at every step with the record. Torch-free: this is what a
+user runs on the device after copying `step.onnx` and `golden/` there.
+
+Checks run in a fixed order: layout (variant, frame shape, output and state names and
+shapes; a mismatch is bad input, exit 2), then values step by step.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Mapping, Protocol
+
+import numpy as np
+
+from e3dpsm.errors import DataError
+from e3dpsm.golden.profiles import ToleranceProfile
+from e3dpsm.golden.store import GoldenRecord
+from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.metrics import joint_errors
+
+REPORT_STEPS = (1, 10, 100)  # errors reported at these steps (1-based) and at the last one
+MIN_GROWTH_STEPS = 20  # growth compares quarters of the rollout: shorter ones are not judged
+TINY = 1e-12
+
+
+class Runner(Protocol):
+    meta: GraphMetadata
+
+    def init_state(self, batch: int = 1) -> dict[str, np.ndarray]: ...
+    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float) -> tuple[dict, dict]: ...
+
+
+@dataclass
+class TensorCheck:
+    """The error of one output or state at every step, and its verdict."""
+
+    name: str
+    kind: str  # "output" | "state"
+    measure: str  # "max_abs_mm" | "mean_joint_distance_mm" | "rel_to_absmax"
+    errors: np.ndarray
+    step_limit: float
+    mean_limit: float | None = None
+    growth_limit: float | None = None
+
+    @property
+    def growth(self) -> float | None:
+        """Median error over the last quarter / over the first quarter (None: too short)."""
+        n = len(self.errors)
+        if n < MIN_GROWTH_STEPS:
+            return None
+        early = float(np.median(self.errors[: n // 4]))
+        late = float(np.median(self.errors[n - n // 4:]))
+        return late / early if early > TINY else (math.inf if late > TINY else 1.0)
+
+    @property
+    def growth_passed(self) -> bool:
+        growth = self.growth
+        return self.growth_limit is None or growth is None or growth <= self.growth_limit
+
+    @property
+    def first_failing_step(self) -> int | None:
+        """The first step over the per-step limit; for a mean budget alone, the step from
+        which the running mean stays above the budget to the end of the rollout."""
+        over = np.flatnonzero(~(self.errors <= self.step_limit))  # NaN counts as over
+        first = int(over[0]) if over.size else None
+        if self.mean_limit is not None and not self.mean_passed:
+            running = np.cumsum(self.errors) / np.arange(1, len(self.errors) + 1)
+            within = np.flatnonzero(running <= self.mean_limit)
+            since = int(within[-1]) + 1 if within.size else 0
+            first = since if first is None else min(first, since)
+        if not self.growth_passed:
+            n = len(self.errors)
+            bound = self.growth_limit * float(np.median(self.errors[: n // 4]))
+            late = np.flatnonzero(self.errors[n - n // 4:] > bound)
+            since = n - n // 4 + (int(late[0]) if late.size else 0)
+            first = since if first is None else min(first, since)
+        return first
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.errors)) if self.errors.size else 0.0
+
+    @property
+    def mean_passed(self) -> bool:
+        return self.mean_limit is None or (math.isfinite(self.mean) and self.mean <= self.mean_limit)
+
+    @property
+    def passed(self) -> bool:
+        return self.first_failing_step is None
+
+    def at_steps(self) -> dict[str, float]:
+        n = len(self.errors)
+        marks = sorted({s for s in (*REPORT_STEPS, n) if s <= n})
+        return {str(s): float(self.errors[s - 1]) for s in marks}
+
+    def to_dict(self) -> dict[str, Any]:
+        worst = int(np.nanargmax(self.errors)) if np.isfinite(self.errors).any() else 0
+        return {
+            "name": self.name, "kind": self.kind, "measure": self.measure, "passed": self.passed,
+            "max": float(np.max(self.errors)), "max_at_step": worst, "mean": self.mean,
+            "step_limit": self.step_limit, "mean_limit": self.mean_limit,
+            "first_failing_step": self.first_failing_step, "at_steps": self.at_steps(),
+            "growth": self.growth, "growth_limit": self.growth_limit,
+        }
+
+    def line(self) -> str:
+        unit = " mm" if self.kind == "output" else "   "
+        mean = f" mean {self.mean:9.3e}{unit} (limit {self.mean_limit:.2e})" if self.mean_limit is not None else ""
+        if self.growth_limit is not None and self.growth is not None:
+            mean += f" growth x{self.growth:.2f} (limit x{self.growth_limit:g})"
+        first = self.first_failing_step
+        verdict = "ok" if first is None else f"FAIL from step {first}"
+        return (f"{self.kind:6s} {self.name:22s} max {float(np.max(self.errors)):9.3e}{unit} "
+                f"(step limit {self.step_limit:.2e}){mean}  {verdict}")
+
+
+@dataclass
+class GoldenCheck:
+    profile: ToleranceProfile
+    scale_mm: float | None
+    tensors: list[TensorCheck]
+    steps: int
+    seconds: float
+
+    @property
+    def passed(self) -> bool:
+        return all(t.passed for t in self.tensors)
+
+    @property
+    def first_failure(self) -> dict[str, Any] | None:
+        failing = [(t.first_failing_step, i, t) for i, t in enumerate(self.tensors) if not t.passed]
+        if not failing:
+            return None
+        step, _, tensor = min(failing, key=lambda f: (f[0], f[1]))
+        return {"step": step, "tensor": tensor.name, "kind": tensor.kind, "error": float(tensor.errors[step]),
+                "step_limit": tensor.step_limit, "mean_limit": tensor.mean_limit, "measure": tensor.measure}
+
+    def summary(self) -> str:
+        if self.passed:
+            return f"PASSED: {self.steps} steps within the {self.profile.name} profile"
+        f = self.first_failure
+        return (f"FAILED: first at step {f['step']}, {f['kind']} {f['tensor']} "
+                f"({f['measure']} {f['error']:.3e}, step limit {f['step_limit']:.2e})")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"passed": self.passed, "profile": self.profile.to_dict(), "steps": self.steps,
+                "scale_mm": self.scale_mm, "first_failure": self.first_failure, "seconds": round(self.seconds, 3),
+                "ms_per_step": round(1e3 * self.seconds / max(self.steps, 1), 3),
+                "tensors": [t.to_dict() for t in self.tensors]}
+
+
+def check_layout(golden: GoldenRecord, meta: GraphMetadata) -> None:
+    """The graph must be one of the graphs the golden was recorded for (exit 2 otherwise)."""
+    source_variant = golden.manifest["source"].get("variant")
+    if meta.config.get("variant") != source_variant:
+        raise DataError(f"the golden was recorded from variant {source_variant!r}, the graph is "
+                        f"{meta.config.get('variant')!r}")
+    frame = tuple(int(d) for d in meta.frame_input["shape"][1:])
+    if frame != golden.frame_shape:
+        raise DataError(f"the graph takes frames {list(frame)}, the golden holds {list(golden.frame_shape)}")
+    if sorted(meta.output_names) != sorted(golden.output_names):
+        raise DataError(f"graph outputs {sorted(meta.output_names)} differ from the golden's {sorted(golden.output_names)}")
+    graph_states = {s.name: list(s.shape) for s in meta.states}
+    golden_states = {s["name"]: [int(d) for d in s["shape"][1:]] for s in golden.manifest["states"]}
+    if graph_states != golden_states:
+        raise DataError(f"the graph's states {graph_states} differ from the golden's {golden_states}")
+
+
+def _state_error(golden: GoldenRecord, name: str, step: int, state: np.ndarray, snapshot_row: int | None,
+                 exact: bool) -> float:
+    """fp32: max |diff| / max |golden| (the parity measure). Compressed graphs: the relative
+    RMS error ||diff|| / ||golden|| over the sampled elements, over the whole state at the
+    snapshot steps (one outlier element says little about a quantised state)."""
+    one = state[0].reshape(-1).astype(np.float64)
+    if snapshot_row is not None:
+        got, ref = one, golden.snapshot(name)[snapshot_row].reshape(-1).astype(np.float64)
+    else:
+        got, ref = one[golden.state_index(name)], golden.state_sample(name)[step].astype(np.float64)
+    if not got.size:
+        return 0.0
+    if exact:
+        err = float(np.max(np.abs(got - ref)))
+        if snapshot_row is None:  # samples: the magnitude is the whole state's
+            return err / max(float(golden.state_absmax(name)[step]), TINY) if math.isfinite(err) else math.inf
+        return err / max(float(np.max(np.abs(ref))), TINY) if math.isfinite(err) else math.inf
+    diff, norm = float(np.linalg.norm(got - ref)), float(np.linalg.norm(ref))
+    if not math.isfinite(diff):
+        return math.inf
+    return diff / norm if norm > TINY else (0.0 if diff <= TINY else math.inf)
+
+
+def check_golden(runner: Runner, golden: GoldenRecord, profile: ToleranceProfile, *,
+                 progress: bool = False) -> GoldenCheck:
+    """Step `runner` over the golden frames with its own states; compare every step."""
+    check_layout(golden, runner.meta)
+    steps = golden.steps
+    exact = profile.kind == "exact"
+    scale = golden.manifest.get("mpjpe_scale_mm")
+    if not exact and not scale:
+        raise DataError("the golden has no ground truth, so no MPJPE scale for a budget profile; "
+                        "record it from prepared data or check with --profile fp32")
+    out_err = {n: np.zeros(steps) for n in golden.output_names}
+    state_names = golden.state_names
+    state_err = {n: np.zeros(steps) for n in state_names}
+    snapshot_rows = {int(s): i for i, s in enumerate(golden.snapshot_steps)}
+    iterator: Any = range(steps)
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(iterator, desc=f"golden check ({profile.name})", unit="step", leave=False, disable=None)
+    started = time.perf_counter()
+    state = runner.init_state(1)
+    for step in iterator:
+        outputs, state = runner.step(golden.frame(step), state, golden.window_ms(step))
+        for name in golden.output_names:
+            got = np.asarray(outputs[name], dtype=np.float64)[0]
+            ref = golden.output(name)[step].astype(np.float64)
+            if exact:
+                out_err[name][step] = float(np.max(np.abs(got - ref)))
+            else:
+                out_err[name][step] = float(np.mean(joint_errors(got[None], ref[None])))
+        for name in state_names:
+            state_err[name][step] = _state_error(golden, name, step, np.asarray(state[name]),
+                                                  snapshot_rows.get(step), exact)
+    seconds = time.perf_counter() - started
+    for errors in (*out_err.values(), *state_err.values()):
+        errors[~np.isfinite(errors)] = math.inf
+    tensors: list[TensorCheck] = []
+    for name, errors in out_err.items():
+        if exact:
+            tensors.append(TensorCheck(name, "output", "max_abs_mm", errors, float(profile.pose_atol_mm)))
+        else:
+            budget_mm = profile.budget_pct / 100.0 * float(scale)
+            tensors.append(TensorCheck(name, "output", "mean_joint_distance_mm", errors,
+                                       profile.step_factor * budget_mm, mean_limit=budget_mm))
+    for name, errors in state_err.items():
+        tensors.append(TensorCheck(name, "state", "rel_to_absmax" if exact else "rel_rms", errors, profile.state_rtol,
+                                   growth_limit=None if exact else profile.max_growth))
+    return GoldenCheck(profile, float(scale) if scale else None, tensors, steps, seconds)
+
+
+def plot_check(result: GoldenCheck, path: Any, title: str = "") -> None:
+    """Error against step: outputs (mm) and states (relative), limits dashed, log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), constrained_layout=True)
+    first = result.first_failure
+    for ax, kind, unit in ((axes[0], "output", "mm"), (axes[1], "state", "relative")):
+        limits = set()
+        for t in (t for t in result.tensors if t.kind == kind):
+            steps = np.arange(len(t.errors))
+            ax.plot(steps, np.maximum(t.errors, 1e-12), lw=1.0, label=t.name if kind == "output" or not t.passed else None)
+            limits.add(t.step_limit)
+            if t.mean_limit is not None:
+                limits.add(t.mean_limit)
+        for limit in sorted(limits):
+            ax.axhline(limit, color="k", ls="--", lw=0.8)
+        if first and first["kind"] == kind:
+            ax.axvline(first["step"], color="r", lw=0.8, label=f"first failure: {first['tensor']} @ {first['step']}")
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_ylabel(f"error ({unit})")
+        ax.set_title(f"{kind}s")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    fig.suptitle(title or f"golden check ({result.profile.name}): {'PASSED' if result.passed else 'FAILED'}")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

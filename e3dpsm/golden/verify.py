@@ -1,0 +1,75 @@
+"""One call that checks a graph file against a golden folder and writes the verdict: what
+`e3dpsm golden check`, `e3dpsm.testing.assert_golden` and the pipeline share."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+from e3dpsm.errors import InputError
+from e3dpsm.golden.check import GoldenCheck, check_golden, plot_check
+from e3dpsm.golden.profiles import PROFILES, ToleranceProfile, profile_for_quantization
+from e3dpsm.golden.store import load_golden
+
+RUNTIMES = ("onnxruntime", "openvino")
+CHECK_FILE = "check.json"
+PLOT_FILE = "check.png"
+
+
+def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threads: int | None = None,
+                providers: Sequence[str] | None = None) -> Any:
+    if runtime == "onnxruntime":
+        from e3dpsm.runtime import StepSession
+
+        return StepSession(model, threads=threads, providers=providers)
+    if runtime == "openvino":
+        if providers:
+            raise InputError("--providers applies to onnxruntime; OpenVINO runs on its CPU device here")
+        from e3dpsm.runtime.openvino_session import OpenVINOStepSession
+
+        return OpenVINOStepSession(model, threads=threads)
+    raise InputError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
+
+
+def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golden_manifest: dict[str, Any],
+                    budget_pct: float | None = None) -> ToleranceProfile:
+    """The named profile (default: the graph's own precision), with the values the golden was
+    recorded for, and the graph's own accuracy budget where its metadata names one."""
+    name = name or profile_for_quantization(quantization)
+    if name not in PROFILES:
+        raise InputError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}")
+    recorded = golden_manifest.get("tolerances", {}).get(name)
+    profile = ToleranceProfile.from_dict(recorded) if recorded else PROFILES[name]
+    own_budget = (quantization or {}).get("budget_pct")
+    return profile.with_budget(budget_pct if budget_pct is not None else own_budget)
+
+
+def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike, out_dir: str | os.PathLike | None = None, *,
+                 runtime: str = "onnxruntime", providers: Sequence[str] | None = None, threads: int | None = None,
+                 profile: str | None = None, budget_pct: float | None = None, progress: bool = False,
+                 header: dict[str, Any] | None = None) -> tuple[GoldenCheck, dict[str, Any]]:
+    """Check `model` against `golden_dir`; write `OUT/check.json` and `OUT/check.png` if given."""
+    from e3dpsm.golden.record import sha256_file
+    from e3dpsm.utils.io import atomic_path, write_json_atomic
+
+    golden = load_golden(golden_dir)
+    runner = open_runner(model, runtime, threads=threads, providers=providers)
+    chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, budget_pct)
+    result = check_golden(runner, golden, chosen, progress=progress)
+    report = {
+        **(header or {}),
+        "model": {"path": str(model), "sha256": sha256_file(model), "variant": runner.meta.config.get("variant"),
+                  "quantization": runner.meta.quantization},
+        "golden": {"path": str(golden_dir), "source": golden.manifest.get("source"), "steps": golden.steps,
+                   "window_ms": golden.manifest.get("window_ms")},
+        "runtime": runtime, "providers": list(providers or []),
+        **result.to_dict(),
+    }
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(out / PLOT_FILE) as tmp:
+            plot_check(result, tmp, f"{Path(model).name} on {runtime} vs golden ({chosen.name}): "
+                                    f"{'PASSED' if result.passed else 'FAILED'}")
+        write_json_atomic(out / CHECK_FILE, report)
+    return result, report

@@ -1,0 +1,335 @@
+"""Golden rollouts: record, torch-free check (ONNX Runtime and OpenVINO), tolerance profiles,
+per-step divergence diagnosis, and the e3dpsm.testing helpers."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from onnx import numpy_helper
+
+from _quantize_helpers import (  # noqa: F401  (fixtures)
+    FAST, INT8_TEST_BUDGET_PCT, TRAINED_TINY, int8_dir, quant_data, trained_graph,
+)
+from e3dpsm.checkpoint import load_checkpoint
+from e3dpsm.cli import main
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.golden import PROFILES, load_golden
+from e3dpsm.golden.diagnose import diagnose
+from e3dpsm.golden.store import snapshot_steps
+from e3dpsm.metrics import joint_errors, mpjpe
+from e3dpsm.runtime import StepSession
+from e3dpsm.testing import GoldenMismatch, assert_golden
+
+STEPS = 120  # over 4 sequences of 50 frames: crosses two scene cuts
+KALMAN_Q = "/fusion/Exp_output_0"  # exp(log Q), constant-folded by onnxsim
+
+
+@pytest.fixture(scope="session")
+def golden_dir(tmp_path_factory, quant_data) -> Path:  # noqa: F811
+    out = tmp_path_factory.mktemp("golden") / "tiny"
+    code = main(["golden", "record", "--checkpoint", str(TRAINED_TINY), "--data", str(quant_data),
+                 "--steps", str(STEPS), "--out", str(out)])
+    assert code == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def int8_graph(int8_dir) -> Path:  # noqa: F811
+    return int8_dir / "step_int8.onnx"
+
+
+@pytest.fixture(scope="session")
+def golden_holdout(tmp_path_factory, quant_data) -> Path:  # noqa: F811
+    """The frames `quantize` judged the INT8 graph on: its held-out split, from the start."""
+    out = tmp_path_factory.mktemp("golden") / "holdout"
+    code = main(["golden", "record", "--checkpoint", str(TRAINED_TINY), "--data", str(quant_data), "--split", "val",
+                 "--steps", str(FAST["holdout_frames"]), "--out", str(out)])
+    assert code == 0
+    return out
+
+
+def torch_rollout(frames: np.ndarray, window_ms: float = 20.0):
+    """The trained tiny stepped directly: outputs and whole states at every step."""
+    model, _ = load_checkpoint(TRAINED_TINY)
+    state = model.init_state(1)
+    outputs, states = [], []
+    with torch.no_grad():
+        for frame in frames:
+            out, state = model.step(torch.from_numpy(frame[None]), state, torch.tensor([window_ms]))
+            outputs.append({k: v.numpy()[0] for k, v in out.items()})
+            states.append({k: v.numpy()[0].copy() for k, v in state.items()})
+    return outputs, states
+
+
+def golden_frames(quant_data: Path, steps: int = STEPS) -> np.ndarray:  # noqa: F811
+    data = PreparedData.open(quant_data)
+    frames = np.concatenate([np.asarray(s.lnes, dtype=np.float32) for s in data.sequences])
+    return frames[np.arange(steps) % len(frames)]
+
+
+def test_snapshot_steps_are_a_1_2_5_series_and_the_last_step():
+    assert snapshot_steps(1000) == [0, 1, 2, 5, 10, 20, 50, 100, 200, 500, 999]
+    assert snapshot_steps(3) == [0, 1, 2]
+    assert snapshot_steps(4, every_step=True) == [0, 1, 2, 3]
+
+
+def test_record_keeps_exact_frames_outputs_and_states(golden_dir, quant_data):  # noqa: F811
+    golden = load_golden(golden_dir)
+    frames = golden_frames(quant_data)
+    for step in (0, 1, 49, 50, 119):  # 50: the first frame of the second sequence
+        np.testing.assert_array_equal(golden.frame(step)[0], frames[step])
+    outputs, states = torch_rollout(frames[:11])
+    for step in range(11):
+        for name in golden.output_names:
+            np.testing.assert_allclose(golden.output(name)[step], outputs[step][name], rtol=0, atol=1e-4)
+        for name in golden.state_names:
+            flat = states[step][name].reshape(-1)
+            np.testing.assert_allclose(golden.state_sample(name)[step], flat[golden.state_index(name)], atol=1e-5)
+            assert golden.state_absmax(name)[step] == pytest.approx(np.abs(flat).max(), abs=1e-6)
+    for row, step in enumerate(golden.snapshot_steps[:5]):  # 0, 1, 2, 5, 10
+        for name in golden.state_names:
+            np.testing.assert_allclose(golden.snapshot(name)[row], states[step][name], atol=1e-5)
+    manifest = golden.manifest
+    assert [s["sequence"] for s in manifest["data"]["segments"]] == ["seq_0000", "seq_0001", "seq_0002"]
+    assert manifest["source"]["kind"] == "checkpoint" and len(manifest["source"]["sha256"]) == 64
+    gt = np.concatenate([PreparedData.open(quant_data).sequences[i].j3d_mm for i in range(3)])[:STEPS]
+    assert manifest["mpjpe_scale_mm"] == pytest.approx(mpjpe(golden.output("pose"), gt), rel=1e-6)
+    assert manifest["tolerances"]["fp32"]["pose_atol_mm"] == 0.01
+
+
+@pytest.mark.parametrize("runtime", ["onnxruntime", "openvino"])
+def test_fp32_graph_passes_in_a_process_without_torch(tmp_path, golden_dir, trained_graph, runtime):  # noqa: F811
+    if runtime == "openvino":
+        pytest.importorskip("openvino")
+    out = tmp_path / "check"
+    script = ("import sys; from e3dpsm.cli import main; "
+              f"rc = main(['golden', 'check', '--model', {str(trained_graph)!r}, '--golden', {str(golden_dir)!r}, "
+              f"'--out', {str(out)!r}, '--runtime', {runtime!r}]); "
+              "assert 'torch' not in sys.modules, 'golden check imported torch'; sys.exit(rc)")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((out / "check.json").read_text())
+    assert report["passed"] and report["profile"]["name"] == "fp32" and report["steps"] == STEPS
+    poses = [t for t in report["tensors"] if t["kind"] == "output"]
+    assert all(t["max"] <= 0.01 for t in poses) and len(poses) == 3
+    assert (out / "check.png").stat().st_size > 10_000
+
+
+def nudge(graph: Path, out: Path, name: str, factor: float) -> Path:
+    model = onnx.load(str(graph))
+    for init in model.graph.initializer:
+        if init.name == name:
+            init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * np.float32(factor), name))
+            break
+    else:
+        raise AssertionError(f"{graph} has no initializer {name}")
+    onnx.save(model, str(out))
+    return out
+
+
+def test_nudged_kalman_noise_fails_at_the_first_step_that_leaves_tolerance(tmp_path, capsys, golden_dir, quant_data,
+                                                                          trained_graph):  # noqa: F811
+    nudged = nudge(trained_graph, tmp_path / "nudged.onnx", KALMAN_Q, 1.001)
+    # Independent reference: the PyTorch step against the nudged graph, whole states, every step.
+    frames = golden_frames(quant_data)
+    outputs, states = torch_rollout(frames)
+    session = StepSession(nudged, threads=2)
+    state = session.init_state(1)
+    first: dict[str, int] = {}
+    worst_pose = 0.0
+    for step, frame in enumerate(frames):
+        got, state = session.step(frame[None], state, 20.0)
+        for name, value in got.items():
+            diff = np.abs(value[0] - outputs[step][name]).max()
+            worst_pose = max(worst_pose, diff) if name == "pose" else worst_pose
+            if diff > 0.01:
+                first.setdefault(name, step)
+        for name, value in state.items():
+            ref = states[step][name]
+            if np.abs(value[0] - ref).max() > 1e-4 * max(np.abs(ref).max(), 1e-12):
+                first.setdefault(name, step)
+    assert 0.02 < worst_pose < 0.2  # the pose moves by about 0.05 mm: near the 0.01 mm limit, not far above
+    assert "pose_direct" not in first and "pose" in first and first["pose"] > 0  # the fusion alone moved
+    expected_step = min(first.values())
+
+    code = main(["golden", "check", "--model", str(nudged), "--golden", str(golden_dir), "--out", str(tmp_path / "c")])
+    assert code == 1
+    report = json.loads((tmp_path / "c" / "check.json").read_text())
+    failure = report["first_failure"]
+    assert failure["step"] == expected_step and first[failure["tensor"]] == expected_step
+    by_name = {t["name"]: t for t in report["tensors"]}
+    assert by_name["pose"]["first_failing_step"] == first["pose"] and by_name["pose_direct"]["passed"]
+    printed = capsys.readouterr().out
+    assert f"first at step {expected_step}" in printed and "FAIL from step" in printed
+
+
+def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golden_holdout, int8_dir):  # noqa: F811
+    int8_graph = int8_dir / "step_int8.onnx"
+    args = ["golden", "check", "--model", str(int8_graph), "--golden", str(golden_holdout)]
+    assert main([*args, "--out", str(tmp_path / "fp32"), "--profile", "fp32"]) == 1
+    assert main([*args, "--out", str(tmp_path / "int8")]) == 0
+    report = json.loads((tmp_path / "int8" / "check.json").read_text())
+    # Profile and budget from the graph's own metadata (`quantize` writes both).
+    assert report["profile"]["name"] == "int8" and report["profile"]["budget_pct"] == INT8_TEST_BUDGET_PCT
+    # The budget measure recomputed by hand: mean joint distance to the golden poses / golden MPJPE.
+    golden = load_golden(golden_holdout)
+    session = StepSession(int8_graph, threads=2)
+    state = session.init_state(1)
+    poses = []
+    for step in range(golden.steps):
+        out, state = session.step(golden.frame(step), state, 20.0)
+        poses.append(out["pose"][0])
+    distance = joint_errors(np.stack(poses), golden.output("pose")).mean()
+    pose = next(t for t in report["tensors"] if t["name"] == "pose")
+    assert pose["mean"] == pytest.approx(distance, rel=1e-5)
+    assert pose["mean_limit"] == pytest.approx(INT8_TEST_BUDGET_PCT / 100 * golden.manifest["mpjpe_scale_mm"])
+    # Same frames as quantize's held-out check, so the same distance (its fp32 side is the graph).
+    holdout = json.loads((int8_dir / "report.json").read_text())["holdout"]
+    assert distance == pytest.approx(holdout["deviation_from_fp32_mm"], rel=1e-3)
+    assert 0.1 * pose["mean_limit"] < distance < pose["mean_limit"]  # within budget, not vacuously
+    # Half the distance as the budget fails, from the step where the running mean stays above it.
+    tight = 100 * 0.5 * distance / golden.manifest["mpjpe_scale_mm"]
+    assert main([*args, "--out", str(tmp_path / "tight"), "--budget-pct", f"{tight:.6f}"]) == 1
+    failure = json.loads((tmp_path / "tight" / "check.json").read_text())["first_failure"]
+    running = np.cumsum(joint_errors(np.stack(poses), golden.output("pose")).mean(axis=1)) / np.arange(1, len(poses) + 1)
+    limit = 0.5 * distance
+    within = np.flatnonzero(running <= limit)
+    assert failure["tensor"] == "pose" and failure["step"] == (int(within[-1]) + 1 if within.size else 0)
+
+
+def damage_activation_scale(graph: Path, out: Path, tensors: set[str]) -> str:
+    """Make the activation scale of one of `tensors` (quantised Conv outputs) 100x too small:
+    its values then saturate."""
+    model = onnx.load(str(graph))
+    inits = {i.name: i for i in model.graph.initializer}
+    for node in model.graph.node:
+        if node.op_type == "QuantizeLinear" and node.input[0] in tensors:
+            scale = inits[node.input[1]]
+            scale.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(scale) / np.float32(100), scale.name))
+            onnx.save(model, str(out))
+            return node.input[0]
+    raise AssertionError("none of the tensors is quantised")
+
+
+def test_diagnose_ranks_a_damaged_group_first(tmp_path, trained_graph, int8_graph, quant_data):  # noqa: F811
+    from e3dpsm.golden.diagnose import make_plan
+    from e3dpsm.graph_metadata import GraphMetadata
+
+    frames = golden_frames(quant_data, 20)
+    healthy = diagnose(trained_graph, int8_graph, frames, 20.0)
+    reference, quantised = onnx.load(str(trained_graph)), onnx.load(str(int8_graph))
+    plan = make_plan(reference, quantised, GraphMetadata.from_onnx(reference))
+    conv_outputs = {o for n in reference.graph.node if n.op_type == "Conv" for o in n.output}
+    # A stage's Conv output read by the next group, quantised: the damage shows at the group's
+    # own boundary only if the compressed side is read after its Q/DQ pair.
+    boundary = {t: g for t, g in plan.boundary.items() if t in conv_outputs and g.startswith("stages.")
+                and t in plan.qdq}
+    # The healthy graph's least-blamed such group becomes the one to damage.
+    victim = next(g for g in reversed(healthy["culprits"]) if g in boundary.values())
+    assert healthy["culprits"][0] != victim
+    damaged = tmp_path / "damaged.onnx"
+    tensor = damage_activation_scale(int8_graph, damaged, {t for t, g in boundary.items() if g == victim})
+    result = diagnose(trained_graph, damaged, frames, 20.0)
+    assert result["culprits"][0] == victim, result["culprits"][:4]
+    assert result["noisiest_tensors"][0]["tensor"] == tensor  # the damaged activation, by name
+    before = next(g for g in healthy["groups"] if g["name"] == victim)["error_at_step"]["1"]
+    after = next(g for g in result["groups"] if g["name"] == victim)["error_at_step"]["1"]
+    assert after > 0.3 and after > 5 * before  # saturation seen in the group's own output
+    states = {s["name"]: s for s in result["states"]}
+    assert set(states) == {s for s in load_golden_states(trained_graph)}
+    assert all(set(s["error_at_step"]) == {"1", "10", "20"} for s in states.values())
+
+
+def load_golden_states(graph: Path) -> list[str]:
+    from e3dpsm.graph_metadata import GraphMetadata
+
+    return [s.name for s in GraphMetadata.from_onnx(onnx.load(str(graph))).states]
+
+
+def test_diagnose_cli_writes_ranked_reports(tmp_path, capsys, trained_graph, int8_graph, quant_data):  # noqa: F811
+    code = main(["diagnose", "--reference", str(trained_graph), "--model", str(int8_graph), "--data", str(quant_data),
+                 "--steps", "12", "--out", str(tmp_path / "d")])
+    assert code == 0
+    report = json.loads((tmp_path / "d" / "report.json").read_text())
+    noise = [g.get("qdq_noise") or 0.0 for g in report["groups"]]
+    assert report["ranked_by"] == "qdq_noise" and noise == sorted(noise, reverse=True) and report["steps"] == 12
+    assert "| 1 | " + report["culprits"][0] + " |" in (tmp_path / "d" / "report.md").read_text()
+    assert (tmp_path / "d" / "diagnose.png").stat().st_size > 10_000
+
+
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, golden_dir, trained_graph):  # noqa: F811
+    out = tmp_path / "c"
+    assert main(["golden", "check", "--model", str(trained_graph), "--golden", str(tmp_path / "none"),
+                 "--out", str(out)]) == 2
+    assert "is not a golden record" in capsys.readouterr().err and not out.exists()
+    wrong = tmp_path / "wrong"
+    shutil.copytree(golden_dir, wrong)
+    manifest = json.loads((wrong / "golden.json").read_text())
+    manifest["source"]["variant"] = "small"
+    (wrong / "golden.json").write_text(json.dumps(manifest))
+    assert main(["golden", "check", "--model", str(trained_graph), "--golden", str(wrong), "--out", str(out)]) == 2
+    assert "recorded from variant 'small'" in capsys.readouterr().err and not out.exists()
+    (wrong / "rollout.npz").write_bytes(b"not a zip")
+    assert main(["golden", "check", "--model", str(trained_graph), "--golden", str(wrong), "--out", str(out)]) == 2
+    assert "cannot read the arrays" in capsys.readouterr().err
+    int8_meta_golden = tmp_path / "again"
+    assert main(["golden", "record", "--model", str(tmp_path / "missing.onnx"), "--data", str(tmp_path),
+                 "--out", str(int8_meta_golden)]) == 2
+    assert not int8_meta_golden.exists()
+
+
+def test_assert_golden_and_fixture(tmp_path, golden_dir, trained_graph, e3dpsm_golden):  # noqa: F811
+    result = e3dpsm_golden(trained_graph, golden_dir)
+    assert result.passed and result.profile == PROFILES["fp32"]
+    nudged = nudge(trained_graph, tmp_path / "nudged.onnx", KALMAN_Q, 1.01)
+    with pytest.raises(GoldenMismatch, match=r"FAILED: first at step \d+") as info:
+        assert_golden(nudged, golden_dir, out_dir=tmp_path / "a")
+    assert not info.value.result.passed and (tmp_path / "a" / "check.json").is_file()
+
+
+@pytest.mark.slow
+def test_golden_record_of_1000_small_steps_stays_under_20_mb(tmp_path, prepared_data):
+    from e3dpsm.export import export_step
+    import e3dpsm
+
+    graph = export_step(e3dpsm.create_model("small").eval(), tmp_path / "small.onnx")
+    out = tmp_path / "golden"
+    assert main(["golden", "record", "--model", str(graph), "--data", str(prepared_data), "--steps", "1000",
+                 "--out", str(out)]) == 0
+    size = sum(f.stat().st_size for f in out.iterdir())
+    assert load_golden(out).steps == 1000 and size < 20e6, size
+
+
+def test_pipeline_checks_every_graph_on_both_runtimes_and_reports_verdicts(tmp_path, quant_data, trained_graph,
+                                                                          int8_dir):  # noqa: F811
+    pytest.importorskip("openvino")
+    from e3dpsm.pipeline import FP16, GRAPH, INT8, INT8_DYNAMIC, PipelineConfig, run_pipeline
+
+    run = tmp_path / "run"
+    (run / "prepared").parent.mkdir(parents=True)
+    (run / "prepared").symlink_to(quant_data, target_is_directory=True)
+    nudged = nudge(trained_graph, tmp_path / "nudged.onnx", KALMAN_Q, 1.01)
+    # The stage takes the graphs where the pipeline writes them; stand-ins keep this test fast.
+    for rel, source in ((GRAPH, trained_graph), (INT8, int8_dir / "step_int8.onnx"), (FP16, nudged),
+                        (INT8_DYNAMIC, int8_dir / "step_int8.onnx")):
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(source, run / rel)
+    cfg = PipelineConfig(out=run, checkpoint=TRAINED_TINY, golden_steps=24)
+    run_pipeline(cfg, only=["golden-record", "golden-check"])
+    summary = json.loads((run / "golden/checks/summary.json").read_text())
+    verdicts = {(Path(v["model"]).name, v["runtime"]): v for v in summary["checks"]}
+    assert len(verdicts) == 8 and not summary["passed"]
+    for runtime in ("onnxruntime", "openvino"):
+        assert verdicts["step.onnx", runtime]["status"] == "passed"
+        assert verdicts["step.onnx", runtime]["profile"] == "fp32"
+        assert verdicts["step_int8.onnx", runtime]["profile"] == "int8"
+        assert verdicts["step_fp16.onnx", runtime]["status"] == "failed"  # the nudged stand-in
+    index = (run / "report" / "index.md").read_text()
+    assert "## Golden checks" in index and "| step_fp16.onnx | openvino | fp32 | **failed** |" in index
