@@ -80,3 +80,12 @@ def int8_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
     out = tmp_path_factory.mktemp("q") / "int8"
     quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="int8", budget_pct=INT8_TEST_BUDGET_PCT, **FAST))
     return out
+
+
+@pytest.fixture(scope="session")
+def fp16_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    out = tmp_path_factory.mktemp("q") / "fp16"
+    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="fp16", **FAST))
+    return out

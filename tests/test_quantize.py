@@ -9,7 +9,7 @@ import onnx
 import pytest
 
 from _quantize_helpers import (  # noqa: F401  (fixtures)
-    FAST, INT8_TEST_BUDGET_PCT, int8_dir, mean_pose_model, quant_data, tiny_graph, trained_graph,
+    FAST, INT8_TEST_BUDGET_PCT, fp16_dir, int8_dir, mean_pose_model, quant_data, tiny_graph, trained_graph,
 )
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
@@ -22,13 +22,6 @@ from e3dpsm.quantize.graph_groups import module_scopes
 from e3dpsm.quantize.holdout import accuracy_of, make_holdout
 from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8
 from e3dpsm.runtime import StepSession
-
-@pytest.fixture(scope="session")
-def fp16_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
-    out = tmp_path_factory.mktemp("q") / "fp16"
-    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="fp16", **FAST))
-    return out
-
 
 def test_budget_model_is_not_sitting_at_its_pose_prior(trained_graph, quant_data):  # noqa: F811
     """The budgets below are only meaningful on a model whose poses follow the input."""

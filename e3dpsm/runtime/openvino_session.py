@@ -26,6 +26,13 @@ def openvino_available() -> tuple[bool, str]:
     return True, ""
 
 
+def _contract_name(port, contract: set[str]) -> str:
+    """The port's name from the graph's contract: a port can carry several tensor names (an
+    FP16 graph's outputs pass through a Cast, and OpenVINO may list the Cast's name first)."""
+    names = sorted(port.get_names() & contract)
+    return names[0] if names else port.get_any_name()
+
+
 class OpenVINOStepSession:
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU") -> None:
         ok, reason = openvino_available()
@@ -45,8 +52,10 @@ class OpenVINOStepSession:
         self._model = core.read_model(str(self.path))
         self._compiled = core.compile_model(self._model, device, config)
         self._request = self._compiled.create_infer_request()
-        self._inputs = [p.get_any_name() for p in self._compiled.inputs]
-        self._outputs = [p.get_any_name() for p in self._compiled.outputs]
+        inputs = {self.meta.frame_input["name"], self.meta.window_input["name"], *(s.input_name for s in self.meta.states)}
+        outputs = {*self.meta.output_names, *(s.output_name for s in self.meta.states)}
+        self._inputs = [_contract_name(p, inputs) for p in self._compiled.inputs]
+        self._outputs = [_contract_name(p, outputs) for p in self._compiled.outputs]
 
     def input_names(self) -> list[str]:
         return list(self._inputs)
@@ -60,6 +69,6 @@ class OpenVINOStepSession:
     def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray):
         feeds = build_feeds(self.meta, lnes, state, window_ms)
         result = self._request.infer(feeds)
-        named = {port.get_any_name(): np.asarray(value) for port, value in result.items()}
+        named = {name: np.asarray(value) for port, value in result.items() for name in port.get_names()}
         outputs = {name: named[name] for name in self.meta.output_names}
         return outputs, {s.name: named[s.output_name] for s in self.meta.states}
