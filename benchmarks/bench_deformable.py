@@ -29,21 +29,14 @@ ATTENTION_GROUP = "deformable_attention"
 _KERNEL_SUFFIX = "_kernel_time"
 
 
-class GraphRunner:
-    def __init__(self, path: str, threads: int, window_ms: float, profile_prefix: str | None = None) -> None:
-        from e3dpsm.profiles.latency import ort_session_options
-        from e3dpsm.runtime.session import StepSession
+def graph_runner(path: str, threads: int, window_ms: float, profile_prefix: str | None = None):
+    """A CPU step session carrying its own state (e3dpsm.runtime.CarriedStateRunner)."""
+    from e3dpsm.profiles.latency import ort_session_options
+    from e3dpsm.runtime.session import CarriedStateRunner, StepSession
 
-        self.session = StepSession(path, threads=threads, providers=["CPUExecutionProvider"],
-                                   options=ort_session_options(threads, profile_prefix))
-        self.window_ms = window_ms
-        self.reset()
-
-    def reset(self) -> None:
-        self.state = self.session.init_state(1)
-
-    def step(self, lnes: np.ndarray) -> None:
-        _, self.state = self.session.step(lnes, self.state, self.window_ms)
+    session = StepSession(path, threads=threads, providers=["CPUExecutionProvider"],
+                          options=ort_session_options(threads, profile_prefix))
+    return CarriedStateRunner(session, window_ms)
 
 
 def node_medians(trace_path: str) -> tuple[dict[str, float], dict[str, str], int]:
@@ -72,7 +65,7 @@ def profile_interleaved(graphs: dict[str, str], frames: np.ndarray, threads: int
     from e3dpsm.profiles.flops_onnx import load_graph, static_shapes
     from e3dpsm.profiles.graph_groups import assign_groups
 
-    runners = {name: GraphRunner(path, threads, window_ms, profile_prefix=str(tmp / name))
+    runners = {name: graph_runner(path, threads, window_ms, profile_prefix=str(tmp / name))
                for name, path in graphs.items()}
     for k in range(steps):
         for runner in runners.values():
@@ -147,7 +140,7 @@ def main() -> int:
     latency: dict[str, dict[str, float]] = {}
     ratios: dict[str, float] = {}
     if args.steps:
-        runners = {name: GraphRunner(path, args.threads, args.window_ms) for name, path in graphs.items()}
+        runners = {name: graph_runner(path, args.threads, args.window_ms) for name, path in graphs.items()}
         times = measure_side_by_side(runners, frames, args.steps, args.warmup, chunk=args.chunk)
         latency = {name: latency_summary(t) for name, t in times.items()}
         ratios = {name: latency[base]["p50"] / latency[name]["p50"] for name in graphs}

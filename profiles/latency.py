@@ -12,6 +12,7 @@ from typing import Any, Callable, Mapping, Protocol
 import numpy as np
 
 from e3dpsm.profiles.targets import Target
+from e3dpsm.runtime.session import CarriedStateRunner
 
 
 class StepRunner(Protocol):
@@ -49,7 +50,7 @@ def ort_session_options(threads: int, profile_prefix: str | None = None) -> Any:
     return options
 
 
-class OrtRunner:
+class OrtRunner(CarriedStateRunner):
     """An onnxruntime step graph through e3dpsm.runtime.StepSession."""
 
     def __init__(self, path: str, target: Target, window_ms: float, profile_prefix: str | None = None) -> None:
@@ -58,16 +59,8 @@ class OrtRunner:
         providers: list[Any] = [(target.provider, dict(target.options))] if target.options else [target.provider]
         if target.provider != "CPUExecutionProvider":
             providers.append("CPUExecutionProvider")  # nodes the accelerator lacks
-        self.session = StepSession(path, threads=target.threads, providers=providers,
-                                   options=ort_session_options(target.threads, profile_prefix))
-        self.window_ms = window_ms
-        self.reset()
-
-    def reset(self) -> None:
-        self.state = self.session.init_state(1)
-
-    def step(self, lnes: np.ndarray) -> None:
-        _, self.state = self.session.step(lnes, self.state, self.window_ms)
+        super().__init__(StepSession(path, threads=target.threads, providers=providers,
+                                     options=ort_session_options(target.threads, profile_prefix)), window_ms)
 
     def end_profiling(self) -> str:
         return self.session.session.end_profiling()

@@ -13,25 +13,9 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from e3dpsm.runtime.session import CarriedStateRunner, StepSession
+
 StepTimer = Callable[[Mapping[str, "os.PathLike | str"]], Mapping[str, float]]
-
-
-class _StepRunner:
-    """One ONNX Runtime step session with its own carried state (the profiler's runner
-    protocol: reset / step)."""
-
-    def __init__(self, path: str | os.PathLike, threads: int | None, window_ms: float) -> None:
-        from e3dpsm.runtime import StepSession
-
-        self.session = StepSession(path, threads=threads)
-        self.window_ms = window_ms
-        self.reset()
-
-    def reset(self) -> None:
-        self.state = self.session.init_state(1)
-
-    def step(self, lnes: np.ndarray) -> None:
-        _, self.state = self.session.step(lnes, self.state, self.window_ms)
 
 
 class SideBySideTimer:
@@ -53,7 +37,8 @@ class SideBySideTimer:
     def __call__(self, graphs: Mapping[str, os.PathLike | str]) -> dict[str, float]:
         from e3dpsm.profiles.latency import measure_side_by_side
 
-        runners = {label: _StepRunner(path, self.threads, self.window_ms) for label, path in graphs.items()}
+        runners = {label: CarriedStateRunner(StepSession(path, threads=self.threads), self.window_ms)
+                   for label, path in graphs.items()}
         seconds = measure_side_by_side(runners, self.frames, self.steps, self.warmup, chunk=self.chunk)
         return {label: 1e3 * float(np.median(t)) for label, t in seconds.items()}
 

@@ -111,3 +111,19 @@ class StepSession:
 
     def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> tuple[dict[str, np.ndarray], StateArrays]:
         return self.run_feeds(self.feeds(lnes, state, window_ms))
+
+
+class CarriedStateRunner:
+    """A step session stepping one stream at one window length with its own carried state:
+    `reset()` / `step(lnes)`, the runner protocol of the profiler and the latency timers."""
+
+    def __init__(self, session: StepSession, window_ms: float) -> None:
+        self.session = session
+        self.window_ms = window_ms
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = self.session.init_state(1)
+
+    def step(self, lnes: np.ndarray) -> None:
+        _, self.state = self.session.step(lnes, self.state, self.window_ms)
