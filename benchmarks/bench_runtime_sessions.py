@@ -23,6 +23,7 @@ so this process never imports torch, as on a device.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import tempfile
@@ -230,8 +231,9 @@ def markdown(report: dict) -> str:
     lines = [
         "# Runtime sessions: I/O binding and many streams per session", "",
         f"Created {report['created']} on {report['machine'].get('cpu_model') or platform.machine()} "
-        f"({report['machine'].get('cpu_count', '?')} CPUs, shared with other jobs while measured: figures are "
-        f"medians of interleaved runs, compare within a table only); ORT threads {cfg['threads']}. "
+        f"({report['machine'].get('cpu_count', '?')} CPUs, load average {report.get('load_average_at_start', '?')} "
+        f"at the start; figures are medians of interleaved runs, compare within a table only); "
+        f"ORT threads {cfg['threads']}. "
         "`python benchmarks/bench_runtime_sessions.py" + (" --int8 ..." if cfg.get("int8") else "") + "`.", "",
         "## 1. Per-step cost of each session kind", "",
         "Outside ORT = the step's wall time minus the time inside onnxruntime's run call, measured per step.", "",
@@ -286,6 +288,7 @@ def main() -> int:
         print("budget", flush=True)
         budget = bench_budget(Path(args.int8) if args.int8 else graphs["small"], args.threads, args.budget_windows)
     report = {
+        "load_average_at_start": [round(v, 2) for v in os.getloadavg()],
         **report_header("bench_runtime_sessions", {k: v for k, v in vars(args).items() if k != "out"}),
         "shared_machine": True, "seconds": time.perf_counter() - began,
         "session_overhead": overhead, "streams": streams, "budget": budget,
