@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -26,6 +26,32 @@ def openvino_available() -> tuple[bool, str]:
     return True, ""
 
 
+def read_openvino_model(path: str | os.PathLike) -> tuple[Any, Any]:
+    """(openvino.Core, openvino.Model) for an ONNX graph or an IR, each failure one clear error."""
+    ok, reason = openvino_available()
+    if not ok:
+        raise ConfigError(reason)
+    import openvino as ov
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"model {path} does not exist")
+    core = ov.Core()
+    try:
+        return core, core.read_model(str(path))
+    except RuntimeError as exc:
+        raise DataError(f"OpenVINO cannot read {path}: {str(exc).splitlines()[0][:300]}") from exc
+
+
+def fp32_compile_config(threads: int | None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Float parts in f32 (parity checks and int8 graphs alike): no silent bf16 / fp16 on CPUs
+    that have them; `threads` intra-op threads when given."""
+    config: dict[str, Any] = {"INFERENCE_PRECISION_HINT": "f32", **(extra or {})}
+    if threads:
+        config["INFERENCE_NUM_THREADS"] = int(threads)
+    return config
+
+
 def _contract_name(port, contract: set[str]) -> str:
     """The port's name from the graph's contract: a port can carry several tensor names (an
     FP16 graph's outputs pass through a Cast, and OpenVINO may list the Cast's name first)."""
@@ -35,22 +61,12 @@ def _contract_name(port, contract: set[str]) -> str:
 
 class OpenVINOStepSession:
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU") -> None:
-        ok, reason = openvino_available()
-        if not ok:
-            raise ConfigError(reason)
+        core, self._model = read_openvino_model(path)
         import onnx
-        import openvino as ov
 
         self.path = Path(path)
-        if not self.path.is_file():
-            raise DataError(f"model {self.path} does not exist")
         self.meta = GraphMetadata.from_onnx(onnx.load(str(self.path), load_external_data=False), source=str(self.path))
-        core = ov.Core()
-        config = {"INFERENCE_PRECISION_HINT": "f32"}  # parity is an fp32 check: no silent bf16
-        if threads:
-            config["INFERENCE_NUM_THREADS"] = int(threads)
-        self._model = core.read_model(str(self.path))
-        self._compiled = core.compile_model(self._model, device, config)
+        self._compiled = core.compile_model(self._model, device, fp32_compile_config(threads))
         self._request = self._compiled.create_infer_request()
         inputs = {self.meta.frame_input["name"], self.meta.window_input["name"], *(s.input_name for s in self.meta.states)}
         outputs = {*self.meta.output_names, *(s.output_name for s in self.meta.states)}

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from e3dpsm.errors import ConfigError, DataError, InputError
+from e3dpsm.errors import ConfigError, InputError
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
-from e3dpsm.runtime.openvino_session import openvino_available
+from e3dpsm.runtime.openvino_session import fp32_compile_config, openvino_available, read_openvino_model
 from e3dpsm.state import initial_states, state_input_name, state_output_name
 
 RT_METADATA = "e3dpsm"            # rt_info section: the ONNX metadata_props, key for key
@@ -52,30 +52,18 @@ class OpenVINOStatefulSession:
 
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU",
                  config: dict[str, Any] | None = None) -> None:
-        ok, reason = openvino_available()
+        ok, reason = openvino_available()  # before judging the file, as every OpenVINO entry point does
         if not ok:
             raise ConfigError(reason)
-        import openvino as ov
-
         self.path = Path(path)
-        if not self.path.is_file():
-            raise DataError(f"model {self.path} does not exist")
-        if self.path.suffix != ".xml":
+        if self.path.is_file() and self.path.suffix != ".xml":
             raise InputError(f"{self.path} is not an OpenVINO IR (.xml); convert the step graph first with "
                              "`e3dpsm convert openvino --model STEP.onnx --out DIR --stateful`")
-        core = ov.Core()
-        try:
-            model = core.read_model(str(self.path))
-        except RuntimeError as exc:
-            raise DataError(f"OpenVINO cannot read {self.path}: {str(exc).splitlines()[0][:300]}") from exc
+        core, model = read_openvino_model(self.path)
         self.meta = metadata_from_ir(model, str(self.path))
         self.conversion = {k: json.loads(v) for k, v in read_rt_section(model, RT_CONVERSION).items()}
         self._check_stateful(model)
-        # float parts in f32 (parity checks, int8 graphs alike): no silent bf16 / fp16 on CPUs that have them
-        settings: dict[str, Any] = {"INFERENCE_PRECISION_HINT": "f32", **(config or {})}
-        if threads:
-            settings["INFERENCE_NUM_THREADS"] = int(threads)
-        self._compiled = core.compile_model(model, device, settings)
+        self._compiled = core.compile_model(model, device, fp32_compile_config(threads, config))
         self._request = self._compiled.create_infer_request()
         self.batch = int(model.input(self.meta.frame_input["name"]).get_partial_shape()[0].get_length())
         self._frame_shape = (self.batch, *(int(d) for d in self.meta.frame_input["shape"][1:]))
