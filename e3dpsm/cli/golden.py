@@ -101,7 +101,7 @@ def run_check(args: argparse.Namespace) -> int:
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
-    load_golden(args.golden)  # a broken golden is bad input before any graph runs
+    golden = load_golden(args.golden)  # a broken golden is bad input before any graph runs; read once
     for model in args.model:
         if not Path(model).is_file():
             raise DataError(f"model {model} does not exist")
@@ -114,7 +114,7 @@ def run_check(args: argparse.Namespace) -> int:
             folder = out if single else out / f"{Path(model).stem}-{runtime}"
             try:
                 result, report = verify_graph(
-                    model, args.golden, folder, runtime=runtime, providers=args.providers, threads=args.threads,
+                    model, golden, folder, runtime=runtime, providers=args.providers, threads=args.threads,
                     profile=args.profile, budget_pct=args.budget_pct, progress=True,
                     header=report_header("golden check", {**config, "model": model, "runtime": runtime}))
             except ConfigError as exc:  # e.g. OpenVINO not installed: a verdict, not a crash, among several

@@ -154,7 +154,4 @@ def record_golden(reference: Reference, data_dir: str | os.PathLike, out_dir: st
         "mpjpe_scale_mm": mpjpe(arrays["out.pose"], arrays["gt_mm"]) if "gt_mm" in arrays else None,
         "record_seconds": round(time.perf_counter() - started, 2),
     }
-    writer.write(out_dir, manifest, force=force, arrays=arrays)
-    from e3dpsm.golden.store import load_golden
-
-    return load_golden(out_dir).manifest
+    return writer.write(out_dir, manifest, force=force, arrays=arrays)

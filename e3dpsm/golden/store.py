@@ -69,6 +69,7 @@ class GoldenRecord:
 
     manifest: dict[str, Any]
     arrays: dict[str, np.ndarray]
+    folder: Path | None = None  # where it was loaded from
     _offsets: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -194,7 +195,8 @@ class GoldenWriter:
         return arrays
 
     def write(self, out_dir: str | os.PathLike, manifest: dict[str, Any], *, force: bool = False,
-              arrays: dict[str, np.ndarray] | None = None) -> Path:
+              arrays: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+        """Write the folder atomically; returns the manifest as written."""
         arrays = arrays if arrays is not None else self.arrays()
         manifest = {**manifest, "format": GOLDEN_FORMAT, "steps": self.steps, "frame_shape": list(self.frame_shape),
                     "outputs": self.output_names, "snapshot_steps": self.snapshots,
@@ -203,7 +205,7 @@ class GoldenWriter:
             np.savez_compressed(tmp / ARRAYS_FILE, **arrays)
             manifest["bytes"] = {"arrays": (tmp / ARRAYS_FILE).stat().st_size}
             write_json_atomic(tmp / MANIFEST_FILE, manifest)
-        return Path(out_dir)
+        return manifest
 
 
 def load_golden(folder: str | os.PathLike) -> GoldenRecord:
@@ -234,4 +236,4 @@ def load_golden(folder: str | os.PathLike) -> GoldenRecord:
         raise DataError(f"{arrays_path} lacks {', '.join(missing[:4])}; record the golden again")
     if len(arrays["window_ms"]) != steps or int(arrays["lnes.nnz"].sum()) != len(arrays["lnes.values"]):
         raise DataError(f"{arrays_path} does not hold the {steps} steps its manifest names; record the golden again")
-    return GoldenRecord(manifest, arrays)
+    return GoldenRecord(manifest, arrays, folder)

@@ -9,7 +9,7 @@ from typing import Any, Sequence
 from e3dpsm.errors import InputError
 from e3dpsm.golden.check import GoldenCheck, check_golden, plot_check
 from e3dpsm.golden.profiles import PROFILES, ToleranceProfile, profile_for_quantization
-from e3dpsm.golden.store import load_golden
+from e3dpsm.golden.store import GoldenRecord, load_golden
 
 RUNTIMES = ("onnxruntime", "openvino")
 CHECK_FILE = "check.json"
@@ -44,15 +44,16 @@ def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golde
     return profile.with_budget(budget_pct if budget_pct is not None else own_budget)
 
 
-def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike, out_dir: str | os.PathLike | None = None, *,
+def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | GoldenRecord, out_dir: str | os.PathLike | None = None, *,
                  runtime: str = "onnxruntime", providers: Sequence[str] | None = None, threads: int | None = None,
                  profile: str | None = None, budget_pct: float | None = None, progress: bool = False,
                  header: dict[str, Any] | None = None) -> tuple[GoldenCheck, dict[str, Any]]:
-    """Check `model` against `golden_dir`; write `OUT/check.json` and `OUT/check.png` if given."""
+    """Check `model` against `golden_dir` (a folder, or a record already loaded, so that
+    several checks read it once); write `OUT/check.json` and `OUT/check.png` if given."""
     from e3dpsm.golden.record import sha256_file
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
-    golden = load_golden(golden_dir)
+    golden = golden_dir if isinstance(golden_dir, GoldenRecord) else load_golden(golden_dir)
     runner = open_runner(model, runtime, threads=threads, providers=providers)
     chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, budget_pct)
     result = check_golden(runner, golden, chosen, progress=progress)
@@ -60,7 +61,7 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike, out_di
         **(header or {}),
         "model": {"path": str(model), "sha256": sha256_file(model), "variant": runner.meta.config.get("variant"),
                   "quantization": runner.meta.quantization},
-        "golden": {"path": str(golden_dir), "source": golden.manifest.get("source"), "steps": golden.steps,
+        "golden": {"path": str(golden.folder), "source": golden.manifest.get("source"), "steps": golden.steps,
                    "window_ms": golden.manifest.get("window_ms")},
         "runtime": runtime, "providers": list(providers or []),
         **result.to_dict(),
