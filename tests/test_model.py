@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import e3dpsm
 from e3dpsm.errors import ConfigError, InputError
@@ -190,3 +191,31 @@ def test_released_layout_streams_exactly_and_survives_empty_frames() -> None:
     assert (torch.cat([first["pose"], rest["pose"]], 1) - whole["pose"]).abs().max().item() <= 1e-3
     for name, value in whole_state.items():
         assert torch.allclose(state[name], value, rtol=1e-5, atol=1e-5), name
+
+
+class _HostTensorLog(TorchDispatchMode):
+    """Records the ops that bring a tensor built from Python values into the graph
+    (`torch.tensor(...)`, `x.new_tensor(...)`): made on the host, each is a synchronous
+    host-to-device copy per call on a GPU, and CUDA graph capture refuses it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+        if func in (torch.ops.aten.lift_fresh.default, torch.ops.aten.lift_fresh_copy.default):
+            self.seen.append(str(func))
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("name", e3dpsm.list_models())
+def test_step_builds_no_tensor_from_python_values(name: str) -> None:
+    # A window given as a tensor, as the exported graph and the GPU benchmark give it.
+    model = e3dpsm.create_model(name).eval()
+    cfg = model.config
+    lnes = sparse_lnes((1, 2, cfg.height, cfg.width), seed=3)
+    state, window = model.init_state(1), torch.tensor([20.0])
+    log = _HostTensorLog()
+    with torch.inference_mode(), log:
+        model.step(lnes, state, window)
+    assert not log.seen, f"step() makes tensors from Python values ({len(log.seen)}x): keep constants in buffers"

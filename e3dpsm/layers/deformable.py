@@ -68,6 +68,11 @@ class DeformableAttention(nn.Module):
         else:
             self.map_hw = (height * width, 1)
             self.register_buffer("reference", torch.full((1, 2), 0.5), persistent=False)
+        # grid_sample units per offset unit, (x, y) per slot. A buffer, not a tensor built in
+        # forward: a tensor made from a Python list lives on the host, and on a GPU each step
+        # would copy it over synchronously (and CUDA graph capture refuses the copy).
+        map_h, map_w = self.map_hw
+        self.register_buffer("offset_scale", torch.tensor([2.0 / map_w, 2.0 / map_h]).repeat(heads * points), persistent=False)
         self.sampling_offsets = nn.Linear(dim, heads * points * 2)
         self.attention_weights = nn.Linear(dim, heads * points)
         self.value_proj = nn.Linear(dim, dim)
@@ -100,9 +105,8 @@ class DeformableAttention(nn.Module):
         one Add. The literal form, broadcasting [.., 2]-sized tensors, measured 3.3 ms of a
         27.6 ms `paper` step in ONNX Runtime 1.31 (slow broadcast path for tiny trailing dims).
         """
-        height, width = self.map_hw
         slots = self.heads * self.points
-        scale = query.new_tensor([2.0 / width, 2.0 / height]).repeat(slots)
+        scale = self.offset_scale
         offsets = F.linear(query, self.sampling_offsets.weight * scale[:, None], self.sampling_offsets.bias * scale)
         origin = (2.0 * self.reference - 1.0).repeat(1, slots)  # [H*W or 1, slots*2], (x, y) per slot
         return offsets + origin
