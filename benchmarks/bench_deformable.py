@@ -154,8 +154,7 @@ def main() -> int:
                   method=f"interleaved rounds of {args.chunk} steps per graph, {args.steps} timed steps each after "
                          f"{args.warmup} warm-up steps, medians, {args.threads} threads; ORT profiles from "
                          f"separate sessions stepped in turn, {args.profile_steps} steps, "
-                         f"{args.profile_threads or args.threads} threads, per node the median over steps; "
-                         "shared machine")
+                         f"{args.profile_threads or args.threads} threads, per node the median over steps")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
 

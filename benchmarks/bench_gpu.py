@@ -152,13 +152,14 @@ def live_latency(stepper: Any, host_frames: torch.Tensor, device: torch.device, 
             "latency_min_ms": min(times), "hz_at_median": 1e3 / median}
 
 
-def queued_gpu_time(stepper: Any, device_frames: torch.Tensor, steps: int) -> float:
-    """GPU time per step, steps queued back to back (CUDA events around the whole run)."""
+def queued_gpu_time(stepper: Any, inputs: torch.Tensor, steps: int) -> float:
+    """GPU time per step, steps queued back to back (CUDA events around the whole run);
+    inputs [K, B, 2, H, W] on the device, stepped in turn."""
     start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
     torch.cuda.synchronize()
     start.record()
     for k in range(steps):
-        stepper.step(device_frames[k % len(device_frames)][None])
+        stepper.step(inputs[k % len(inputs)])
     end.record()
     torch.cuda.synchronize()
     return start.elapsed_time(end) / steps
@@ -200,19 +201,8 @@ def stream_batch_throughput(model: torch.nn.Module, frames: torch.Tensor, window
     initial = model.init_state(batch, frames.device)
     example = frames[:batch] if len(frames) >= batch else frames[:1].expand(batch, -1, -1, -1).contiguous()
     stepper = GraphedStepper(model.step, initial, window, example)
-    ms = queued_gpu_time_batched(stepper, example, steps)
+    ms = queued_gpu_time(stepper, example[None], steps)
     return {"stream_batch": batch, "gpu_ms_per_batched_step": ms, "poses_per_s": batch * 1e3 / ms}
-
-
-def queued_gpu_time_batched(stepper: GraphedStepper, example: torch.Tensor, steps: int) -> float:
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    torch.cuda.synchronize()
-    start.record()
-    for _ in range(steps):
-        stepper.step(example)
-    end.record()
-    torch.cuda.synchronize()
-    return start.elapsed_time(end) / steps
 
 
 def render_markdown(report: dict[str, Any]) -> str:
@@ -321,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
                 result.update(parity(stepper, device_frames, reference))
                 stepper.reset()
                 result.update(live_latency(stepper, host_frames, device, args.steps, args.warmup))
-                result["gpu_ms_per_step_queued"] = queued_gpu_time(stepper, device_frames, args.steps)
+                result["gpu_ms_per_step_queued"] = queued_gpu_time(stepper, device_frames[:, None], args.steps)
                 result["peak_gpu_memory_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
                 result["exact_fp32"] = mode in FP32_MODES
                 del stepper
