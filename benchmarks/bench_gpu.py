@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import statistics
 import sys
@@ -236,13 +235,18 @@ def render_markdown(report: dict[str, Any]) -> str:
 
 
 def write_report(report: dict[str, Any], out_dirs: list[Path]) -> None:
+    from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+
     name = f"gpu_{slug(report['device']['name'])}"
     for out in out_dirs:
         out.mkdir(parents=True, exist_ok=True)
-        for suffix, text in ((".json", json.dumps(report, indent=2) + "\n"), (".md", render_markdown(report))):
-            tmp = out / f".{name}{suffix}.tmp"
-            tmp.write_text(text, encoding="utf-8")
-            os.replace(tmp, out / f"{name}{suffix}")
+        write_json_atomic(out / f"{name}.json", report)
+        write_text_atomic(out / f"{name}.md", render_markdown(report))
+
+
+def error_line(exc: Exception) -> str:
+    first = str(exc).splitlines()[0][:300] if str(exc) else ""
+    return f"{type(exc).__name__}: {first}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -316,17 +320,16 @@ def main(argv: list[str] | None = None) -> int:
                 result["exact_fp32"] = mode in FP32_MODES
                 del stepper
             except Exception as exc:  # record and go on: one mode's failure must not lose the others
-                result = {"error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}",
+                result = {"error": error_line(exc),
                           "traceback": traceback.format_exc()[-2000:]}
             report["modes"][mode] = result
             write_report(report, out_dirs)
             print(json.dumps({k: v for k, v in result.items() if k != "traceback"}), flush=True)
-        set_tf32(False)
         if args.stream_batch > 0 and time.perf_counter() - began <= args.budget_s:
             try:
                 report["stream_batch"] = stream_batch_throughput(model, device_frames, window, args.stream_batch, args.steps)
             except Exception as exc:
-                report["stream_batch"] = {"error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"}
+                report["stream_batch"] = {"error": error_line(exc)}
     report["wall_s"] = time.perf_counter() - began
     write_report(report, out_dirs)
     print(render_markdown(report))
