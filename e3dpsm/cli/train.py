@@ -26,6 +26,11 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     length.add_argument("--epochs", type=float, help="epochs in total (an epoch covers every training frame once)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     p.add_argument("--force", action="store_true", help="restart a run folder that already holds a run")
+    p.add_argument("--init-from", metavar="CKPT",
+                   help="fine-tune: start from this checkpoint's weights (same variant and frame size)")
+    p.add_argument("--qat", action="store_true",
+                   help="quantisation-aware: simulate the INT8 graph's rounding while training (with --init-from "
+                        "and a small --lr, e.g. 1e-4, for a few hundred steps); the checkpoint stays float")
     p.add_argument("--seq-len", type=int, default=40, help="frames per training window N (default 40)")
     p.add_argument("--batch-size", type=int, default=4, help="windows per step and rank (default 4)")
     p.add_argument("--lr", type=float, default=1e-3, help="peak Adam learning rate (default 1e-3)")
@@ -61,6 +66,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--steps must be at least 1")
     if not args.resume and args.steps is None and args.epochs is None:
         raise ConfigError("give --steps or --epochs for a new run")
+    if args.init_from and args.resume:
+        raise ConfigError("--init-from starts a new run; drop it with --resume (the run continues from its own checkpoint)")
+    if args.init_from and args.ablation != "full":
+        raise ConfigError("--init-from takes the checkpoint's architecture; drop --ablation")
     if args.threads:
         torch.set_num_threads(args.threads)
     from e3dpsm.models import list_models
@@ -72,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps, clip_norm=args.clip_norm,
         seed=args.seed, split=args.split, overrides=ablation_overrides(args.ablation),
         supervise_direct=not args.no_direct_supervision, mask_invisible=args.mask_invisible,
-        log_every=args.log_every, save_every=args.save_every,
+        log_every=args.log_every, save_every=args.save_every, init_from=args.init_from, qat=args.qat,
     )
     opts = RunOptions(resume=args.resume, force=args.force, stop_at=args.stop_at, device=args.device,
                       num_workers=args.num_workers, progress=not args.no_progress and sys.stderr.isatty())

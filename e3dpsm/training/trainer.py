@@ -8,6 +8,7 @@ Run folder (written by rank 0 only):
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -30,6 +31,7 @@ from e3dpsm.training.data import SeededWindowSampler, WindowDataset, mean_pose_m
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
+from e3dpsm.training.qat import attach_fake_quant
 from e3dpsm.training.schedule import WarmupCosine
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
@@ -64,6 +66,10 @@ class TrainArgs:
     mask_invisible: bool = False
     log_every: int = 10
     save_every: int = 200
+    # Fine-tuning: start from this checkpoint's weights (and pose prior) instead of a fresh init.
+    init_from: str | None = None
+    # Quantisation-aware: train with the INT8 graph's rounding simulated (training/qat.py).
+    qat: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -175,6 +181,10 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
         stored.steps, stored.epochs = (args.steps, args.epochs) if (args.steps or args.epochs) else (stored.steps, stored.epochs)
         args = stored
         data.check_compatible(window_ms=float(payload["window_ms"]))
+    elif args.init_from:
+        model, init_payload = load_checkpoint(args.init_from, variant=args.variant)
+        if "window_ms" in init_payload:
+            data.check_compatible(window_ms=float(init_payload["window_ms"]))
     else:
         overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in args.overrides.items()}
         # The model takes the frame size the data was prepared at.
@@ -183,9 +193,10 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     data.check_compatible(height=model.config.height, width=model.config.width)
     sequences = data.split(args.split)
     dataset = WindowDataset(sequences, args.seq_len)
-    if payload is None:
+    if payload is None and not args.init_from:
         model.set_pose_prior(torch.from_numpy(mean_pose_mm(sequences)))
     model.to(ctx.device).train()
+    fake_quant = attach_fake_quant(model) if args.qat else None
     trained = wrap_model(model, ctx)
 
     epoch_steps, epoch_windows = steps_per_epoch(dataset, args, ctx.world_size)
@@ -211,9 +222,10 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
 
     def checkpoint(step: int) -> None:
         if ctx.is_main:
-            save_checkpoint(out / CHECKPOINT_NAME, model, optimizer=optimizer.state_dict(),
-                            scheduler=scheduler.state_dict(), step=step, rng_torch=torch.get_rng_state(),
-                            train_args=args.to_dict(), window_ms=data.window_ms, data=str(data_dir))
+            with fake_quant.removed() if fake_quant else contextlib.nullcontext():
+                save_checkpoint(out / CHECKPOINT_NAME, model, optimizer=optimizer.state_dict(),
+                                scheduler=scheduler.state_dict(), step=step, rng_torch=torch.get_rng_state(),
+                                train_args=args.to_dict(), window_ms=data.window_ms, data=str(data_dir))
 
     end_step = min(total_steps, opts.stop_at) if opts.stop_at is not None else total_steps
     bar = tqdm(total=total_steps, initial=start_step, desc=f"train {args.variant}", unit="step",
@@ -248,6 +260,8 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
             if step >= end_step:
                 break
     bar.close()
+    if fake_quant:
+        fake_quant.remove()
     checkpoint(step)
     _dump_params(model, ctx)
     report = {

@@ -1,0 +1,136 @@
+"""Quantisation-aware fine-tuning (e3dpsm/training/qat.py): the simulated rounding against a
+numpy re-statement of the INT8 graph's arithmetic, the hooks leaving no trace, and
+`e3dpsm train --init-from CKPT --qat` writing a plain float checkpoint."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch.nn.utils import parametrize
+
+import e3dpsm
+from e3dpsm.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from e3dpsm.cli import main
+from e3dpsm.training.qat import (FLOAT_MODULE_PREFIXES, QATConfig, RangeObserver, attach_fake_quant,
+                                 fake_quantize_weight, quantised_modules)
+
+from _training_helpers import FAST_TRAIN
+
+
+def numpy_weight_s8(weight: np.ndarray) -> np.ndarray:
+    """Symmetric int8 per output channel: scale = max|w| / 127, round half to even, clip."""
+    flat = weight.reshape(weight.shape[0], -1)
+    scale = np.abs(flat).max(axis=1, keepdims=True).astype(np.float32) / np.float32(127)
+    q = np.clip(np.round(flat / scale), -127, 127)
+    return (q * scale).reshape(weight.shape).astype(np.float32)
+
+
+def numpy_activation_u8(x: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Asymmetric uint8 over [low, high] (0 inside it), as ONNX Runtime's QDQ pair computes it."""
+    scale = (high - low) / 255.0
+    zero = int(np.clip(round(-low / scale), 0, 255))
+    q = np.clip(np.round(x.astype(np.float32) * np.float32(1.0 / scale)) + zero, 0, 255)
+    return ((q - zero) * np.float32(scale)).astype(np.float32)
+
+
+def test_weight_fake_quant_matches_numpy_per_channel() -> None:
+    gen = torch.Generator().manual_seed(0)
+    # Channels of very different magnitude: a per-tensor scale would flatten the small one.
+    weight = torch.randn(6, 4, 3, 3, generator=gen) * torch.tensor([1e-3, 0.1, 1.0, 3.0, 10.0, 0.5]).view(6, 1, 1, 1)
+    weight.requires_grad_(True)
+    got = fake_quantize_weight(weight)
+    want = numpy_weight_s8(weight.detach().numpy())
+    step = np.abs(weight.detach().numpy()).reshape(6, -1).max(axis=1) / 127
+    np.testing.assert_allclose(got.detach().numpy(), want, rtol=0, atol=float(step.min()) * 1e-3)
+    # It does round: every channel moves by up to half a step, and no further.
+    moved = np.abs(got.detach().numpy() - weight.detach().numpy()).reshape(6, -1).max(axis=1)
+    assert np.all(moved > 0.1 * step) and np.all(moved <= 0.5 * step * (1 + 1e-5))
+    got.sum().backward()  # straight through: the whole range is inside the clip
+    assert torch.equal(weight.grad, torch.ones_like(weight))
+
+
+def test_activation_range_follows_batches_and_rounds_like_the_graph() -> None:
+    observer = RangeObserver(momentum=0.25)
+    first = torch.linspace(0.5, 4.0, 101)       # all positive: the range must still hold 0
+    second = torch.linspace(-2.0, 1.0, 77)
+    observer.update(first)
+    assert (observer.low, observer.high) == (0.0, pytest.approx(4.0))
+    observer.update(second)
+    assert observer.low == pytest.approx(0.0 + 0.25 * (-2.0 - 0.0))
+    assert observer.high == pytest.approx(4.0 + 0.25 * (1.0 - 4.0))
+    x = torch.randn(1000, generator=torch.Generator().manual_seed(1)) * 2
+    got = observer.fake_quantize(x, observe=False).numpy()
+    want = numpy_activation_u8(x.numpy(), observer.low, observer.high)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    scale, zero = observer.scale_zero_point()
+    codes = got / scale + zero
+    assert np.allclose(codes, np.round(codes), atol=1e-3) and codes.min() >= -1e-3 and codes.max() <= 255 + 1e-3
+    # Values beyond the range clip to its ends.
+    assert got.min() == pytest.approx(-zero * scale, abs=1e-6) and got.max() == pytest.approx((255 - zero) * scale, abs=1e-6)
+
+
+def test_fake_quant_covers_the_quantised_modules_and_leaves_no_trace() -> None:
+    torch.manual_seed(0)
+    model = e3dpsm.create_model("tiny", height=96, width=128).eval()
+    frames = (torch.rand(1, 3, 2, 96, 128, generator=torch.Generator().manual_seed(2)) < 0.05).float()
+    before_state = {k: v.clone() for k, v in model.state_dict().items()}
+    with torch.no_grad():
+        plain = model(frames)["pose"]
+
+    names = [name for name, _ in quantised_modules(model)]
+    assert "stem.0" in names and not any(n.startswith(FLOAT_MODULE_PREFIXES) for n in names)
+    seen: list[torch.Tensor] = []
+    handle = attach_fake_quant(model, QATConfig())
+    model.stem[0].register_forward_hook(lambda mod, args, out: seen.append(out.detach()))
+    with torch.no_grad():
+        simulated = model(frames)["pose"]
+    assert (simulated - plain).abs().max() > 1e-3  # the rounding reaches the poses
+    # The stem's output, as the later hook sees it, is on its uint8 grid.
+    scale, zero = handle.observers["stem.0"][1].scale_zero_point()
+    codes = seen[0] / scale + zero
+    assert torch.allclose(codes, codes.round(), atol=1e-3) and len(torch.unique(codes.round())) <= 256
+    assert parametrize.is_parametrized(model.stem[0], "weight")
+    assert not parametrize.is_parametrized(model.delta_head, "weight")  # the Kalman path stays float
+
+    with handle.removed() as clean:
+        assert set(clean.state_dict()) == set(before_state)
+    with torch.no_grad():  # re-attached, with the ranges it had
+        assert torch.equal(model(frames)["pose"], simulated)
+    handle.remove()
+    assert set(model.state_dict()) == set(before_state)
+    assert all(torch.equal(v, before_state[k]) for k, v in model.state_dict().items())
+    with torch.no_grad():
+        assert torch.equal(model(frames)["pose"], plain)
+
+
+def test_qat_finetune_writes_a_plain_checkpoint(training_runs: dict[str, Path], prepared_small: Path,
+                                                tmp_path: Path) -> None:
+    # A prior unlike the data's mean: the fine-tune must keep the checkpoint's, not recompute it.
+    model, payload = load_checkpoint(training_runs["step4"], variant="tiny")
+    model.set_pose_prior(model.pose_prior_mm + 25.0)
+    start = save_checkpoint(tmp_path / "start.pt", model, window_ms=payload["window_ms"])
+    out = tmp_path / "qat"
+    assert main(["train", "--data", str(prepared_small), "--split", "all", "--out", str(out), "--steps", "2",
+                 "--init-from", str(start), "--qat", *FAST_TRAIN]) == 0
+    model, payload = load_checkpoint(out / "checkpoint.pt", variant="tiny")  # strict: no fake-quant keys
+    assert payload["train_args"]["qat"] is True and payload["train_args"]["init_from"] == str(start)
+    init = read_checkpoint(start)["model"]
+    assert set(payload["model"]) == set(init)
+    moved = [k for k, v in payload["model"].items() if v.is_floating_point() and not torch.equal(v, init[k])]
+    assert any(k.startswith("stem.") for k in moved)  # it trained from the given weights...
+    assert torch.equal(payload["model"]["pose_prior_mm"], init["pose_prior_mm"])  # ...and kept their prior
+
+
+def test_init_from_is_refused_with_resume_or_another_variant(training_runs: dict[str, Path], prepared_small: Path,
+                                                              tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    start = str(training_runs["step4"])
+    rc = main(["train", "--data", str(prepared_small), "--out", str(training_runs["full"]), "--resume",
+               "--init-from", start, "--variant", "tiny", "--no-progress"])
+    assert rc != 0 and "--init-from starts a new run" in capsys.readouterr().err
+    rc = main(["train", "--data", str(prepared_small), "--out", str(tmp_path / "x"), "--steps", "1",
+               "--init-from", start, "--variant", "small", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "holds variant 'tiny', not 'small'" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x" / "checkpoint.pt").exists()
