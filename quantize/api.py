@@ -19,20 +19,22 @@ from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
-from e3dpsm.quantize.exclusions import SearchResult, greedy_exclusions, scratch_model_path
+from e3dpsm.quantize.exclusions import (SearchResult, greedy_exclusions, node_sensitivity, ranked_prefix_exclusions,
+                                        scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
 from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.latency import SideBySideTimer, StepTimer
-from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8, quantised_node_count
+from e3dpsm.quantize.static import DEFAULT_OP_TYPES, StaticConfig, preprocess, quantize_int8, quantised_node_count
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
 
 MODES: tuple[str, ...] = ("int8", "int8-dynamic", "fp16")
+SEARCHES: tuple[str, ...] = ("nodes", "groups")
 # Held-out error budgets of `--exclude auto` (bound_pct: mean distance to the fp32 poses over
 # the fp32 MPJPE): the accuracy each mode is expected to keep (INT8 +1%, FP16 +0.1%).
 DEFAULT_BUDGET_PCT: dict[str, float] = {"int8": 1.0, "int8-dynamic": 1.0, "fp16": 0.1}
@@ -50,6 +52,9 @@ class QuantizeOptions:
     holdout_split: str = "val"     # accuracy check (never calibration frames)
     holdout_frames: int = 200      # per held-out sequence
     max_rounds: int = 4
+    # `--exclude auto` strategy: "nodes" (sensitivity-ranked, int8) or "groups" (greedy over
+    # module / op-type groups); None: nodes for int8, groups for fp16 (exclusions.py).
+    search: str | None = None
     state_source: str = "rollout"
     threads: int | None = None
     seed: int = 0
@@ -71,6 +76,14 @@ class QuantizeOptions:
             raise ConfigError("timing_steps and max_timed must be positive")
         if self.budget_pct is not None and not self.budget_pct > 0:
             raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
+        if self.search not in (None, *SEARCHES):
+            raise ConfigError(f"unknown search {self.search!r}; choose from {list(SEARCHES)}")
+        if self.search == "nodes" and self.mode != "int8":
+            raise ConfigError(f"--search nodes ranks INT8 nodes; {self.mode} searches groups (drop --search)")
+
+    @property
+    def strategy(self) -> str:
+        return self.search or ("nodes" if self.mode == "int8" else "groups")
 
     @property
     def budget(self) -> float:
@@ -209,7 +222,16 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             path.unlink()
             return model
 
-        search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing)
+        ranked = None
+        if options.strategy == "nodes":
+            every = [n.name for n in pre_model.graph.node]
+            kept = set(keep)
+            # The compute nodes only (also under --int8-elementwise): one trial per ranked node.
+            targets = [n.name for n in pre_model.graph.node
+                       if n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES and n.name not in kept]
+            alone = _evaluator(pre_meta, holdout, options, work, build)
+            ranked = node_sensitivity(targets, lambda node: alone([n for n in every if n != node], f"alone_{node}"))
+        search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
         fixed = search.excluded_nodes
         quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
@@ -253,13 +275,13 @@ def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path, timing: _
     return model, info, _search_report(search, [*recurrent, *groups], latency)
 
 
-def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
-                         options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
-                         built: list[tuple[list[str], Path]] | None = None) -> SearchResult:
-    """`--exclude auto` for either mode: each trial is `build(nodes kept in float)`, given the
-    source metadata, saved to a scratch file and measured on the held-out streams. With
-    `built`, each trial's (excluded nodes, scratch file) is appended there and the file kept
-    (the caller times and removes them); otherwise the file is removed at once."""
+def _evaluator(meta: GraphMetadata, holdout: HoldoutSet, options: QuantizeOptions, work: Path,
+               build: Callable[[list[str]], onnx.ModelProto],
+               built: list[tuple[list[str], Path]] | None = None) -> Callable[[list[str], str], float]:
+    """`evaluate(nodes kept in float, label) -> held-out error %`: the trial is `build(nodes)`,
+    given the source metadata, saved to a scratch file and measured on the held-out streams.
+    With `built`, each trial's (excluded nodes, scratch file) is appended there and the file
+    kept (the caller times and removes them); otherwise the file is removed at once."""
     def evaluate(excluded: list[str], label: str) -> float:
         candidate = build(excluded)
         finalize(candidate, meta, {"mode": options.mode, "trial": label})
@@ -273,18 +295,32 @@ def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: Gra
         finally:
             trial.unlink()
 
+    return evaluate
+
+
+def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
+                         options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
+                         built: list[tuple[list[str], Path]] | None = None,
+                         ranked: list[dict] | None = None) -> SearchResult:
+    """`--exclude auto` for either mode: the greedy group search, or with `ranked` (the
+    nodes search's sensitivity rows) the ranked-prefix search."""
+    evaluate = _evaluator(meta, holdout, options, work, build, built)
+    if ranked is not None:
+        result = ranked_prefix_exclusions(keep, [r["node"] for r in ranked], options.budget, evaluate)
+        result.sensitivity = ranked
+        return result
     return greedy_exclusions(keep, list(groups), options.budget, evaluate, options.max_rounds)
 
 
 def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
                     options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
-                    timing: _Timing) -> tuple[SearchResult, LatencySearch]:
+                    timing: _Timing, ranked: list[dict] | None = None) -> tuple[SearchResult, LatencySearch]:
     """The greedy search, then a bounded number of its trial graphs timed beside the fp32
     graph and one picked by the objective (front.py). The returned result's `chosen` /
     `excluded_nodes` / `error_pct` are that final choice; its trials are the greedy's."""
     built: list[tuple[list[str], Path]] = []
     try:
-        greedy = _search_float_groups(keep, groups, meta, holdout, options, work, build, built)
+        greedy = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
         candidates = candidates_from_search(greedy, built)
         info = getattr(timing.timer, "describe", lambda: {"kind": "injected"})()
         latency = latency_aware_choice(greedy, candidates, timing.timer, options.objective, options.budget,
@@ -296,7 +332,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         cand.path = None
     chosen = latency.chosen
     final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.budget,
-                         greedy.trials)
+                         greedy.trials, greedy.strategy, greedy.sensitivity)
     return final, latency
 
 

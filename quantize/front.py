@@ -98,7 +98,8 @@ def candidates_from_search(search: SearchResult, evaluated: Sequence[tuple[list[
     for index, (trial, (excluded, path)) in enumerate(zip(search.trials, evaluated)):
         round_ = trial["round"]
         groups = list(search.chosen[: max(round_ - 1, 0)]) + ([trial["group"]] if trial["group"] else [])
-        label = "base" if trial["group"] is None else f"r{round_}:{trial['group']}"
+        # The ranked-node search names its own trials (`top8`); the greedy one by round.
+        label = trial.get("label") or ("base" if trial["group"] is None else f"r{round_}:{trial['group']}")
         out.append(Candidate(label, groups, list(excluded), float(trial["error_pct"]), path))
     return out
 
@@ -117,9 +118,12 @@ def to_time(candidates: Sequence[Candidate], search: SearchResult, budget_pct: f
     within-budget candidate (fewest float groups and lowest distance first), then the
     out-of-budget ones along the greedy path (the front's fast end)."""
     chosen = greedy_choice(search, candidates)
+    # Fewest groups, then fewest float nodes, first: those are the likely fast ones.
     inside = sorted((c for c in candidates if c.error_pct <= budget_pct and c is not chosen),
-                    key=lambda c: (len(c.groups), c.error_pct))
+                    key=lambda c: (len(c.groups), len(c.excluded_nodes), c.error_pct))
     path_labels = {"base"} | {f"r{i + 1}:{g}" for i, g in enumerate(search.chosen)}
+    if search.strategy == "nodes":  # every probe of the ranked search is on its one path
+        path_labels |= {t["label"] for t in search.trials}
     outside = [c for c in candidates if c.error_pct > budget_pct and c.label in path_labels and c is not chosen]
     picked = [chosen, *inside, *outside]
     return picked[:max(1, max_timed)]

@@ -8,6 +8,9 @@ from typing import Any
 from e3dpsm.utils.io import atomic_path, write_text_atomic
 
 
+SENSITIVE_ROWS = 25
+
+
 def _fmt(value: float | None, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -38,6 +41,16 @@ def markdown_report(report: dict[str, Any]) -> str:
                   f"{timer.get('steps', '?')} steps after {timer.get('warmup', '?')} warm-up, "
                   f"{timer.get('threads') or 'all'} threads, interleaved in chunks of {timer.get('chunk', '?')}; "
                   "untimed candidates show '-'.", "", front_table(search), "", "Plot: `front.png`.", ""]
+    ranked = (report.get("exclusion_search") or {}).get("sensitivity") or []
+    if ranked:
+        chosen = set(report.get("excluded_nodes", []))
+        lines += [f"## Node sensitivity ({len(ranked)} nodes, each quantised alone; top {min(len(ranked), SENSITIVE_ROWS)})",
+                  "", "Held-out distance to fp32 with only that node quantised; `topK` candidates keep the first "
+                  "K of this ranking in float.", "",
+                  "| rank | node | distance to fp32 % alone | kept in float |", "|---:|---|---:|---|"]
+        lines += [f"| {i + 1} | `{r['node']}` | {r['error_pct']:.3f} | {'yes' if r['node'] in chosen else ''} |"
+                  for i, r in enumerate(ranked[:SENSITIVE_ROWS])]
+        lines.append("")
     return "\n".join(lines)
 
 

@@ -7,7 +7,10 @@ import torch
 
 import e3dpsm
 
-pytest_plugins = ["e3dpsm.testing"]  # the e3dpsm_golden fixture, registered as users register it
+# e3dpsm.testing: the e3dpsm_golden fixture, registered as users register it. The helper
+# modules' session fixtures are registered here once, so that every test module shares one
+# instance (a fixture imported into a module is a separate definition, built again there).
+pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers"]
 
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
 # between steps, which starves ONNX Runtime when both alternate in one process (parity).

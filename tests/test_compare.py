@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 
 from e3dpsm.cli import main
-from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ from e3dpsm.checkpoint import load_checkpoint
 from e3dpsm.training.trainer import PARAM_DUMP_ENV, _param_digest
 from _training_helpers import FAST_TRAIN
 
-pytest_plugins = ["_training_helpers"]  # session fixtures shared by the training tests
 
 
 def test_two_ranks_end_with_identical_weights(prepared_small: Path, tmp_path: Path) -> None:

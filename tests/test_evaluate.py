@@ -11,7 +11,6 @@ from e3dpsm.cli import main
 from e3dpsm.evaluation.core import evaluate_predictions
 from e3dpsm.metrics import mpjpe
 
-pytest_plugins = ["_training_helpers"]  # session fixtures shared by the training tests
 
 
 

@@ -9,7 +9,6 @@ from e3dpsm.graph_metadata import MetadataError
 from e3dpsm.profiles.flops import BILINEAR_TAPS, MODULE_GROUPS, relative_difference
 from e3dpsm.profiles.flops_onnx import count_onnx
 from e3dpsm.profiles.flops_torch import count_torch
-from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
 
 AGREEMENT = 0.02  # the tolerance between the two counters
 

@@ -14,9 +14,7 @@ import pytest
 import torch
 from onnx import numpy_helper
 
-from _quantize_helpers import (  # noqa: F401  (fixtures)
-    FAST, INT8_TEST_BUDGET_PCT, TRAINED_TINY, fp16_dir, int8_dir, quant_data, trained_graph,
-)
+from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT, TRAINED_TINY
 from e3dpsm.checkpoint import load_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
@@ -262,6 +260,17 @@ def test_diagnose_cli_writes_ranked_reports(tmp_path, capsys, trained_graph, int
     assert report["ranked_by"] == "qdq_noise" and noise == sorted(noise, reverse=True) and report["steps"] == 12
     assert "| 1 | " + report["culprits"][0] + " |" in (tmp_path / "d" / "report.md").read_text()
     assert (tmp_path / "d" / "diagnose.png").stat().st_size > 10_000
+    # An existing folder is refused (one line, exit 2, untouched) unless --force replaces it.
+    again = ["diagnose", "--reference", str(trained_graph), "--model", str(int8_graph), "--data", str(quant_data),
+             "--steps", "5", "--out", str(tmp_path / "d")]
+    capsys.readouterr()
+    assert main(again) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists; pass --force" in err[0]
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["steps"] == 12
+    assert main([*again, "--force"]) == 0
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["steps"] == 5
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # no temporary folder left behind
 
 
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, golden_dir, trained_graph):  # noqa: F811

@@ -17,7 +17,6 @@ pytest.importorskip("openvino")
 
 import openvino as ov  # noqa: E402
 
-from _profile_helpers import tiny_step_graph  # noqa: E402,F401  (session fixture)
 from e3dpsm.cli import main  # noqa: E402
 from e3dpsm.export.parity import Tolerances, run_parity  # noqa: E402
 from e3dpsm.graph_metadata import GraphMetadata  # noqa: E402

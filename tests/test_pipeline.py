@@ -5,7 +5,6 @@ import json
 
 import pytest
 
-from _profile_helpers import tiny_step_graph  # noqa: F401  (fixture)
 from _quantize_helpers import TRAINED_TINY
 from e3dpsm.checkpoint import CheckpointError
 from e3dpsm.pipeline import STAGES, PipelineConfig, run_pipeline

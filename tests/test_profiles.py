@@ -14,7 +14,6 @@ from e3dpsm.profiles.inputs import moving_edge_frames
 from e3dpsm.profiles.latency import latency_summary, matmul_peak_gflops, measure_side_by_side
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.targets import Target, availability, load_targets, select_targets
-from tests._profile_helpers import tiny_step_graph  # noqa: F401  (session fixture)
 
 REQUIRED_TARGETS = {
     ("torch", "cpu", "fp32"), ("onnxruntime", "CPUExecutionProvider", "fp32"),

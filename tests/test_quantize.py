@@ -2,15 +2,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import onnx
 import pytest
 
-from _quantize_helpers import (  # noqa: F401  (fixtures)
-    FAST, INT8_TEST_BUDGET_PCT, fp16_dir, int8_dir, mean_pose_model, quant_data, tiny_graph, trained_graph,
-)
+from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT, mean_pose_model
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError, OutputExistsError

@@ -5,7 +5,6 @@ import json
 
 import pytest
 
-from _quantize_helpers import quant_data, trained_graph  # noqa: F401  (fixtures)
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
 from e3dpsm.quantize.exclusions import greedy_exclusions
@@ -154,7 +153,8 @@ def test_quantize_reports_the_front_and_builds_the_fastest_graph_within_budget(t
 
     out = tmp_path / "int8"
     report = quantize_graph(trained_graph, quant_data, out,
-                            QuantizeOptions(mode="int8", budget_pct=budget, max_rounds=1, **fast), timer=timer)
+                            QuantizeOptions(mode="int8", budget_pct=budget, max_rounds=1, search="groups", **fast),
+                            timer=timer)
     search = report["search"]
     inside = [c for c in search["candidates"] if c["within_budget"] and c["p50_ms"] is not None]
     assert len(inside) >= 2, "the fixture no longer gives two candidates within the budget"

@@ -17,7 +17,6 @@ from e3dpsm.training.data import WindowDataset
 from e3dpsm.training.losses import LossWeights, PoseLoss, bone_angle_loss, bone_length_loss
 from e3dpsm.training.projection import FisheyeProjection
 
-pytest_plugins = ["_training_helpers"]  # session fixtures shared by the training tests
 
 
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from _quantize_helpers import mean_pose_model, quant_data, tiny_graph  # noqa: F401  (fixtures)
+from _quantize_helpers import mean_pose_model
 from e3dpsm.checkpoint import save_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData

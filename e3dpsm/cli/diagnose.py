@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--window-ms", type=positive_float, default=None, help="default: the graph's training window")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", required=True, help="folder for report.json, report.md and diagnose.png")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=run)
     return p
 
@@ -33,22 +34,24 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.runtime import StepSession
     from e3dpsm.utils.env import report_header
-    from e3dpsm.utils.io import atomic_path, write_json_atomic, write_text_atomic
+    from e3dpsm.errors import OutputExistsError
+    from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
+    out = Path(args.out)
+    if out.exists() and not args.force:  # before the rollout, not after it
+        raise OutputExistsError(f"output folder {out} exists; pass --force to replace it")
     meta: GraphMetadata = StepSession(args.reference, threads=1).meta  # checks both files before the rollout
     StepSession(args.model, threads=1)
     window_ms = args.window_ms or meta.train_window_ms
     frames = prepared_frames(args.data, args.steps, args.split)
     result = diagnose(args.reference, args.model, frames, window_ms, threads=args.threads, progress=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "diagnose.png") as tmp:
-        plot_diagnosis(result, tmp)
     title = f"diagnose {Path(args.model).name} against {Path(args.reference).name}"
-    write_text_atomic(out / "report.md", markdown(result, title))
     report = report_header("diagnose", {k: v for k, v in vars(args).items() if k != "func"})
     report.update({k: v for k, v in result.items() if not k.startswith("_")})
-    write_json_atomic(out / "report.json", report)
+    with atomic_dir(out, force=args.force) as tmp:
+        plot_diagnosis(result, tmp / "diagnose.png")
+        (tmp / "report.md").write_text(markdown(result, title), encoding="utf-8")
+        write_json_atomic(tmp / "report.json", report)
     print(f"{title}: {result['steps']} steps, culprits ranked by {result['ranked_by'].replace('_', ' ')}")
     for rank, group in enumerate(result["groups"][:5], 1):
         at = group["error_at_step"]

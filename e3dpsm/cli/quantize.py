@@ -27,6 +27,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--budget-pct", type=positive_float, default=None,
                    help="--exclude auto: allowed held-out error (mean distance to the fp32 poses) relative to "
                    "fp32 MPJPE, in %% (default 1.0 for int8, 0.1 for fp16)")
+    p.add_argument("--search", choices=("nodes", "groups"), default=None,
+                   help="--exclude auto: 'nodes' quantises each Conv/MatMul/Gemm alone to rank them by held-out "
+                   "error, then keeps the fewest top-ranked in float that meet the budget (int8 default; one "
+                   "trial per node); 'groups' adds whole module / op-type groups greedily (fp16 default)")
     p.add_argument("--objective", choices=("latency", "accuracy"), default="latency",
                    help="--exclude auto: among the candidate graphs within the budget pick the fastest "
                    "(latency, default; candidates are timed side by side with the fp32 graph) or the "
@@ -53,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         mode=args.mode, calibration=args.calibration, frames=args.frames, exclude=args.exclude,
         budget_pct=args.budget_pct, split=args.split, holdout_split=args.holdout_split,
         holdout_frames=args.holdout_frames, threads=args.threads, objective=args.objective,
-        timing_steps=args.timing_steps,
+        timing_steps=args.timing_steps, search=args.search,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
