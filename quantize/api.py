@@ -78,6 +78,8 @@ class QuantizeOptions:
             raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
         if self.search not in (None, *SEARCHES):
             raise ConfigError(f"unknown search {self.search!r}; choose from {list(SEARCHES)}")
+        if self.search is not None and self.exclude != "auto":
+            raise ConfigError(f"--search picks how --exclude auto searches; drop it with --exclude {self.exclude}")
         if self.search == "nodes" and self.mode != "int8":
             raise ConfigError(f"--search nodes ranks INT8 nodes; {self.mode} searches groups (drop --search)")
 

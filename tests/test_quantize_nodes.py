@@ -95,6 +95,8 @@ def test_nodes_search_is_int8_only():
         QuantizeOptions(mode="fp16", search="nodes")
     with pytest.raises(ConfigError, match="unknown search"):
         QuantizeOptions(mode="int8", search="layers")
+    with pytest.raises(ConfigError, match="drop it with --exclude recurrent"):
+        QuantizeOptions(mode="int8", exclude="recurrent", search="groups")
 
 
 def test_nodes_search_end_to_end_on_the_trained_tiny(int8_dir, trained_graph):  # noqa: F811
