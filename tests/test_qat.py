@@ -3,6 +3,7 @@ numpy re-statement of the INT8 graph's arithmetic, the hooks leaving no trace, a
 `e3dpsm train --init-from CKPT --qat` writing a plain float checkpoint."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from torch.nn.utils import parametrize
 import e3dpsm
 from e3dpsm.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from e3dpsm.cli import main
+from e3dpsm.training.trainer import PARAM_DUMP_ENV, _param_digest
 from e3dpsm.training.qat import (FLOAT_MODULE_PREFIXES, QATConfig, RangeObserver, attach_fake_quant,
                                  fake_quantize_weight, quantised_modules)
 
@@ -103,15 +105,23 @@ def test_fake_quant_covers_the_quantised_modules_and_leaves_no_trace() -> None:
     assert all(torch.equal(v, before_state[k]) for k, v in model.state_dict().items())
     with torch.no_grad():
         assert torch.equal(model(frames)["pose"], plain)
+    with handle.removed():  # removed for good: saving through it must not bring the hooks back
+        pass
+    assert not handle.attached and not parametrize.is_parametrized(model.stem[0], "weight")
+    with torch.no_grad():
+        assert torch.equal(model(frames)["pose"], plain)
 
 
 def test_qat_finetune_writes_a_plain_checkpoint(training_runs: dict[str, Path], prepared_small: Path,
-                                                tmp_path: Path) -> None:
+                                                tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # A prior unlike the data's mean: the fine-tune must keep the checkpoint's, not recompute it.
     model, payload = load_checkpoint(training_runs["step4"], variant="tiny")
     model.set_pose_prior(model.pose_prior_mm + 25.0)
     start = save_checkpoint(tmp_path / "start.pt", model, window_ms=payload["window_ms"])
     out = tmp_path / "qat"
+    # The run's own digest of its final parameters (names and values), as the distributed
+    # test reads it: it must be the plain checkpoint's, i.e. the model ends without hooks.
+    monkeypatch.setenv(PARAM_DUMP_ENV, str(tmp_path / "digest"))
     assert main(["train", "--data", str(prepared_small), "--split", "all", "--out", str(out), "--steps", "2",
                  "--init-from", str(start), "--qat", *FAST_TRAIN]) == 0
     model, payload = load_checkpoint(out / "checkpoint.pt", variant="tiny")  # strict: no fake-quant keys
@@ -121,6 +131,8 @@ def test_qat_finetune_writes_a_plain_checkpoint(training_runs: dict[str, Path], 
     moved = [k for k, v in payload["model"].items() if v.is_floating_point() and not torch.equal(v, init[k])]
     assert any(k.startswith("stem.") for k in moved)  # it trained from the given weights...
     assert torch.equal(payload["model"]["pose_prior_mm"], init["pose_prior_mm"])  # ...and kept their prior
+    dumped = json.loads((tmp_path / "digest" / "rank0.json").read_text())
+    assert dumped["sha256"] == _param_digest(model)["sha256"]
 
 
 def test_init_from_is_refused_with_resume_or_another_variant(training_runs: dict[str, Path], prepared_small: Path,

@@ -146,14 +146,21 @@ class FakeQuantHandle:
         self._hooks.clear()
         self._detach_weights()
 
+    @property
+    def attached(self) -> bool:
+        return self._weights_attached or bool(self._hooks)
+
     @contextlib.contextmanager
     def removed(self) -> Iterator[nn.Module]:
-        """The plain model for a while (to save a checkpoint); ranges survive."""
+        """The plain model for a while (to save a checkpoint); ranges survive. Re-attaches
+        only what was attached on entry, so a handle removed for good stays removed."""
+        was_attached = self.attached
         self.remove()
         try:
             yield self.model
         finally:
-            self.attach()
+            if was_attached:
+                self.attach()
 
 
 def attach_fake_quant(model: nn.Module, config: QATConfig | None = None) -> FakeQuantHandle:
