@@ -4,7 +4,7 @@ with the FP32 graph on the same frames."""
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -12,18 +12,23 @@ import numpy as np
 from e3dpsm.data.prepared import PreparedSequence
 from e3dpsm.metrics import joint_errors, mpjpe
 from e3dpsm.runtime import StepSession
+from e3dpsm.validation.streams import onnx_stream_outputs
 
 
 @dataclass
 class HoldoutSet:
-    """Held-out frames with ground truth, and the FP32 graph's outputs on them (`fp32`: the
-    fused poses; `fp32_outputs`: every pose output, per sequence)."""
+    """Held-out frames with ground truth, and the FP32 graph's outputs on them (every pose
+    output, per sequence)."""
 
     lnes: list[np.ndarray]
     gt: list[np.ndarray]
-    fp32: list[np.ndarray]
+    fp32_outputs: list[dict[str, np.ndarray]]
     window_ms: float
-    fp32_outputs: list[dict[str, np.ndarray]] = field(default_factory=list)
+
+    @property
+    def fp32(self) -> list[np.ndarray]:
+        """The FP32 graph's fused poses, per sequence."""
+        return [o["pose"] for o in self.fp32_outputs]
 
     @property
     def frames(self) -> int:
@@ -38,23 +43,12 @@ def _pooled_mpjpe(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> flo
     return mpjpe(np.concatenate(preds), np.concatenate(gts))
 
 
-def _stream_outputs(session: StepSession, lnes: np.ndarray, window_ms: float) -> dict[str, np.ndarray]:
-    """Every output of the step graph over `lnes [F, 2, H, W]`, states carried: {name: [F, ...]}."""
-    state = session.init_state(1)
-    steps: list[dict[str, np.ndarray]] = []
-    for f in range(len(lnes)):
-        outputs, state = session.step(np.asarray(lnes[f : f + 1], dtype=np.float32), state, window_ms)
-        steps.append({name: value[0] for name, value in outputs.items()})
-    return {name: np.stack([s[name] for s in steps]).astype(np.float32) for name in steps[0]}
-
-
 def make_holdout(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequence], window_ms: float,
                  frames_per_sequence: int, threads: int | None = None) -> HoldoutSet:
     session = StepSession(fp32_model, threads=threads)
     lnes = [np.asarray(s.lnes[:frames_per_sequence], dtype=np.float32) for s in sequences]
     gt = [np.asarray(s.j3d_mm[:frames_per_sequence], dtype=np.float32) for s in sequences]
-    outputs = [_stream_outputs(session, x, window_ms) for x in lnes]
-    return HoldoutSet(lnes, gt, [o["pose"] for o in outputs], window_ms, outputs)
+    return HoldoutSet(lnes, gt, [onnx_stream_outputs(session, x, window_ms) for x in lnes], window_ms)
 
 
 def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | None = None) -> dict[str, float]:
@@ -68,7 +62,7 @@ def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | No
     holds a compressed graph to its budget on each of them.
     """
     session = StepSession(model, threads=threads)
-    outputs = [_stream_outputs(session, x, holdout.window_ms) for x in holdout.lnes]
+    outputs = [onnx_stream_outputs(session, x, holdout.window_ms) for x in holdout.lnes]
     base = holdout.fp32_mpjpe
     value = _pooled_mpjpe([o["pose"] for o in outputs], holdout.gt)
     by_output = {name: float(joint_errors(np.concatenate([o[name] for o in outputs]),

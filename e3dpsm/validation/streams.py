@@ -9,15 +9,22 @@ import numpy as np
 from e3dpsm.runtime import StepSession
 
 
-def onnx_stream(session: StepSession, lnes: np.ndarray, window_ms: float, frames: int | None = None) -> np.ndarray:
-    """Fused poses `[F, 16, 3]` mm of an exported step graph over `lnes [F, 2, H, W]`."""
+def onnx_stream_outputs(session: StepSession, lnes: np.ndarray, window_ms: float,
+                        frames: int | None = None) -> dict[str, np.ndarray]:
+    """Every output of an exported step graph over `lnes [F, 2, H, W]`: {name: [F, ...]}
+    (`pose`, `pose_direct`, `pose_delta`, mm)."""
     count = len(lnes) if frames is None else min(frames, len(lnes))
     state = session.init_state(1)
-    poses = []
+    steps: list[dict[str, np.ndarray]] = []
     for f in range(count):
         outputs, state = session.step(np.asarray(lnes[f : f + 1], dtype=np.float32), state, window_ms)
-        poses.append(outputs["pose"][0])
-    return np.stack(poses).astype(np.float32)
+        steps.append({name: value[0] for name, value in outputs.items()})
+    return {name: np.stack([s[name] for s in steps]).astype(np.float32) for name in steps[0]}
+
+
+def onnx_stream(session: StepSession, lnes: np.ndarray, window_ms: float, frames: int | None = None) -> np.ndarray:
+    """Fused poses `[F, 16, 3]` mm of an exported step graph over `lnes [F, 2, H, W]`."""
+    return onnx_stream_outputs(session, lnes, window_ms, frames)["pose"]
 
 
 def torch_stream(model: Any, lnes: np.ndarray, window_ms: float, frames: int | None = None,
