@@ -34,12 +34,9 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.runtime import StepSession
     from e3dpsm.utils.env import report_header
-    from e3dpsm.errors import OutputExistsError
-    from e3dpsm.utils.io import atomic_dir, write_json_atomic
+    from e3dpsm.utils.io import atomic_dir, refuse_existing_output, write_json_atomic
 
-    out = Path(args.out)
-    if out.exists() and not args.force:  # before the rollout, not after it
-        raise OutputExistsError(f"output folder {out} exists; pass --force to replace it")
+    out = refuse_existing_output(args.out, args.force)  # before the rollout, not after it
     meta: GraphMetadata = StepSession(args.reference, threads=1).meta  # checks both files before the rollout
     StepSession(args.model, threads=1)
     window_ms = args.window_ms or meta.train_window_ms

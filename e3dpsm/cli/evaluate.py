@@ -33,16 +33,14 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from e3dpsm.data.prepared import PreparedData
-    from e3dpsm.errors import OutputExistsError
     from e3dpsm.evaluation.pipeline import evaluate_checkpoint, write_report
     from e3dpsm.utils.env import report_header
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    from pathlib import Path
+    from e3dpsm.utils.io import refuse_existing_output
 
-    if Path(args.out).exists() and not args.force:  # fail before the long run, not after
-        raise OutputExistsError(f"output folder {args.out} exists; pass --force to replace it")
+    refuse_existing_output(args.out, args.force)  # fail before the long run, not after
     data = PreparedData.open(args.data)
     results, preds = evaluate_checkpoint(args.checkpoint, data, args.split, args.causal, args.window_ms,
                                          progress=not args.no_progress and sys.stderr.isatty())

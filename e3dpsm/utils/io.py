@@ -62,6 +62,15 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def refuse_existing_output(path: str | os.PathLike, force: bool) -> Path:
+    """`path` as a Path; an existing one is refused unless `force`. Commands call it before
+    a long run as well, so that the refusal comes first, not after the work."""
+    target = Path(path)
+    if target.exists() and not force:
+        raise OutputExistsError(f"output folder {target} exists; pass --force to replace it")
+    return target
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike, *, force: bool = False) -> Iterator[Path]:
     """Build an output folder under a temporary name and rename it into place at the end.
@@ -69,9 +78,7 @@ def atomic_dir(path: str | os.PathLike, *, force: bool = False) -> Iterator[Path
     An existing folder is refused unless `force`, in which case it is replaced only once the
     new one is complete.
     """
-    target = Path(path)
-    if target.exists() and not force:
-        raise OutputExistsError(f"output folder {target} exists; pass --force to replace it")
+    target = refuse_existing_output(path, force)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
