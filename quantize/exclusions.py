@@ -12,8 +12,8 @@ graph_groups). Then one of two searches:
   doubling then bisection. On the trained `small` the error is concentrated in a few
   projections (attention.0's outer projections, the S5 feed-forward output) that no single
   module group isolates, and the per-node errors add roughly in quadrature (their root sum
-  of squares over 106 nodes, 11.0%, is close to the all-quantised 11.2%), so a ranked prefix reaches a
-  budget with far fewer float nodes than whole groups do.
+  of squares over 106 nodes, 11.0%, is close to the all-quantised 11.2%), so a ranked
+  prefix reaches a budget with far fewer float nodes than whole groups do.
 
 Each trial re-uses the calibration cache, so a trial costs one quantiser pass and one
 held-out rollout, not a calibration.

@@ -44,7 +44,8 @@ def markdown_report(report: dict[str, Any]) -> str:
     ranked = (report.get("exclusion_search") or {}).get("sensitivity") or []
     if ranked:
         chosen = set(report.get("excluded_nodes", []))
-        lines += [f"## Node sensitivity ({len(ranked)} nodes, each quantised alone; top {min(len(ranked), SENSITIVE_ROWS)})",
+        shown = min(len(ranked), SENSITIVE_ROWS)
+        lines += [f"## Node sensitivity ({len(ranked)} nodes, each quantised alone; top {shown})",
                   "", "Held-out distance to fp32 with only that node quantised; `topK` candidates keep the first "
                   "K of this ranking in float.", "",
                   "| rank | node | distance to fp32 % alone | kept in float |", "|---:|---|---:|---|"]

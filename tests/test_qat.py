@@ -70,7 +70,8 @@ def test_activation_range_follows_batches_and_rounds_like_the_graph() -> None:
     codes = got / scale + zero
     assert np.allclose(codes, np.round(codes), atol=1e-3) and codes.min() >= -1e-3 and codes.max() <= 255 + 1e-3
     # Values beyond the range clip to its ends.
-    assert got.min() == pytest.approx(-zero * scale, abs=1e-6) and got.max() == pytest.approx((255 - zero) * scale, abs=1e-6)
+    assert got.min() == pytest.approx(-zero * scale, abs=1e-6)
+    assert got.max() == pytest.approx((255 - zero) * scale, abs=1e-6)
 
 
 def test_fake_quant_covers_the_quantised_modules_and_leaves_no_trace() -> None:
