@@ -27,7 +27,7 @@ from typing import Any
 
 from e3dpsm.errors import ConfigError, DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.openvino_session import openvino_available
+from e3dpsm.runtime.openvino_session import openvino_available, openvino_core
 from e3dpsm.runtime.openvino_stateful import RT_CONVERSION, RT_METADATA
 
 
@@ -71,9 +71,9 @@ def read_step_graph(path: str | os.PathLike) -> tuple[Any, GraphMetadata, dict[s
         raise DataError(f"cannot read {path} as ONNX: {str(exc).splitlines()[0][:300]}") from exc
     props = {p.key: p.value for p in proto.metadata_props}
     meta = GraphMetadata.from_props(props, str(path))  # MetadataError (exit 2) without e3dpsm metadata
-    ov = _import_openvino()
+    _import_openvino()
     try:
-        model = ov.Core().read_model(str(path))
+        model = openvino_core().read_model(str(path))
     except RuntimeError as exc:
         raise DataError(f"OpenVINO cannot read {path}: {str(exc).splitlines()[0][:300]}") from exc
     return model, meta, props

@@ -23,6 +23,7 @@ from e3dpsm.profiles.flops import FlopCount, grid_sample_macs, recurrence_macs
 from e3dpsm.profiles.graph_groups import assign_groups
 
 DENSE_OPS = ("Conv", "Gemm", "MatMul")
+SAMPLING_OPS = ("GridSample", "DeformConv")
 # Nodes that do arithmetic on every output value (reported as "elementwise", not in MACs).
 ELEMENTWISE_OPS = frozenset({
     "Add", "Sub", "Mul", "Div", "Pow", "Sqrt", "Exp", "Log", "Erf", "Tanh", "Sigmoid", "Relu",
@@ -71,7 +72,7 @@ def static_shapes(model: onnx.ModelProto) -> tuple[Shapes, dict[str, int]]:
         shape = _known(value)
         if shape is not None:
             shapes[value.name] = shape
-    wanted = {t for n in inferred.graph.node if n.op_type in (*DENSE_OPS, "GridSample") for t in (*n.input, *n.output)}
+    wanted = {t for n in inferred.graph.node if n.op_type in (*DENSE_OPS, *SAMPLING_OPS) for t in (*n.input, *n.output)}
     missing = sorted(t for t in wanted if t and t not in shapes)
     if missing:
         shapes.update(_measured_shapes(inferred, missing, dtypes))
@@ -103,7 +104,7 @@ def _measured_shapes(model: onnx.ModelProto, names: list[str], dtypes: dict[str,
 
 def _dense_macs(node: onnx.NodeProto, shapes: Shapes) -> int:
     out = shapes[node.output[0]]
-    if node.op_type == "Conv":
+    if node.op_type in ("Conv", "DeformConv"):
         weight = shapes[node.input[1]]
         return math.prod(out) * math.prod(weight[1:])  # weight [Cout, Cin/groups, kh, kw]
     if node.op_type == "Gemm":
@@ -123,7 +124,8 @@ def count_onnx(model: onnx.ModelProto | str | os.PathLike) -> FlopCount:
     shapes, dtypes = static_shapes(model)
     groups = assign_groups(model, dtypes)
     result = FlopCount("onnx", notes=[
-        "Conv / Gemm / MatMul MACs from shapes at batch 1; GridSample, S5 and Kalman by formula; "
+        "Conv / Gemm / MatMul MACs from shapes at batch 1; GridSample, DeformConv sampling, S5 and Kalman by "
+        "formula (a DeformConv adds its kernel's MACs as dense); "
         "'elementwise' = output values of other arithmetic nodes (not in MACs)"])
     for module in result.modules.values():
         module.elementwise = 0
@@ -135,6 +137,13 @@ def count_onnx(model: onnx.ModelProto | str | os.PathLike) -> FlopCount:
             n, c = shapes[node.input[0]][:2]
             out_h, out_w = shapes[node.output[0]][2:]
             result.add(group, "sampling", grid_sample_macs(n, c, out_h, out_w))
+        elif node.op_type == "DeformConv":
+            # Every input channel is sampled at each kernel tap of each output position.
+            n, c = shapes[node.input[0]][:2]
+            out_h, out_w = shapes[node.output[0]][2:]
+            taps = math.prod(shapes[node.input[1]][2:])
+            result.add(group, "sampling", grid_sample_macs(n, c, out_h, out_w * taps))
+            result.add(group, "dense", _dense_macs(node, shapes))
         elif node.op_type in ELEMENTWISE_OPS and node.output[0] in shapes:
             result.add(group, "elementwise", math.prod(shapes[node.output[0]]))
     for group, macs in recurrence_macs(meta.states, meta.config.get("model_config", {"widths": []})).items():

@@ -71,12 +71,12 @@ class OpenVinoRunner:
 
     def __init__(self, path: str, target: Target, window_ms: float) -> None:
         import onnx
-        import openvino as ov
 
         from e3dpsm.graph_metadata import GraphMetadata
+        from e3dpsm.runtime.openvino_session import openvino_core
 
         self.meta = GraphMetadata.from_onnx(onnx.load(path, load_external_data=False))
-        core = ov.Core()
+        core = openvino_core()
         config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY"}
         if target.precision in ("fp32", "int8"):
             # No silent bf16 / fp16 on capable CPUs: an int8 graph's float parts stay float32,

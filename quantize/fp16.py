@@ -11,11 +11,11 @@ from typing import Callable, Iterable
 import onnx
 
 # onnxconverter-common's own default block list, plus ops seen in the E-3DPSM graph that
-# ORT 1.31 CPU cannot run in fp16 or runs inaccurately: GridSample (no fp16 CPU kernel;
-# deformable sampling offsets need float32 anyway), InstanceNormalization / LayerNormalization
+# ORT 1.31 CPU cannot run in fp16 or runs inaccurately: GridSample and DeformConv (no fp16
+# CPU kernels; deformable sampling offsets need float32 anyway), InstanceNormalization / LayerNormalization
 # (mean/variance over many values), Erf (GELU), Pow/Exp (discretisation, Kalman gains).
 FP16_OP_BLOCK_LIST: tuple[str, ...] = (
-    "GridSample", "InstanceNormalization", "LayerNormalization", "Erf", "Pow", "Exp", "Softmax",
+    "GridSample", "DeformConv", "InstanceNormalization", "LayerNormalization", "Erf", "Pow", "Exp", "Softmax",
     "Resize", "Range", "ConstantOfShape", "Where",
 )
 

@@ -67,14 +67,16 @@ def test_gather_sampler_equals_grid_sample(layout: str, hw: tuple[int, int]) -> 
 
     inputs = [query, value, *attn.parameters()]
     results = {}
-    for sampler in ("grid_sample", "gather"):
+    for sampler in ("grid_sample", "gather", "deform_conv"):
         attn.sampler = sampler
         out = attn(query, value)
         results[sampler] = (out, torch.autograd.grad(out.square().sum(), inputs))
-    (ref, ref_grads), (got, got_grads) = results["grid_sample"], results["gather"]
-    assert _max_rel(got, ref) <= RTOL
-    for g, r in zip(got_grads, ref_grads):
-        assert _max_rel(g, r) <= 1e-4  # gradients: longer sums, same round-off scale
+    ref, ref_grads = results["grid_sample"]
+    for sampler in ("gather", "deform_conv"):  # deform_conv: its offsets and kernel grid in PyTorch
+        got, got_grads = results[sampler]
+        assert _max_rel(got, ref) <= RTOL, sampler
+        for g, r in zip(got_grads, ref_grads):
+            assert _max_rel(g, r) <= 1e-4, sampler  # gradients: longer sums, same round-off scale
 
 
 def _loop_reference(value: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -119,7 +121,7 @@ def test_folded_block_equals_literal_block(layout: str, hw: tuple[int, int]) -> 
     x = torch.randn(2, 16, *hw, generator=torch.Generator().manual_seed(2))
     with torch.no_grad():
         ref = block(x)
-        for sampler in ("gather", "grid_sample"):
+        for sampler in ("gather", "deform_conv", "grid_sample"):
             with export_attention_form(block, sampler=sampler):
                 got = block(x)
             assert _max_rel(got - x, ref - x) <= RTOL, sampler  # the block's own contribution

@@ -18,13 +18,15 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                    "start-up) and OUT/export.json.")
     add_model_source(p)
     p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
-    p.add_argument("--opset", type=int, default=None, help="ONNX opset (default 17; 17-21 supported)")
+    p.add_argument("--opset", type=int, default=None,
+                   help="ONNX opset (default: the lowest the attention form needs, 17, or 19 for deform_conv; 17-21 supported)")
     p.add_argument("--no-simplify", action="store_true", help="skip onnxsim simplification")
     p.add_argument("--static-batch", action="store_true",
                    help="fix the batch axis to 1 (fewer shape operators; single-stream devices)")
-    p.add_argument("--attention-form", choices=("grid_sample", "gather"), default="grid_sample",
-                   help="deformable attention in the graph: 'grid_sample' (the literal GridSample form; default) "
-                        "or 'gather' (corner gathers, one weighted MatMul, folded projections)")
+    p.add_argument("--attention-form", choices=("grid_sample", "gather", "deform_conv"), default="grid_sample",
+                   help="deformable attention in the graph: 'grid_sample' (the literal GridSample form; default), "
+                        "'gather' (corner gathers, one weighted MatMul) or 'deform_conv' (one ONNX DeformConv per "
+                        "block, opset >= 19); the last two fold the block's projections")
     p.add_argument("--ort-optimized", choices=("none", "basic", "extended", "all"), default="extended",
                    help=f"also write {ORT_GRAPH_NAME}, ONNX Runtime's CPU-optimised graph at this level "
                         "(default extended; 'all' adds the CPU's NCHWc layout: same-machine only; none: skip)")

@@ -11,11 +11,13 @@ The block wiring is the release's in both layouts (its `BasicTransformerBlock` a
 mmcv `MultiScaleDeformableAttention`): an outer value and output projection around mmcv's
 own value and output projections, and mmcv's identity term (its query) added inside.
 
-Two samplers of the same sum: "grid_sample" (the literal form: the reference, training and
-the default export) and "gather" (layers/gather_sampling.py: channels-last corner gathers and
-one weighted MatMul, no GridSample). `export_attention_form` switches a model to the gather
-sampler with the block's chained projections folded (`e3dpsm export --attention-form
-gather`); it equals the literal form to float32 round-off (tests/test_deformable_export.py).
+Three samplers of the same sum: "grid_sample" (the literal form: the reference and
+training), "gather" (layers/gather_sampling.py: channels-last corner gathers and one weighted
+MatMul, no GridSample) and "deform_conv" (layers/deform_conv_sampling.py: one ONNX DeformConv
+node, opset >= 19, with the block's projections as 1x1 convolutions around it, channels
+first). `export_attention_form` switches a model to an export sampler with the block's
+chained projections folded (`e3dpsm export --attention-form`); each equals the literal form
+to float32 round-off (tests/test_deformable_export.py).
 """
 from __future__ import annotations
 
@@ -27,11 +29,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from e3dpsm.layers.deform_conv_sampling import deform_conv_sample, kernel_grid
 from e3dpsm.layers.feedforward import GEGLU
 from e3dpsm.layers.gather_sampling import bilinear_gather
 
 ATTENTION_LAYOUTS: tuple[str, ...] = ("2d", "1d")
-SAMPLERS: tuple[str, ...] = ("grid_sample", "gather")
+SAMPLERS: tuple[str, ...] = ("grid_sample", "gather", "deform_conv")
 
 
 def uniform_reference_grid(height: int, width: int) -> torch.Tensor:
@@ -128,6 +131,22 @@ class DeformableAttention(nn.Module):
         origin = centre.t().repeat_interleave(slots, dim=0).t()  # [H*W or 1, 2 * slots]
         return weight, bias, origin
 
+    def deform_conv_offset_projection(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(weight, bias, origin) giving DeformConv's offsets channels first:
+        offsets = conv1x1(query map; weight, bias) + origin, [N, 2 * slots, H, W], (dy, dx) per
+        (head, point) slot, the kernel's own grid subtracted (deform_conv_sampling). origin is
+        [1, 2 * slots, H, W]; all three are parameter-only and fold at export."""
+        height, width = self.map_hw
+        slots = self.heads * self.points
+        dim = self.sampling_offsets.in_features
+        weight = self.sampling_offsets.weight.view(slots, 2, dim).flip(1).reshape(2 * slots, dim)
+        bias = self.sampling_offsets.bias.view(slots, 2).flip(1).reshape(2 * slots)
+        centre = self.reference * self.reference.new_tensor([width, height]) - 0.5  # [H*W or 1, (x, y)]
+        centre_yx = centre.flip(-1).t().reshape(1, 2, -1, 1)  # [1, 2, H*W or 1, 1]
+        centre_yx = centre_yx.reshape(1, 2, height, width) if centre.shape[0] > 1 else centre_yx
+        grid = kernel_grid(self.map_hw, self.points, centre.dtype).to(centre.device).repeat(self.heads, 1, 1, 1)
+        return weight, bias, (centre_yx - grid).reshape(1, 2 * slots, height, width)
+
     def sample(self, value: torch.Tensor, xy: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
         """The attention-weighted sampling by `self.sampler`: value [N, H*W, dim] (projected),
         xy [N, L, 2 * slots] pixel coordinates (x block, then y block), logits [N, L, slots]
@@ -140,6 +159,13 @@ class DeformableAttention(nn.Module):
         if self.sampler == "gather":
             value = value.view(n, value.shape[1], heads, head_dim)
             return bilinear_gather(value, self.map_hw, x, y, weights).reshape(n, num_tokens, self.dim)
+        if self.sampler == "deform_conv":
+            grid = kernel_grid(self.map_hw, points, xy.dtype).to(xy.device)  # [points, (row, col), H, W]
+            yx = torch.stack([y, x], dim=-1).permute(0, 2, 3, 4, 1).reshape(n, heads, points, 2, height, width)
+            offsets = (yx - grid).reshape(n, 2 * heads * points, height, width)
+            mask = weights.permute(0, 2, 3, 1).reshape(n, heads * points, height, width)
+            value = value.transpose(1, 2).reshape(n, self.dim, height, width)
+            return deform_conv_sample(value, offsets, mask, heads).flatten(2).transpose(1, 2)
         value = value.view(n, height, width, heads, head_dim).permute(0, 3, 4, 1, 2)
         grid = torch.stack([(2.0 * x + 1.0) / width - 1.0, (2.0 * y + 1.0) / height - 1.0], dim=-1)
         grid = grid.transpose(1, 2).reshape(n * heads, num_tokens, points, 2)
@@ -150,7 +176,7 @@ class DeformableAttention(nn.Module):
 
     def forward(self, query: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
         """query, value: [N, L, dim] tokens (row-major over the h x w map) -> [N, L, dim]."""
-        if self.sampler == "gather":
+        if self.sampler != "grid_sample":
             weight, bias, origin = self.pixel_offset_projection()
             xy = F.linear(query, weight, bias) + origin
             out = self.sample(self.value_proj(value), xy, self.attention_weights(query))
@@ -208,17 +234,44 @@ class DeformableTransformerBlock(nn.Module):
         Wo2 (Wo1 s + bo1 + q) + bo2 = (Wo2 Wo1) s + Wo2 q + (Wo2 bo1 + bo2), and
         Wv (Wv' q + bv') + bv = (Wv Wv') q + (Wv bv' + bv). Parameter-only products fold at export."""
         attn, inner = self.attn, self.attn.dim
-        offset_w, offset_b, origin = attn.pixel_offset_projection()
         value_w = attn.value_proj.weight @ self.attn_value_proj.weight
         value_b = attn.value_proj.weight @ self.attn_value_proj.bias + attn.value_proj.bias
-        weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
-        bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
-        slots = attn.heads * attn.points
-        value, xy, logits, identity = F.linear(query, weight, bias).split([inner, 2 * slots, slots, inner], dim=-1)
-        sampled = attn.sample(value, xy + origin, logits)
         out_w = self.attn_output_proj.weight @ attn.output_proj.weight
         out_b = self.attn_output_proj.weight @ attn.output_proj.bias + self.attn_output_proj.bias
+        slots = attn.heads * attn.points
+        sizes = [inner, 2 * slots, slots, inner]
+        if attn.sampler == "deform_conv":
+            return self._folded_attention_channels_first(query, value_w, value_b, out_w, out_b, sizes)
+        offset_w, offset_b, origin = attn.pixel_offset_projection()
+        weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
+        bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
+        value, xy, logits, identity = F.linear(query, weight, bias).split(sizes, dim=-1)
+        sampled = attn.sample(value, xy + origin, logits)
         return F.linear(sampled, out_w, out_b) + identity
+
+    def _folded_attention_channels_first(
+        self, query: torch.Tensor, value_w: torch.Tensor, value_b: torch.Tensor, out_w: torch.Tensor,
+        out_b: torch.Tensor, sizes: list[int],
+    ) -> torch.Tensor:
+        """The folded attention around one DeformConv: one token-layout product gives value,
+        offsets, logits and the identity term; the softmax runs over each head's points on the
+        last axis; value, offsets and weights go channels first for the DeformConv (which
+        reads and writes NCHW), and the samples come back to tokens for one output product."""
+        attn = self.attn
+        n, num_tokens, inner = query.shape
+        height, width = attn.map_hw
+        offset_w, offset_b, origin = attn.deform_conv_offset_projection()
+        weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
+        bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
+        value, offsets, logits, identity = F.linear(query, weight, bias).split(sizes, dim=-1)
+        weights = logits.view(n, num_tokens, attn.heads, attn.points).softmax(dim=-1)
+
+        def channels_first(tokens: torch.Tensor) -> torch.Tensor:
+            return tokens.transpose(1, 2).reshape(n, -1, height, width)
+
+        sampled = deform_conv_sample(channels_first(value), channels_first(offsets) + origin,
+                                     channels_first(weights.flatten(2)), attn.heads)
+        return F.linear(sampled.flatten(2).transpose(1, 2), out_w, out_b) + identity
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, _, h, w = x.shape
