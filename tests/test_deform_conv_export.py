@@ -228,6 +228,12 @@ def test_deform_conv_graph_runs_in_openvino(deform_conv_tiny) -> None:
     ort_out, _ = ort_session.step(frame, ort_session.init_state(1), 20.0)
     ov_out, _ = ov_session.step(frame, ov_session.init_state(1), 20.0)
     assert np.abs(ov_out["pose"] - ort_out["pose"]).max() <= 0.01
+    # `e3dpsm convert` reads the ONNX file through the same rule: the IR holds native ops.
+    from e3dpsm.export.openvino_ir import convert_step_graph
+
+    model, _ = convert_step_graph(path, stateful=True)
+    ops = [op.get_type_name() for op in model.get_ops()]
+    assert ops.count("DeformableConvolution") == sum(b.uses_sampling for b in deform_conv_tiny["2d"][0].attention)
 
 
 def test_deform_conv_sampling_counted_like_grid_sample(deform_conv_tiny) -> None:
