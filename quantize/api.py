@@ -51,6 +51,9 @@ class QuantizeOptions:
     split: str = "train"           # calibration frames
     holdout_split: str = "val"     # accuracy check (never calibration frames)
     holdout_frames: int = 200      # per held-out sequence
+    # `nodes` search: held-out frames per sequence for the solo trials that only rank the
+    # nodes (0: all of --holdout-frames). The probes, the choice and the report use them all.
+    rank_frames: int = 64
     max_rounds: int = 4
     # `--exclude auto` strategy: "nodes" (sensitivity-ranked, int8) or "groups" (greedy over
     # module / op-type groups); None: nodes for int8, groups for fp16 (exclusions.py).
@@ -74,6 +77,8 @@ class QuantizeOptions:
             raise ConfigError(f"unknown objective {self.objective!r}; choose from {list(OBJECTIVES)}")
         if self.timing_steps < 1 or self.max_timed < 1:
             raise ConfigError("timing_steps and max_timed must be positive")
+        if self.rank_frames < 0:
+            raise ConfigError(f"--rank-frames must be >= 0, got {self.rank_frames}")
         if self.budget_pct is not None and not self.budget_pct > 0:
             raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
         if self.search not in (None, *SEARCHES):
@@ -231,9 +236,11 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             # The compute nodes only (also under --int8-elementwise): one trial per ranked node.
             targets = [n.name for n in pre_model.graph.node
                        if n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES and n.name not in kept]
-            alone = _evaluator(pre_meta, holdout, options, work, build)
-            ranked = node_sensitivity(targets, lambda node: alone([n for n in every if n != node], f"alone_{node}"))
+            ranked, rank_frames = rank_nodes(targets, every, holdout, options.rank_frames,
+                                             lambda subset: _evaluator(pre_meta, subset, options, work, build))
         search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
+        if ranked is not None:
+            search.rank_frames = rank_frames
         fixed = search.excluded_nodes
         quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
@@ -275,6 +282,21 @@ def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path, timing: _
             "float_groups": _float_group_names(recurrent, search),
             "kept_float32_nodes": len(fixed), "excluded_nodes": fixed}
     return model, info, _search_report(search, [*recurrent, *groups], latency)
+
+
+def rank_nodes(
+    targets: list[str], every: list[str], holdout: HoldoutSet, rank_frames: int,
+    make_evaluator: Callable[[HoldoutSet], Callable[[list[str], str], float]],
+) -> tuple[list[dict], int]:
+    """The nodes search's sensitivity rows (each target quantised alone, every other node in
+    float), measured on the first `rank_frames` of each held-out sequence (0: all), and the
+    frames per sequence used. Ranking only orders the nodes; the probes that choose how
+    many stay in float run on every held-out frame, so a shorter ranking set trades only
+    the order's precision for time (one trial per node dominates the search)."""
+    subset = holdout.head(rank_frames) if rank_frames else holdout
+    alone = make_evaluator(subset)
+    rows = node_sensitivity(targets, lambda node: alone([n for n in every if n != node], f"alone_{node}"))
+    return rows, max(len(g) for g in subset.gt)
 
 
 def _evaluator(meta: GraphMetadata, holdout: HoldoutSet, options: QuantizeOptions, work: Path,

@@ -42,6 +42,8 @@ class SearchResult:
     strategy: str = "groups"
     # `nodes` search: every ranked node with its error when quantised alone, highest first.
     sensitivity: list[dict] = field(default_factory=list)
+    # `nodes` search: held-out frames per sequence the solo (ranking) trials ran on.
+    rank_frames: int | None = None
 
     @property
     def within_budget(self) -> bool:
@@ -52,6 +54,7 @@ class SearchResult:
                "budget_pct": self.budget_pct, "within_budget": self.within_budget, "trials": self.trials}
         if self.sensitivity:
             out["sensitivity"] = self.sensitivity
+            out["rank_frames"] = self.rank_frames
         return out
 
 

@@ -38,6 +38,14 @@ class HoldoutSet:
     def fp32_mpjpe(self) -> float:
         return _pooled_mpjpe(self.fp32, self.gt)
 
+    def head(self, frames: int) -> HoldoutSet:
+        """The first `frames` of every sequence. The streams are causal, so the FP32 outputs
+        on a sequence's head are the head of its outputs: nothing is re-run."""
+        if frames < 1:
+            raise ValueError(f"frames must be positive, got {frames}")
+        return HoldoutSet([x[:frames] for x in self.lnes], [g[:frames] for g in self.gt],
+                          [{k: v[:frames] for k, v in o.items()} for o in self.fp32_outputs], self.window_ms)
+
 
 def _pooled_mpjpe(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> float:
     return mpjpe(np.concatenate(preds), np.concatenate(gts))

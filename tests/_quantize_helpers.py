@@ -15,7 +15,7 @@ from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
 
 SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
 TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
-FAST = dict(frames=16, holdout_frames=40, max_rounds=1)
+FAST = dict(frames=16, holdout_frames=40, rank_frames=20, max_rounds=1)
 # The trained tiny's INT8 graph is 10.4% of its MPJPE away from fp32 with only the recurrence
 # in float, 3.7% once the search keeps the decoder in float too (measured). The 1% bar is
 # for trained full-size models (benchmarks/bench_quantize.py on `small`); a budget between

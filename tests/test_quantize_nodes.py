@@ -9,7 +9,7 @@ import math
 import onnx
 import pytest
 
-from _quantize_helpers import INT8_TEST_BUDGET_PCT
+from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize import QuantizeOptions
 from e3dpsm.quantize.exclusions import node_sensitivity, ranked_prefix_exclusions
@@ -88,6 +88,65 @@ def test_latency_objective_picks_the_faster_of_two_prefixes_within_budget():
     assert accurate.chosen.label == inside[0].label
 
 
+def _holdout(sequences: int = 2, frames: int = 10):
+    import numpy as np
+
+    from e3dpsm.quantize.holdout import HoldoutSet
+
+    rng = np.random.default_rng(0)
+    gt = [rng.normal(size=(frames, 16, 3)) * 100 for _ in range(sequences)]
+    outputs = [{name: g + rng.normal(size=g.shape) * scale for name, scale in
+                (("pose", 30.0), ("pose_direct", 40.0), ("pose_delta", 50.0))} for g in gt]
+    lnes = [rng.random((frames, 2, 4, 4)).astype(np.float32) for _ in range(sequences)]
+    return HoldoutSet(lnes, gt, outputs, 20.0)
+
+
+def test_holdout_head_is_the_first_frames_of_every_stream():
+    import numpy as np
+
+    from e3dpsm.metrics import mpjpe
+
+    full = _holdout()
+    head = full.head(4)
+    assert head.frames == 8 and head.window_ms == full.window_ms
+    for h, f in zip(head.fp32_outputs, full.fp32_outputs):
+        assert set(h) == set(f) and all(np.array_equal(h[k], f[k][:4]) for k in f)
+    expected = mpjpe(np.concatenate([o["pose"][:4] for o in full.fp32_outputs]),
+                     np.concatenate([g[:4] for g in full.gt]))
+    assert head.fp32_mpjpe == pytest.approx(expected) and head.fp32_mpjpe != pytest.approx(full.fp32_mpjpe)
+    assert full.head(100).frames == full.frames  # longer than the streams: all of them
+    with pytest.raises(ValueError):
+        full.head(0)
+
+
+@pytest.mark.parametrize("rank_frames, per_sequence", [(4, 4), (0, 10)])
+def test_ranking_runs_on_the_head_of_the_held_out_streams(rank_frames, per_sequence):
+    """The solo trials see only `rank_frames` per sequence (0: all); each quantises exactly
+    its own node; the rows come back highest error first."""
+    from e3dpsm.quantize.api import rank_nodes
+
+    seen_frames, trials = [], []
+
+    def make_evaluator(subset):
+        seen_frames.append(subset.frames)
+
+        def evaluate(excluded, label):
+            quantised = [n for n in SOLO if n not in excluded]
+            trials.append((label, quantised))
+            return SOLO[quantised[0]]
+        return evaluate
+
+    rows, used = rank_nodes(list(SOLO), list(SOLO), _holdout(), rank_frames, make_evaluator)
+    assert seen_frames == [2 * per_sequence] and used == per_sequence
+    assert all(quantised == [label.removeprefix("alone_")] for label, quantised in trials) and len(trials) == len(SOLO)
+    assert [r["node"] for r in rows] == sorted(SOLO, key=lambda n: -SOLO[n])
+
+
+def test_rank_frames_must_not_be_negative():
+    with pytest.raises(ConfigError, match="rank-frames"):
+        QuantizeOptions(mode="int8", rank_frames=-1)
+
+
 def test_nodes_search_is_int8_only():
     assert QuantizeOptions(mode="int8").strategy == "nodes"
     assert QuantizeOptions(mode="fp16").strategy == "groups"
@@ -108,6 +167,7 @@ def test_nodes_search_end_to_end_on_the_trained_tiny(int8_dir, trained_graph):  
     ranked = search["sensitivity"]
     ops = {n.name: n.op_type for n in onnx.load(str(trained_graph)).graph.node}
     assert search["strategy"] == "nodes" and len(ranked) >= 10
+    assert search["rank_frames"] == FAST["rank_frames"] < FAST["holdout_frames"]
     assert all(ops.get(r["node"], "Conv") in ("Conv", "MatMul", "Gemm") for r in ranked)
     assert [r["error_pct"] for r in ranked] == sorted((r["error_pct"] for r in ranked), reverse=True)
     assert search["trials"][0]["error_pct"] > INT8_TEST_BUDGET_PCT

@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     add_model_source(p)
     p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
     p.add_argument("--opset", type=int, default=None,
-                   help="ONNX opset (default: the lowest the attention form needs, 17, or 19 for deform_conv; 17-21 supported)")
+                   help="ONNX opset (default: the lowest the attention form needs, 17, or 19 for "
+                        "deform_conv; 17-21 supported)")
     p.add_argument("--no-simplify", action="store_true", help="skip onnxsim simplification")
     p.add_argument("--static-batch", action="store_true",
                    help="fix the batch axis to 1 (fewer shape operators; single-stream devices)")

@@ -43,6 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--split", default="train", help="split the calibration frames come from (default train)")
     p.add_argument("--holdout-split", default="val", help="split for the accuracy check (default val)")
     p.add_argument("--holdout-frames", type=positive_int, default=200, help="frames per held-out sequence (default 200)")
+    p.add_argument("--rank-frames", type=int, default=64,
+                   help="--search nodes: frames per held-out sequence for the one-node-at-a-time trials that only "
+                        "rank the nodes (default 64; 0: all --holdout-frames); the choice uses them all")
     p.add_argument("--threads", type=positive_int, default=None, help="ORT threads (default: all)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=run)
@@ -56,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     options = QuantizeOptions(
         mode=args.mode, calibration=args.calibration, frames=args.frames, exclude=args.exclude,
         budget_pct=args.budget_pct, split=args.split, holdout_split=args.holdout_split,
-        holdout_frames=args.holdout_frames, threads=args.threads, objective=args.objective,
+        holdout_frames=args.holdout_frames, rank_frames=args.rank_frames, threads=args.threads,
+        objective=args.objective,
         timing_steps=args.timing_steps, search=args.search,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
