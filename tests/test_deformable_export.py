@@ -128,6 +128,20 @@ def test_folded_block_equals_literal_block(layout: str, hw: tuple[int, int]) -> 
     assert block.attn.sampler == "grid_sample" and not block.fold_projections  # restored
 
 
+def assert_short_rollout_parity(model: torch.nn.Module, session) -> None:
+    """12 carried steps at 25 ms, the project's parity check: every output and state within
+    its tolerance, pose within 0.01 mm of poses of metre scale."""
+    from e3dpsm.export.parity import Tolerances, run_parity
+
+    frames = [f.numpy() for f in sparse_lnes((12, 2, 192, 256), density=0.05, seed=4)]
+    report = run_parity(model, session, frames, 25.0, Tolerances())
+    assert report.steps == 12
+    for diff in report.diffs:
+        assert diff.passed, diff.line()
+    pose = next(d for d in report.diffs if d.name == "pose")
+    assert pose.max_abs <= 0.01 and pose.reference_scale > 100.0
+
+
 @pytest.fixture(scope="module")
 def gather_static_export(tmp_path_factory):
     """A tiny model with trained-looking attention, exported in the gather form with batch 1,
@@ -165,19 +179,12 @@ def test_gather_static_graph_contract(gather_static_export) -> None:
 def test_gather_static_graphs_match_pytorch(gather_static_export, which: str) -> None:
     """A short carried rollout: the literal PyTorch model vs the gather-form graph (and ONNX
     Runtime's pre-optimised copy of it), pose within 0.01 mm, states within 1e-4 relative."""
-    from e3dpsm.export.parity import Tolerances, run_parity
     from e3dpsm.runtime import StepSession
 
     model, path, ort_path, _, info = gather_static_export
     assert info["level"] == "extended" and info["onnxruntime"]
     session = StepSession(path if which == "portable" else ort_path, threads=1, spin=False)
-    frames = [f.numpy() for f in sparse_lnes((12, 2, 192, 256), density=0.05, seed=4)]
-    report = run_parity(model, session, frames, 25.0, Tolerances())
-    assert report.steps == 12
-    for diff in report.diffs:
-        assert diff.passed, diff.line()
-    pose = next(d for d in report.diffs if d.name == "pose")
-    assert pose.max_abs <= 0.01 and pose.reference_scale > 100.0
+    assert_short_rollout_parity(model, session)
 
 
 def test_export_form_does_not_change_the_model() -> None:
