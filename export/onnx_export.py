@@ -5,12 +5,13 @@ initialised flag) are explicit inputs and outputs with paired names (`x_in` -> `
 the batch axis is dynamic (or fixed to 1 with `static_batch`); only default-domain operators
 are allowed, so the same file runs on ONNX Runtime (CPU, CUDA, TensorRT) and OpenVINO.
 
-Deformable attention exports in its literal GridSample form by default; `attention_form=
-"gather"` selects the export form of layers/deformable.py (channels-last corner gathers, one
-weighted MatMul, folded projections; no GridSample), equal to float32 round-off. The gather
-form is not the default: in ONNX Runtime 1.31 it measured only a few per cent faster
-(benchmarks/results/deformable.md), and the MAC counters and the INT8 quantiser's float set
-know the GridSample form.
+Deformable attention exports in its literal GridSample form by default (portable to every
+runtime). `attention_form="gather"` writes channels-last corner gathers and one weighted
+MatMul; `attention_form="deform_conv"` one standard DeformConv node per block (opset >= 19),
+the fastest on ONNX Runtime's CPU (1.09x the `paper` step, benchmarks/results/
+deform_conv_paper.md). Both fold the block's projections and equal the literal form to
+float32 round-off. DeformConv is not the default: OpenVINO's ONNX reader needs the rule
+e3dpsm registers (runtime/openvino_session.py), and other runtimes' support varies.
 """
 from __future__ import annotations
 
