@@ -14,8 +14,7 @@ own value and output projections, and mmcv's identity term (its query) added ins
 Three samplers of the same sum: "grid_sample" (the literal form: the reference and
 training), "gather" (layers/gather_sampling.py: channels-last corner gathers and one weighted
 MatMul, no GridSample) and "deform_conv" (layers/deform_conv_sampling.py: one ONNX DeformConv
-node, opset >= 19, with the block's projections as 1x1 convolutions around it, channels
-first). `export_attention_form` switches a model to an export sampler with the block's
+node, opset >= 19, fed channels first). `export_attention_form` switches a model to an export sampler with the block's
 chained projections folded (`e3dpsm export --attention-form`); each equals the literal form
 to float32 round-off (tests/test_deformable_export.py).
 """
@@ -132,10 +131,10 @@ class DeformableAttention(nn.Module):
         return weight, bias, origin
 
     def deform_conv_offset_projection(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(weight, bias, origin) giving DeformConv's offsets channels first:
-        offsets = conv1x1(query map; weight, bias) + origin, [N, 2 * slots, H, W], (dy, dx) per
-        (head, point) slot, the kernel's own grid subtracted (deform_conv_sampling). origin is
-        [1, 2 * slots, H, W]; all three are parameter-only and fold at export."""
+        """(weight, bias, origin) giving DeformConv's offsets: channels_first(query @ weight.T +
+        bias) + origin, [N, 2 * slots, H, W], (dy, dx) per (head, point) slot, the kernel's own
+        grid subtracted (deform_conv_sampling). origin is [1, 2 * slots, H, W]; all three are
+        parameter-only and fold at export."""
         height, width = self.map_hw
         slots = self.heads * self.points
         dim = self.sampling_offsets.in_features
@@ -239,39 +238,33 @@ class DeformableTransformerBlock(nn.Module):
         out_w = self.attn_output_proj.weight @ attn.output_proj.weight
         out_b = self.attn_output_proj.weight @ attn.output_proj.bias + self.attn_output_proj.bias
         slots = attn.heads * attn.points
-        sizes = [inner, 2 * slots, slots, inner]
-        if attn.sampler == "deform_conv":
-            return self._folded_attention_channels_first(query, value_w, value_b, out_w, out_b, sizes)
-        offset_w, offset_b, origin = attn.pixel_offset_projection()
+        channels_first = attn.sampler == "deform_conv"
+        offset_w, offset_b, origin = (attn.deform_conv_offset_projection() if channels_first
+                                      else attn.pixel_offset_projection())
         weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
         bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
-        value, xy, logits, identity = F.linear(query, weight, bias).split(sizes, dim=-1)
-        sampled = attn.sample(value, xy + origin, logits)
+        value, offsets, logits, identity = F.linear(query, weight, bias).split([inner, 2 * slots, slots, inner], dim=-1)
+        sampled = (self._deform_conv_sampling(value, offsets, logits, origin) if channels_first
+                   else attn.sample(value, offsets + origin, logits))
         return F.linear(sampled, out_w, out_b) + identity
 
-    def _folded_attention_channels_first(
-        self, query: torch.Tensor, value_w: torch.Tensor, value_b: torch.Tensor, out_w: torch.Tensor,
-        out_b: torch.Tensor, sizes: list[int],
+    def _deform_conv_sampling(
+        self, value: torch.Tensor, offsets: torch.Tensor, logits: torch.Tensor, origin: torch.Tensor,
     ) -> torch.Tensor:
-        """The folded attention around one DeformConv: one token-layout product gives value,
-        offsets, logits and the identity term; the softmax runs over each head's points on the
-        last axis; value, offsets and weights go channels first for the DeformConv (which
-        reads and writes NCHW), and the samples come back to tokens for one output product."""
+        """Tokens in, tokens out around one DeformConv: the softmax runs over each head's points
+        on the last axis (a middle-axis softmax in NCHW took 1.5-2.3 ms per `paper` step),
+        then value, offsets (+ origin, channels first) and weights go channels first, since
+        DeformConv reads and writes NCHW."""
         attn = self.attn
-        n, num_tokens, inner = query.shape
+        n, num_tokens, _ = value.shape
         height, width = attn.map_hw
-        offset_w, offset_b, origin = attn.deform_conv_offset_projection()
-        weight = torch.cat([value_w, offset_w, attn.attention_weights.weight, self.attn_output_proj.weight])
-        bias = torch.cat([value_b, offset_b, attn.attention_weights.bias, torch.zeros_like(self.attn_output_proj.bias)])
-        value, offsets, logits, identity = F.linear(query, weight, bias).split(sizes, dim=-1)
-        weights = logits.view(n, num_tokens, attn.heads, attn.points).softmax(dim=-1)
+        weights = logits.view(n, num_tokens, attn.heads, attn.points).softmax(dim=-1).flatten(2)
 
-        def channels_first(tokens: torch.Tensor) -> torch.Tensor:
+        def to_map(tokens: torch.Tensor) -> torch.Tensor:
             return tokens.transpose(1, 2).reshape(n, -1, height, width)
 
-        sampled = deform_conv_sample(channels_first(value), channels_first(offsets) + origin,
-                                     channels_first(weights.flatten(2)), attn.heads)
-        return F.linear(sampled.flatten(2).transpose(1, 2), out_w, out_b) + identity
+        sampled = deform_conv_sample(to_map(value), to_map(offsets) + origin, to_map(weights), attn.heads)
+        return sampled.flatten(2).transpose(1, 2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, _, h, w = x.shape
