@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch.onnx import symbolic_helper
 
+from e3dpsm.layers.gather_sampling import sampling_grid
+
 DEFORM_CONV_MIN_OPSET = 19
 
 
@@ -46,7 +48,7 @@ def _grid_sample_reference(value: torch.Tensor, offsets: torch.Tensor, mask: tor
     base = kernel_grid((out_h, out_w), points, value.dtype).to(value.device)
     yx = offsets.view(n, heads, points, 2, out_h, out_w) + base  # pixel (row, column)
     x, y = yx[:, :, :, 1], yx[:, :, :, 0]
-    grid = torch.stack([(2.0 * x + 1.0) / width - 1.0, (2.0 * y + 1.0) / height - 1.0], dim=-1)
+    grid = sampling_grid(x, y, (height, width))
     grid = grid.permute(0, 1, 3, 4, 2, 5).reshape(n * heads, out_h, out_w * points, 2)
     sampled = F.grid_sample(value.reshape(n * heads, channels // heads, height, width), grid,
                             mode="bilinear", padding_mode="zeros", align_corners=False)

@@ -30,7 +30,7 @@ from torch import nn
 
 from e3dpsm.layers.deform_conv_sampling import deform_conv_sample, kernel_grid
 from e3dpsm.layers.feedforward import GEGLU
-from e3dpsm.layers.gather_sampling import bilinear_gather
+from e3dpsm.layers.gather_sampling import bilinear_gather, sampling_grid
 
 ATTENTION_LAYOUTS: tuple[str, ...] = ("2d", "1d")
 SAMPLERS: tuple[str, ...] = ("grid_sample", "gather", "deform_conv")
@@ -166,7 +166,7 @@ class DeformableAttention(nn.Module):
             value = value.transpose(1, 2).reshape(n, self.dim, height, width)
             return deform_conv_sample(value, offsets, mask, heads).flatten(2).transpose(1, 2)
         value = value.view(n, height, width, heads, head_dim).permute(0, 3, 4, 1, 2)
-        grid = torch.stack([(2.0 * x + 1.0) / width - 1.0, (2.0 * y + 1.0) / height - 1.0], dim=-1)
+        grid = sampling_grid(x, y, self.map_hw)
         grid = grid.transpose(1, 2).reshape(n * heads, num_tokens, points, 2)
         sampled = F.grid_sample(value.reshape(n * heads, head_dim, height, width), grid, mode="bilinear",
                                 padding_mode="zeros", align_corners=False)

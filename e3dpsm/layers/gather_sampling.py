@@ -24,9 +24,11 @@ import torch.nn.functional as F
 _PAD_BEFORE, _PAD_AFTER = 1, 2
 
 
-def pixel_coordinates(normalised: torch.Tensor, size: int) -> torch.Tensor:
-    """grid_sample's align_corners=False unnormalisation: [-1, 1] -> pixel index units."""
-    return ((normalised + 1.0) * size - 1.0) / 2.0
+def sampling_grid(x: torch.Tensor, y: torch.Tensor, map_hw: tuple[int, int]) -> torch.Tensor:
+    """Pixel coordinates (pixel centres at integers) -> grid_sample's align_corners=False
+    grid in [-1, 1], (x, y) on a new last axis."""
+    height, width = map_hw
+    return torch.stack([(2.0 * x + 1.0) / width - 1.0, (2.0 * y + 1.0) / height - 1.0], dim=-1)
 
 
 def corner_table(value: torch.Tensor, map_hw: tuple[int, int]) -> torch.Tensor:
