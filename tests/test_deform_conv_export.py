@@ -236,3 +236,35 @@ def test_deform_conv_sampling_counted_like_grid_sample(deform_conv_tiny) -> None
     conv_form = count_onnx(deform_conv_tiny["2d"][1])
     group = "deformable_attention"
     assert conv_form.modules[group].sampling == grid_form.modules[group].sampling > 0
+
+
+@OPENVINO
+@pytest.mark.parametrize("with_bias_and_mask", [True, False])
+def test_openvino_rule_reads_general_deform_conv_nodes(with_bias_and_mask: bool, tmp_path) -> None:
+    """The conversion rule beyond our own nodes: a dense 2 x 3 kernel with stride, padding,
+    two groups and two offset groups, with a non-zero bias and a mask, or with neither;
+    ONNX Runtime's DeformConv is the reference."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(5)
+    n, c_in, c_out, height, width, kh, kw = 1, 4, 6, 5, 7, 2, 3
+    out_h, out_w = (height + 2 - kh) // 2 + 1, (width + 2 - kw) // 2 + 1  # pads 1, stride 2
+    inputs = ["x", "w", "offsets"]
+    initializers = [numpy_helper.from_array(rng.normal(size=(c_out, c_in // 2, kh, kw)).astype(np.float32), "w")]
+    feeds = {"x": rng.normal(size=(n, c_in, height, width)).astype(np.float32),
+             "offsets": (rng.normal(size=(n, 2 * 2 * kh * kw, out_h, out_w)) * 1.5).astype(np.float32)}
+    if with_bias_and_mask:
+        initializers.append(numpy_helper.from_array(rng.normal(size=c_out).astype(np.float32), "b"))
+        feeds["mask"] = rng.uniform(size=(n, 2 * kh * kw, out_h, out_w)).astype(np.float32)
+        inputs += ["b", "mask"]
+    node = helper.make_node("DeformConv", inputs, ["y"], group=2, offset_group=2, kernel_shape=[kh, kw],
+                            pads=[1, 1, 1, 1], strides=[2, 2])
+    graph = helper.make_graph(
+        [node], "deform_conv",
+        [helper.make_tensor_value_info(k, TensorProto.FLOAT, list(v.shape)) for k, v in feeds.items()],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], initializer=initializers)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 19)], ir_version=9)
+    expected = _run_ort(model.SerializeToString(), feeds)
+    got = _run_openvino(model.SerializeToString(), feeds, tmp_path)
+    assert expected.shape == (n, c_out, out_h, out_w)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-5 * np.abs(expected).max())
