@@ -19,8 +19,8 @@ from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
-from e3dpsm.quantize.exclusions import (SearchResult, greedy_exclusions, node_sensitivity, ranked_prefix_exclusions,
-                                        scratch_model_path)
+from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclusions, node_sensitivity,
+                                        ranked_prefix_exclusions, scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
 from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
 from e3dpsm.quantize.front_report import write_search_outputs
@@ -236,11 +236,9 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             # The compute nodes only (also under --int8-elementwise): one trial per ranked node.
             targets = [n.name for n in pre_model.graph.node
                        if n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES and n.name not in kept]
-            ranked, rank_frames = rank_nodes(targets, every, holdout, options.rank_frames,
-                                             lambda subset: _evaluator(pre_meta, subset, options, work, build))
+            ranked = rank_nodes(targets, every, holdout, options.rank_frames,
+                                lambda subset: _evaluator(pre_meta, subset, options, work, build))
         search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
-        if ranked is not None:
-            search.rank_frames = rank_frames
         fixed = search.excluded_nodes
         quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
@@ -287,16 +285,15 @@ def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path, timing: _
 def rank_nodes(
     targets: list[str], every: list[str], holdout: HoldoutSet, rank_frames: int,
     make_evaluator: Callable[[HoldoutSet], Callable[[list[str], str], float]],
-) -> tuple[list[dict], int]:
-    """The nodes search's sensitivity rows (each target quantised alone, every other node in
-    float), measured on the first `rank_frames` of each held-out sequence (0: all), and the
-    frames per sequence used. Ranking only orders the nodes; the probes that choose how
+) -> NodeRanking:
+    """The nodes search's ranking: each target quantised alone (every other node in float),
+    measured on the first `rank_frames` of each held-out sequence (0: all). Ranking only orders the nodes; the probes that choose how
     many stay in float run on every held-out frame, so a shorter ranking set trades only
     the order's precision for time (one trial per node dominates the search)."""
     subset = holdout.head(rank_frames) if rank_frames else holdout
     alone = make_evaluator(subset)
     rows = node_sensitivity(targets, lambda node: alone([n for n in every if n != node], f"alone_{node}"))
-    return rows, max(len(g) for g in subset.gt)
+    return NodeRanking(rows, frames=max(len(g) for g in subset.gt))
 
 
 def _evaluator(meta: GraphMetadata, holdout: HoldoutSet, options: QuantizeOptions, work: Path,
@@ -325,20 +322,18 @@ def _evaluator(meta: GraphMetadata, holdout: HoldoutSet, options: QuantizeOption
 def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
                          options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
                          built: list[tuple[list[str], Path]] | None = None,
-                         ranked: list[dict] | None = None) -> SearchResult:
+                         ranked: NodeRanking | None = None) -> SearchResult:
     """`--exclude auto` for either mode: the greedy group search, or with `ranked` (the
-    nodes search's sensitivity rows) the ranked-prefix search."""
+    nodes search's ranking) the ranked-prefix search."""
     evaluate = _evaluator(meta, holdout, options, work, build, built)
     if ranked is not None:
-        result = ranked_prefix_exclusions(keep, [r["node"] for r in ranked], options.budget, evaluate)
-        result.sensitivity = ranked
-        return result
+        return ranked_prefix_exclusions(keep, ranked, options.budget, evaluate)
     return greedy_exclusions(keep, list(groups), options.budget, evaluate, options.max_rounds)
 
 
 def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
                     options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
-                    timing: _Timing, ranked: list[dict] | None = None) -> tuple[SearchResult, LatencySearch]:
+                    timing: _Timing, ranked: NodeRanking | None = None) -> tuple[SearchResult, LatencySearch]:
     """The greedy search, then a bounded number of its trial graphs timed beside the fp32
     graph and one picked by the objective (front.py). The returned result's `chosen` /
     `excluded_nodes` / `error_pct` are that final choice; its trials are the greedy's."""
@@ -356,7 +351,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         cand.path = None
     chosen = latency.chosen
     final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.budget,
-                         greedy.trials, greedy.strategy, greedy.sensitivity)
+                         greedy.trials, greedy.strategy, greedy.sensitivity, greedy.rank_frames)
     return final, latency
 
 

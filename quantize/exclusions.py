@@ -94,6 +94,18 @@ def greedy_exclusions(
     return result
 
 
+@dataclass(frozen=True)
+class NodeRanking:
+    """The nodes search's ranking: every target node with its held-out error when quantised
+    alone (highest first), and the held-out frames per sequence those solo trials ran on."""
+    rows: list[dict]
+    frames: int | None = None
+
+    @property
+    def nodes(self) -> list[str]:
+        return [r["node"] for r in self.rows]
+
+
 def node_sensitivity(nodes: list[str], evaluate_alone: Callable[[str], float]) -> list[dict]:
     """[{node, error_pct}] with each node quantised alone, highest error first (ties: name)."""
     rows = [{"node": node, "error_pct": float(evaluate_alone(node))} for node in nodes]
@@ -105,7 +117,7 @@ def prefix_label(k: int) -> str:
 
 
 def ranked_prefix_exclusions(
-    base: list[str], ranked: list[str], budget_pct: float,
+    base: list[str], ranking: NodeRanking, budget_pct: float,
     evaluate: Callable[[list[str], str], float], max_trials: int = 24,
 ) -> SearchResult:
     """Keep the `k` highest-ranked nodes in float (beyond `base`), for the smallest k whose
@@ -113,8 +125,10 @@ def ranked_prefix_exclusions(
     are float), then bisection between the last k over budget and the first within. The
     bisection assumes the error falls as k grows; where it does not, the result is still a
     measured k within budget, the smallest the probes found. `max_trials` bounds the probes.
-    Without any k within budget, the most accurate k measured is returned."""
+    Without any k within budget, the most accurate k measured is returned. The result carries
+    the ranking (its rows and frames) for the report."""
     base = list(dict.fromkeys(base))
+    ranked = ranking.nodes
     measured: dict[int, float] = {}
     trials: list[dict] = []
 
@@ -150,7 +164,7 @@ def ranked_prefix_exclusions(
     k = within if within is not None else min(measured, key=lambda key: (measured[key], key))
     chosen = [] if k == 0 else [prefix_label(k)]
     result = SearchResult(chosen, list(dict.fromkeys(base + ranked[:k])), measured[k], budget_pct, trials,
-                          strategy="nodes")
+                          strategy="nodes", sensitivity=ranking.rows, rank_frames=ranking.frames)
     if not result.within_budget:
         log.warning("held-out error %.3f%% is above the %.3g%% budget with %d ranked node(s) in float; raise "
                     "--budget-pct or keep more in float with --exclude", measured[k], budget_pct, k)

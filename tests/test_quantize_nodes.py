@@ -12,7 +12,7 @@ import pytest
 from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize import QuantizeOptions
-from e3dpsm.quantize.exclusions import node_sensitivity, ranked_prefix_exclusions
+from e3dpsm.quantize.exclusions import NodeRanking, node_sensitivity, ranked_prefix_exclusions
 from e3dpsm.quantize.front import candidates_from_search, latency_aware_choice
 
 # Per-node error when quantised alone; quantising several adds them in quadrature (what the
@@ -39,40 +39,43 @@ def test_sensitivity_ranks_highest_error_first():
 
 @pytest.mark.parametrize("budget", [0.5, 1.0, 2.0, 3.0, 5.0, 9.0, 20.0])
 def test_prefix_search_finds_the_smallest_k_within_budget(budget):
-    ranked = [r["node"] for r in node_sensitivity(list(SOLO), SOLO.__getitem__)]
+    ranking = NodeRanking(node_sensitivity(list(SOLO), SOLO.__getitem__), frames=7)
+    ranked = ranking.nodes
     calls = []
 
     def evaluate(excluded, label):
         calls.append(label)
         return quadrature(excluded)
 
-    result = ranked_prefix_exclusions(["r1", "r2"], ranked, budget, evaluate)
+    result = ranked_prefix_exclusions(["r1", "r2"], ranking, budget, evaluate)
     k = brute_force_smallest_k(ranked, budget)
     assert result.within_budget
     assert result.excluded_nodes == ["r1", "r2", *ranked[:k]]
     assert result.chosen == ([] if k == 0 else [f"top{k}"])
     assert result.error_pct == pytest.approx(quadrature(ranked[:k]))
     assert len(calls) == len(set(calls)) <= 1 + 2 * math.ceil(math.log2(len(ranked))) + 1  # doubling + bisection
-    assert result.to_dict()["strategy"] == "nodes"
+    report = result.to_dict()
+    assert report["strategy"] == "nodes" and report["sensitivity"] == ranking.rows and report["rank_frames"] == 7
 
 
 def test_prefix_search_without_any_k_within_budget_returns_the_most_accurate():
     ranked = list(SOLO)
-    result = ranked_prefix_exclusions([], ranked, 0.01, lambda ex, label: 1.0 + 0.01 * abs(len(ex) - 5))
+    ranking = NodeRanking([{"node": n, "error_pct": 0.0} for n in ranked])
+    result = ranked_prefix_exclusions([], ranking, 0.01, lambda ex, label: 1.0 + 0.01 * abs(len(ex) - 5))
     assert not result.within_budget and result.error_pct == pytest.approx(1.0 + 0.01 * min(
         abs(t["float_nodes"] - 5) for t in result.trials))
     assert result.trials[-1]["float_nodes"] == len(ranked)  # it tried everything in float before giving up
 
 
 def test_latency_objective_picks_the_faster_of_two_prefixes_within_budget():
-    ranked = [r["node"] for r in node_sensitivity(list(SOLO), SOLO.__getitem__)]
+    ranking = NodeRanking(node_sensitivity(list(SOLO), SOLO.__getitem__))
     built = []
 
     def evaluate(excluded, label):
         built.append((list(excluded), None))
         return quadrature(excluded)
 
-    result = ranked_prefix_exclusions([], ranked, 2.0, evaluate)
+    result = ranked_prefix_exclusions([], ranking, 2.0, evaluate)
     cands = candidates_from_search(result, built)
     for c in cands:
         c.path = f"/nowhere/{c.label}.onnx"
@@ -136,8 +139,9 @@ def test_ranking_runs_on_the_head_of_the_held_out_streams(rank_frames, per_seque
             return SOLO[quantised[0]]
         return evaluate
 
-    rows, used = rank_nodes(list(SOLO), list(SOLO), _holdout(), rank_frames, make_evaluator)
-    assert seen_frames == [2 * per_sequence] and used == per_sequence
+    ranking = rank_nodes(list(SOLO), list(SOLO), _holdout(), rank_frames, make_evaluator)
+    rows = ranking.rows
+    assert seen_frames == [2 * per_sequence] and ranking.frames == per_sequence
     assert all(quantised == [label.removeprefix("alone_")] for label, quantised in trials) and len(trials) == len(SOLO)
     assert [r["node"] for r in rows] == sorted(SOLO, key=lambda n: -SOLO[n])
 
