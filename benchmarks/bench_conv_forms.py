@@ -122,7 +122,8 @@ def winograd_conv_graph(shape: ConvShape, weight: np.ndarray, bias: np.ndarray, 
         helper.make_node("MatMul", ["U", "v"], ["products"]),
         helper.make_node("Reshape", ["products", shape_const("p_shape", [a * a, o * tiles])], ["products_flat"]),
         helper.make_node("MatMul", ["A", "products_flat"], ["y_tiles"]),
-        helper.make_node("Reshape", ["y_tiles", shape_const("y_shape", [1, m * m * o, tiles_h, tiles_w])], ["y_blocks"]),
+        helper.make_node("Reshape", ["y_tiles", shape_const("y_shape", [1, m * m * o, tiles_h, tiles_w])],
+                         ["y_blocks"]),
         helper.make_node("DepthToSpace", ["y_blocks"], ["y_full"], blocksize=m, mode="DCR"),
     ]
     last = "y_full"

@@ -287,9 +287,10 @@ def rank_nodes(
     make_evaluator: Callable[[HoldoutSet], Callable[[list[str], str], float]],
 ) -> NodeRanking:
     """The nodes search's ranking: each target quantised alone (every other node in float),
-    measured on the first `rank_frames` of each held-out sequence (0: all). Ranking only orders the nodes; the probes that choose how
-    many stay in float run on every held-out frame, so a shorter ranking set trades only
-    the order's precision for time (one trial per node dominates the search)."""
+    measured on the first `rank_frames` of each held-out sequence (0: all). Ranking only
+    orders the nodes; the probes that choose how many stay in float run on every held-out
+    frame, so a shorter ranking set trades only the order's precision for time (one trial
+    per node dominates the search)."""
     subset = holdout.head(rank_frames) if rank_frames else holdout
     alone = make_evaluator(subset)
     rows = node_sensitivity(targets, lambda node: alone([n for n in every if n != node], f"alone_{node}"))
