@@ -14,9 +14,10 @@ own value and output projections, and mmcv's identity term (its query) added ins
 Three samplers of the same sum: "grid_sample" (the literal form: the reference and
 training), "gather" (layers/gather_sampling.py: channels-last corner gathers and one weighted
 MatMul, no GridSample) and "deform_conv" (layers/deform_conv_sampling.py: one ONNX DeformConv
-node, opset >= 19, fed channels first). `export_attention_form` switches a model to an export sampler with the block's
-chained projections folded (`e3dpsm export --attention-form`); each equals the literal form
-to float32 round-off (tests/test_deformable_export.py).
+node, opset >= 19, fed channels first). `export_attention_form` switches a model to an
+export sampler with the block's chained projections folded (`e3dpsm export
+--attention-form`); each equals the literal form to float32 round-off
+(tests/test_deformable_export.py).
 """
 from __future__ import annotations
 
@@ -146,6 +147,19 @@ class DeformableAttention(nn.Module):
         grid = kernel_grid(self.map_hw, self.points, centre.dtype).to(centre.device).repeat(self.heads, 1, 1, 1)
         return weight, bias, (centre_yx - grid).reshape(1, 2 * slots, height, width)
 
+    def deform_conv_tokens(self, value: torch.Tensor, offsets: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Tokens in, tokens out around one DeformConv, which reads and writes NCHW: value
+        [N, L, dim] and the softmaxed weights [N, L, heads, points] go channels first beside
+        offsets [N, 2 * slots, H, W] (kernel grid subtracted); the samples come back [N, L, dim]."""
+        n = value.shape[0]
+        height, width = self.map_hw
+
+        def to_map(tokens: torch.Tensor) -> torch.Tensor:
+            return tokens.transpose(1, 2).reshape(n, -1, height, width)
+
+        sampled = deform_conv_sample(to_map(value), offsets, to_map(weights.flatten(2)), self.heads)
+        return sampled.flatten(2).transpose(1, 2)
+
     def sample(self, value: torch.Tensor, xy: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
         """The attention-weighted sampling by `self.sampler`: value [N, H*W, dim] (projected),
         xy [N, L, 2 * slots] pixel coordinates (x block, then y block), logits [N, L, slots]
@@ -162,9 +176,7 @@ class DeformableAttention(nn.Module):
             grid = kernel_grid(self.map_hw, points, xy.dtype).to(xy.device)  # [points, (row, col), H, W]
             yx = torch.stack([y, x], dim=-1).permute(0, 2, 3, 4, 1).reshape(n, heads, points, 2, height, width)
             offsets = (yx - grid).reshape(n, 2 * heads * points, height, width)
-            mask = weights.permute(0, 2, 3, 1).reshape(n, heads * points, height, width)
-            value = value.transpose(1, 2).reshape(n, self.dim, height, width)
-            return deform_conv_sample(value, offsets, mask, heads).flatten(2).transpose(1, 2)
+            return self.deform_conv_tokens(value, offsets, weights)
         value = value.view(n, height, width, heads, head_dim).permute(0, 3, 4, 1, 2)
         grid = sampling_grid(x, y, self.map_hw)
         grid = grid.transpose(1, 2).reshape(n * heads, num_tokens, points, 2)
@@ -251,20 +263,15 @@ class DeformableTransformerBlock(nn.Module):
     def _deform_conv_sampling(
         self, value: torch.Tensor, offsets: torch.Tensor, logits: torch.Tensor, origin: torch.Tensor,
     ) -> torch.Tensor:
-        """Tokens in, tokens out around one DeformConv: the softmax runs over each head's points
-        on the last axis (a middle-axis softmax in NCHW took 1.5-2.3 ms per `paper` step),
-        then value, offsets (+ origin, channels first) and weights go channels first, since
-        DeformConv reads and writes NCHW."""
+        """The folded projections' token outputs into `deform_conv_tokens`: the softmax runs
+        over each head's points on the last axis in token layout (a middle-axis softmax in NCHW
+        took 1.5-2.3 ms per `paper` step); the offsets go channels first and take the origin."""
         attn = self.attn
         n, num_tokens, _ = value.shape
         height, width = attn.map_hw
-        weights = logits.view(n, num_tokens, attn.heads, attn.points).softmax(dim=-1).flatten(2)
-
-        def to_map(tokens: torch.Tensor) -> torch.Tensor:
-            return tokens.transpose(1, 2).reshape(n, -1, height, width)
-
-        sampled = deform_conv_sample(to_map(value), to_map(offsets) + origin, to_map(weights), attn.heads)
-        return sampled.flatten(2).transpose(1, 2)
+        weights = logits.view(n, num_tokens, attn.heads, attn.points).softmax(dim=-1)
+        offsets_map = offsets.transpose(1, 2).reshape(n, -1, height, width) + origin
+        return attn.deform_conv_tokens(value, offsets_map, weights)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, _, h, w = x.shape
