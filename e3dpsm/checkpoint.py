@@ -50,6 +50,10 @@ def load_checkpoint(
         config = E3DPSMConfig.from_dict(payload["config"])
     except (ConfigError, KeyError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {path} carries an invalid config: {exc}") from exc
+    if config.variant == "released" and "kalman_p0" not in payload["config"]:
+        raise CheckpointError(f"{path} was imported before released checkpoints were converted to millimetres "
+                              "(its poses are metres labelled mm); re-run e3dpsm import --released on the "
+                              "original checkpoint")
     if variant is not None and config.variant != variant:
         raise CheckpointError(f"checkpoint {path} holds variant {config.variant!r}, not {variant!r}")
     model = E3DPSM(config)

@@ -1,12 +1,19 @@
 """The `released` variant against the released network itself.
 
 The referee (tests/fixtures/released/make_reference.py) ran the authors' released code on
-trained-like weights regenerated here from a seed; `reference.npz` holds its outputs.
+trained-like weights regenerated here from a seed; `reference.npz` holds its outputs in the
+release's own unit, metres. They are compared in millimetres, as the release's evaluation
+reports them (`abs_poses * 1000`, "scale to mm", modules/pose_estimation.py): every
+variant's outputs are millimetres, `released` included.
 Tolerance: 0.01 mm on every joint, frame and output (poses of metre scale).
 """
 from __future__ import annotations
 
 import json
+import math
+import os
+import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +23,13 @@ import torch
 
 import e3dpsm
 from e3dpsm.checkpoint import load_checkpoint
+from e3dpsm.errors import CheckpointError
 from e3dpsm.cli import main
 from tests.fixtures.released.weights import lightning_checkpoint, make_state_dict, tensors_sha256
 
 FIXTURE = Path(__file__).parent / "fixtures" / "released"
 TOL_MM = 0.01
+RELEASE_MM_PER_UNIT = 1000.0  # the release's evaluation: outputs x 1000 (metres -> mm)
 RELEASED_NETWORK_PARAMS = 6_640_406  # FACTS section 3, and the referee's own count
 KALMAN_PARAMS = 96
 
@@ -32,8 +41,9 @@ def manifest() -> dict:
 
 @pytest.fixture(scope="module")
 def reference() -> dict[str, np.ndarray]:
+    """The referee's outputs in millimetres (released output x 1000), its input as it was."""
     with np.load(FIXTURE / "reference.npz") as data:
-        return {k: data[k] for k in data.files}
+        return {k: data[k] if k == "lnes" else data[k].astype(np.float64) * RELEASE_MM_PER_UNIT for k in data.files}
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +86,8 @@ def test_reference_is_not_trivial(reference) -> None:
     assert np.abs(pose[:, 1:] - direct[:, 1:]).max() > 10.0  # fused differs from direct after t = 0
     assert np.abs(delta).max() > 1.0
     assert np.abs(pose).max() > 300.0  # metre-scale poses: the 0.01 mm tolerance is ~1e-5 relative
+    with np.load(FIXTURE / "reference.npz") as raw:  # stored in the release's unit, metres
+        assert 0.3 < np.abs(raw["pose"]).max() < 3.0
 
 
 def test_imported_checkpoint_reproduces_released_outputs(imported_model, reference) -> None:
@@ -93,6 +105,8 @@ def test_imported_checkpoint_reproduces_released_outputs(imported_model, referen
 @pytest.mark.parametrize("change, min_error_mm", [
     ({"input_norm": "none"}, 1.0),                     # the release rescales its input to [0, 1]
     ({"ssm_backward_first_frame": "scan"}, 0.05),     # its backward branch at t = 0
+    ({"pose_unit_mm": 1.0}, 300.0),                   # metres reported as mm: poses ~1000x too small
+    ({"kalman_p0": 1.0}, 1.0),                        # P0 left at the release's 1 (m^2) in the mm filter
 ])
 def test_each_released_peculiarity_is_needed(imported, reference, change, min_error_mm) -> None:
     """Each released detail moves the poses by more than the tolerance: the fixture bites."""
@@ -102,6 +116,48 @@ def test_each_released_peculiarity_is_needed(imported, reference, change, min_er
     with torch.no_grad():
         out = model.forward_sequence(torch.from_numpy(reference["lnes"]), causal=False)
     assert _max_err(out["pose"], reference["pose"]) > max(min_error_mm, TOL_MM)
+
+
+def test_kalman_covariance_state_is_the_released_filter_in_mm2(imported_model, released_state, reference) -> None:
+    """The fused pose cannot see Q and R's unit (scaling P0, Q and R together leaves every gain
+    unchanged), but the carried covariance can: after each step it must be the release's
+    filter run in m^2 (its P0 = I; Joseph form, an explicit numpy loop) times 1000^2."""
+    q = released_state["kalman_filter.log_process_var"].double().exp().numpy()
+    r = released_state["kalman_filter.log_measurement_var"].double().exp().numpy()
+    cov_m2, expected = np.ones_like(q), []
+    for _ in range(3):
+        predicted = cov_m2 + q
+        gain = predicted / (predicted + r)
+        cov_m2 = (1 - gain) ** 2 * predicted + gain**2 * r
+        expected.append(cov_m2 * 1000.0**2)
+    state = imported_model.init_state(1)
+    with torch.no_grad():
+        for t in range(3):
+            _, state = imported_model.step(torch.from_numpy(reference["lnes"][:, t]), state)
+            got = state["fusion_cov"].double().numpy().reshape(-1)
+            if t == 0:  # the first step starts the filter: P0 = the release's I, in mm^2
+                np.testing.assert_allclose(got, 1000.0**2, rtol=1e-6)
+            else:
+                np.testing.assert_allclose(got, expected[t - 1], rtol=1e-4)
+
+
+def test_imported_kalman_variances_are_the_released_ones_in_mm2(imported_model, released_state) -> None:
+    """Closed form: Q_mm2 = Q_m2 x 1000^2, element for element."""
+    for ours, theirs in (("log_q", "log_process_var"), ("log_r", "log_measurement_var")):
+        got = getattr(imported_model.fusion, ours).detach().double().exp().reshape(-1)
+        expected = released_state[f"kalman_filter.{theirs}"].double().exp() * 1000.0**2
+        np.testing.assert_allclose(got.numpy(), expected.numpy(), rtol=1e-6)
+    assert imported_model.config.kalman_p0 == 1000.0**2 and imported_model.config.pose_unit_mm == 1000.0
+
+
+def test_checkpoint_imported_before_the_unit_fix_is_refused(imported, tmp_path) -> None:
+    """An import written before the conversion (config without kalman_p0, pose_unit_mm 1)
+    would give metres labelled mm: refused with a line saying to re-import."""
+    payload = torch.load(imported / "checkpoint.pt", weights_only=True)
+    payload["config"] = {k: v for k, v in payload["config"].items() if k != "kalman_p0"} | {"pose_unit_mm": 1.0}
+    torch.save(payload, tmp_path / "old.pt")
+    with pytest.raises(CheckpointError, match="re-run e3dpsm import --released"):
+        load_checkpoint(tmp_path / "old.pt")
 
 
 def test_first_step_of_exported_graph_matches_released(imported, imported_model, reference, tmp_path) -> None:
@@ -142,6 +198,7 @@ def test_import_report_accounts_for_every_key(imported, manifest) -> None:
     filled = {k for targets in report["mapping"].values() for k in targets}
     assert filled | set(checks["derived"]) == model_keys and not filled & set(checks["derived"])
     assert checks["network_parameters"] == RELEASED_NETWORK_PARAMS and checks["kalman_parameters"] == KALMAN_PARAMS
+    assert "metres" in checks["units"]["released"] and "ln(1e6)" in checks["units"]["imported"]
     assert report["variant"] == "released" and report["params"] == RELEASED_NETWORK_PARAMS + KALMAN_PARAMS
 
 
@@ -202,6 +259,46 @@ def test_import_refuses_pickled_code_without_running_it(released_state, tmp_path
     err = _bad_import(tmp_path, capsys, {**lightning_checkpoint(released_state), "callbacks": Payload()})
     assert "pickled code" in err and "nothing was executed" in err
     assert not marker.exists()
+
+
+def _fake_lightning_attribute_dict(monkeypatch) -> type:
+    """PyTorch Lightning 2.5's AttributeDict, as pickled by name, without Lightning installed."""
+    class AttributeDict(dict):
+        def __getattr__(self, key):
+            return self[key]
+
+    AttributeDict.__module__, AttributeDict.__qualname__ = "lightning_fabric.utilities.data", "AttributeDict"
+    for name in ("lightning_fabric", "lightning_fabric.utilities", "lightning_fabric.utilities.data"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    sys.modules["lightning_fabric.utilities.data"].AttributeDict = AttributeDict
+    return AttributeDict
+
+
+def test_lightning_checkpoint_with_attribute_dict_imports(released_state, imported_model, tmp_path, monkeypatch) -> None:
+    """Lightning pickles AttributeDict in hyper_parameters: read as a plain dict, nothing run."""
+    with monkeypatch.context() as patch:
+        attribute_dict = _fake_lightning_attribute_dict(patch)
+        payload = {**lightning_checkpoint(released_state), "hparams_name": "kwargs",
+                   "hyper_parameters": attribute_dict(lr=1e-3, model=attribute_dict(num_joints=16))}
+        torch.save(payload, tmp_path / "pl25.ckpt")
+    assert "lightning_fabric.utilities.data" not in sys.modules  # the reader has no Lightning
+    with pytest.raises(Exception, match="AttributeDict"):  # what weights_only alone says of it
+        torch.load(tmp_path / "pl25.ckpt", weights_only=True)
+    assert main(["import", "--released", str(tmp_path / "pl25.ckpt"), "--out", str(tmp_path / "out")]) == 0
+    model, _ = load_checkpoint(tmp_path / "out" / "checkpoint.pt")
+    for key, value in imported_model.state_dict().items():
+        assert torch.equal(model.state_dict()[key], value), key
+
+
+def test_import_refuses_a_pickled_callable_beside_the_attribute_dict(released_state, tmp_path, capsys,
+                                                                     monkeypatch) -> None:
+    """The allow-list admits AttributeDict, not whatever else sits beside it: a pickled
+    function (here `os.system`) is refused, one line, nothing written."""
+    with monkeypatch.context() as patch:
+        attribute_dict = _fake_lightning_attribute_dict(patch)
+        payload = {**lightning_checkpoint(released_state), "hyper_parameters": attribute_dict(hook=os.system)}
+        err = _bad_import(tmp_path, capsys, payload)
+    assert "pickled code" in err and f"{os.system.__module__}.system" in err and "nothing was executed" in err
 
 
 def test_import_refuses_files_that_are_not_checkpoints(tmp_path, capsys) -> None:

@@ -10,10 +10,20 @@ q and kv, S5's (real, imaginary) pairs into separate tensors, the Kalman log-var
 [48] into [16, 3]. The Kalman F, B and H must be identities (the element-wise filter
 relies on it) and are checked, not stored.
 
-Reading never executes code: `torch.load(weights_only=True)`.
+Units: the released network predicts metres and its evaluation multiplies by 1000 (FACTS
+section 3). The `released` variant keeps the heads' weights as they are and scales their
+output to millimetres (`pose_unit_mm`), and runs the Kalman filter in millimetres: the learned
+log-variances move by ln(1e6) (m^2 -> mm^2) and the filter starts from P0 = 1e6 mm^2
+(the release's identity in m^2). The gain, a ratio of variances, is unchanged, so the
+fused pose is exactly the release's x 1000. `import.json` records the conversion.
+
+Reading never executes code: `torch.load(weights_only=True)`, which admits tensors and plain
+containers, plus an allow-list of inert types a Lightning checkpoint pickles
+(`LIGHTNING_INERT_GLOBALS`), read as what they are made of. Anything else is refused.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -23,14 +33,30 @@ from typing import Any, Callable, Mapping
 import torch
 
 from e3dpsm.errors import CheckpointError
+from e3dpsm.models.variants import RELEASED_VARIANCE_TO_MM2
 
 Tensors = dict[str, torch.Tensor]
 NETWORK_PREFIX = "event_3d_posenet."
 KALMAN_PREFIX = "kalman_filter."
 KALMAN_IDENTITIES = ("F", "B", "H")
+# Lightning pickles its `AttributeDict` (a dict with attribute access) in `hyper_parameters`
+# (PyTorch Lightning 2.x: lightning_fabric.utilities.data; 1.x: utilities.parsing). Lightning
+# need not be installed: the weights-only unpickler builds each as a plain dict, which runs
+# no code and loses nothing a state dict needs.
+LIGHTNING_INERT_GLOBALS: tuple[tuple[type, str], ...] = tuple((dict, name) for name in (
+    "lightning_fabric.utilities.data.AttributeDict",
+    "lightning.fabric.utilities.data.AttributeDict",
+    "pytorch_lightning.utilities.parsing.AttributeDict",
+    "lightning.pytorch.utilities.parsing.AttributeDict",
+))
 # Project keys that have no released counterpart, with the value they get and why.
 DERIVED = {
-    "pose_prior_mm": "zeros: the released heads predict millimetres with no prior offset",
+    "pose_prior_mm": "zeros: the released heads predict absolute poses, with no prior offset",
+}
+UNITS = {
+    "released": "metres: heads, Kalman filter and camera projection (its evaluation multiplies by 1000)",
+    "imported": "millimetres: outputs x1000 (config pose_unit_mm = 1000 scales the heads' metres), "
+                "Kalman log Q and log R + ln(1e6) (m^2 -> mm^2), P0 = 1e6 mm^2 (config kalman_p0)",
 }
 
 
@@ -59,7 +85,8 @@ def read_released_state_dict(path: str | os.PathLike) -> tuple[Tensors, str]:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals(list(LIGHTNING_INERT_GLOBALS)):
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign, truncated or unsafe files
         globals_named = sorted(set(re.findall(r"GLOBAL ([\w.]+)", str(exc))))
         if globals_named:
@@ -131,6 +158,12 @@ def _in_proj(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return t[:d].contiguous(), t[d:].contiguous()
 
 
+def _log_variance_mm2(t: torch.Tensor, joints: int) -> torch.Tensor:
+    """Released log-variances [48] in m^2 -> [J, 3] in mm^2 (computed in float64: the shift,
+    13.8, is large against the values' float32 spacing)."""
+    return (t.double() + math.log(RELEASED_VARIANCE_TO_MM2)).to(t.dtype).reshape(joints, 3)
+
+
 def released_rules(model: torch.nn.Module) -> list[Rule]:
     """The complete map for a `released`-layout model (its config gives stage and S5 layout)."""
     cfg = model.config
@@ -180,8 +213,8 @@ def released_rules(model: torch.nn.Module) -> list[Rule]:
     rules += _renamed("initial_pose_head", "direct_head") + _renamed("delta_head", "delta_head")
     joints = cfg.num_joints
     rules += [
-        Rule((f"{KALMAN_PREFIX}log_process_var",), ("fusion.log_q",), lambda t: (t.reshape(joints, 3),)),
-        Rule((f"{KALMAN_PREFIX}log_measurement_var",), ("fusion.log_r",), lambda t: (t.reshape(joints, 3),)),
+        Rule((f"{KALMAN_PREFIX}log_process_var",), ("fusion.log_q",), lambda t: (_log_variance_mm2(t, joints),)),
+        Rule((f"{KALMAN_PREFIX}log_measurement_var",), ("fusion.log_r",), lambda t: (_log_variance_mm2(t, joints),)),
     ]
     return rules
 
@@ -250,6 +283,7 @@ def import_released(released: Mapping[str, torch.Tensor], model: torch.nn.Module
     checks.update(
         released_keys=len(released), released_keys_used=len(expected), kalman_identities_checked=sorted(checked & set(released)),
         project_keys=len(target), project_keys_filled=len(target) - len(DERIVED), derived=dict(DERIVED),
+        units=dict(UNITS),
         network_parameters=sum(v.numel() for k, v in released.items()
                                if not k.startswith(KALMAN_PREFIX) and _is_parameter(k)),
         kalman_parameters=sum(released[f"{KALMAN_PREFIX}{n}"].numel() for n in ("log_process_var", "log_measurement_var")),

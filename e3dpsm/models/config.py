@@ -49,12 +49,16 @@ class E3DPSMConfig:
     decoder_ffn: int = 768
     pose_embed_dim: int = 64
     fusion: str = "learned"
+    # Kalman variances in mm^2 (the filter runs on poses in mm): initial Q and R, and the
+    # covariance P0 a stream starts from.
     kalman_q_init: float = 1e-3
     kalman_r_init: float = 1e-2
+    kalman_p0: float = 1.0
     # "minmax": the release rescales its whole input tensor to [0, 1] (network.py); here per
     # frame in causal runs and steps, over the whole tensor in non-causal runs.
     input_norm: str = "none"
-    # Heads predict metres here (1000), millimetres in the release (1); outputs are mm.
+    # Millimetres per unit of the heads' output: the heads predict metres (the release's unit,
+    # FACTS section 3), the model's outputs and its Kalman filter are in millimetres.
     pose_unit_mm: float = 1000.0
     train_window_ms: float = 20.0
     seed: int = 0
@@ -88,6 +92,10 @@ class E3DPSMConfig:
             raise ConfigError(f"input {self.height}x{self.width} must be divisible by {stride}")
         if self.train_window_ms <= 0:
             raise ConfigError("train_window_ms must be positive")
+        for field, value in (("pose_unit_mm", self.pose_unit_mm), ("kalman_q_init", self.kalman_q_init),
+                             ("kalman_r_init", self.kalman_r_init), ("kalman_p0", self.kalman_p0)):
+            if not value > 0:
+                raise ConfigError(f"{field} must be positive, got {value}")
 
     def stage_hw(self, stage: int) -> tuple[int, int]:
         """Output map size of a stage: the stem halves the input, each stage halves again."""

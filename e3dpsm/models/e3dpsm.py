@@ -60,7 +60,7 @@ class E3DPSM(nn.Module):
             nn.Linear(3, cfg.pose_embed_dim), nn.ReLU(), nn.Linear(cfg.pose_embed_dim, cfg.pose_embed_dim)
         )
         self.delta_head = nn.Linear(dim + cfg.pose_embed_dim, 3)
-        self.fusion = PoseFusion(cfg.num_joints, cfg.fusion, cfg.kalman_q_init, cfg.kalman_r_init)
+        self.fusion = PoseFusion(cfg.num_joints, cfg.fusion, cfg.kalman_q_init, cfg.kalman_r_init, cfg.kalman_p0)
         # Mean training pose (mm), added to the direct head: the heads then learn residuals of
         # a few hundred mm instead of climbing to metres at Adam's per-step pace.
         self.register_buffer("pose_prior_mm", torch.zeros(cfg.num_joints, 3))

@@ -5,6 +5,10 @@ from __future__ import annotations
 from e3dpsm.models.config import E3DPSMConfig
 from e3dpsm.models.registry import register_model
 
+# The release works in metres and evaluates in millimetres (x1000, FACTS section 3), so its
+# Kalman variances (m^2) are x1e6 in this project's millimetre filter.
+RELEASED_VARIANCE_TO_MM2 = 1000.0**2
+
 
 @register_model
 def paper() -> E3DPSMConfig:
@@ -17,10 +21,13 @@ def paper() -> E3DPSMConfig:
 def released() -> E3DPSMConfig:
     """The released network number for number (6,640,406 + 96 parameters), so that its
     checkpoints import (`e3dpsm import --released`): 1-D attention layout, min-max input
-    normalisation, heads in millimetres, the released backward branch at t = 0."""
+    normalisation, the released backward branch at t = 0. Its heads predict metres, as the
+    release's do; outputs and the Kalman filter are in millimetres like every variant's, so
+    the release's filter (Q = 1e-3, R = 1e-2, P0 = I, in m^2) starts here at x1e6 (mm^2)."""
     return E3DPSMConfig(
-        variant="released", attn_layout="1d", input_norm="minmax", pose_unit_mm=1.0,
-        ssm_backward_first_frame="own_input",
+        variant="released", attn_layout="1d", input_norm="minmax", ssm_backward_first_frame="own_input",
+        kalman_q_init=1e-3 * RELEASED_VARIANCE_TO_MM2, kalman_r_init=1e-2 * RELEASED_VARIANCE_TO_MM2,
+        kalman_p0=RELEASED_VARIANCE_TO_MM2,
     )
 
 
