@@ -154,7 +154,10 @@ def test_bad_chunks_raise_input_error(session, stream, bad):
 # -- torch-free and metadata-only operation ---------------------------------------------------
 
 def test_runtime_imports_no_torch():
-    code = "import e3dpsm.runtime, e3dpsm.runtime.stream, e3dpsm.cli.run, sys; assert 'torch' not in sys.modules"
+    # The many-file form takes its helpers from _run_common, never from run.py (no import circle).
+    code = ("import sys, e3dpsm.runtime, e3dpsm.runtime.stream, e3dpsm.cli._run_many; "
+            "assert 'e3dpsm.cli.run' not in sys.modules, 'run.py imported by _run_many'; "
+            "import e3dpsm.cli.run; assert 'torch' not in sys.modules, 'torch imported'")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
 
@@ -263,6 +266,8 @@ BAD_INPUTS = {
     "missing_model": (None, "does not exist"),
     "out_under_file": (None, "is a file"),
     "out_exists": (None, "--force"),
+    "chunk_events": (None, "--chunk-events must be positive"),
+    "threads": (None, "--threads must be positive"),
 }
 
 
@@ -299,7 +304,8 @@ def test_cli_bad_input_fails_cleanly(case, tiny_graph, stream, tmp_path, capsys)
     if case == "missing_events":
         events = tmp_path / "missing.npz"
 
-    code = main(["run", "--model", str(model), "--events", str(events), "--out", str(out)])
+    options = [f"--{case.replace('_', '-')}", "0"] if case in ("chunk_events", "threads") else []
+    code = main(["run", "--model", str(model), "--events", str(events), "--out", str(out), *options])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and err[0].startswith("e3dpsm run: error:"), err

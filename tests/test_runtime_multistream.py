@@ -5,13 +5,17 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from e3dpsm.cli import main
-from e3dpsm.errors import InputError
+from e3dpsm.cli._run_many import stream_names
+from e3dpsm.data.readers import write_events_h5
+from e3dpsm.data.sequence import EventStream
+from e3dpsm.errors import ConfigError, InputError
 from e3dpsm.runtime import IOBindingStepSession, MultiStreamEstimator, StepSession, StreamingPoseEstimator
 from _runtime_helpers import WINDOW_US, chunked, exported_tiny, reference_frames, shared_session, step_frames, synthetic_stream
 
@@ -267,24 +271,94 @@ def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, cap
         assert entry["csv"] == str(out / f"{name}.csv")
 
 
-@pytest.mark.parametrize("case", ["same_stem", "one_too_short", "out_exists"])
+SEVERAL_FILES_ERRORS = {  # case: words the error line must contain
+    "same_file": "same file", "same_file_other_spelling": "same file", "extension_only": "only in their extension",
+    "one_too_short": "no complete", "out_exists": "--force", "chunk_events": "--chunk-events must be positive",
+    "threads": "--threads must be positive", "render": "single --events file",
+    "render_max_frames": "single --events file",
+}
+
+
+@pytest.mark.parametrize("case", sorted(SEVERAL_FILES_ERRORS))
 def test_cli_several_files_fail_cleanly(case, tiny_graph, tmp_path, capsys):
     stream = synthetic_stream(seed=41, windows=7)
     (tmp_path / "other").mkdir()
     files = [write_npz(tmp_path / "one.npz", *stream), write_npz(tmp_path / "two.npz", *stream)]
-    out = tmp_path / "poses"
-    if case == "same_stem":
-        files[1] = write_npz(tmp_path / "other" / "one.npz", *stream)
+    out, options = tmp_path / "poses", []
+    if case == "same_file":
+        files[1] = files[0]
+    elif case == "same_file_other_spelling":
+        files[1] = tmp_path / "other" / ".." / "one.npz"
+    elif case == "extension_only":
+        files[1] = tmp_path / "one.h5"
+        write_events_h5(files[1], EventStream(*stream))
+    elif case in ("chunk_events", "threads"):
+        options = [f"--{case.replace('_', '-')}", "0"]
+    elif case == "render":
+        options = ["--render", str(tmp_path / "poses.gif")]
+    elif case == "render_max_frames":
+        options = ["--render-max-frames", "3"]
     elif case == "one_too_short":
         files[1] = write_npz(tmp_path / "two.npz", *(a[:5] for a in stream))
     else:
         out.mkdir()
         (out / "two.csv").write_text("keep me")
-    code = main(["run", "--model", str(tiny_graph[1]), "--events", *map(str, files), "--out", str(out)])
+    inputs = sorted(p.name for p in tmp_path.rglob("*"))
+    code = main(["run", "--model", str(tiny_graph[1]), "--events", *map(str, files), "--out", str(out), *options])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("e3dpsm run: error:"), err
-    assert {"same_stem": "same name", "one_too_short": "no complete", "out_exists": "--force"}[case] in err[0]
+    assert SEVERAL_FILES_ERRORS[case] in err[0], err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == inputs  # nothing written, no temporary left
     if case == "out_exists":
-        assert sorted(p.name for p in out.iterdir()) == ["two.csv"] and (out / "two.csv").read_text() == "keep me"
-    else:
-        assert not out.exists() or not any(out.iterdir())
+        assert (out / "two.csv").read_text() == "keep me"
+
+
+def test_cli_names_csvs_by_sequence_folder(tiny_graph, tmp_path, capsys):
+    """Every sequence is <sequence>/events.h5: the CSVs are named by the sequence folders and
+    hold the same poses as running each file alone."""
+    files = []
+    for name, seed in (("seq_0000", 51), ("seq_0001", 52)):
+        (tmp_path / "data" / name).mkdir(parents=True)
+        files.append(write_events_h5(tmp_path / "data" / name / "events.h5",
+                                     EventStream(*synthetic_stream(seed=seed, windows=8))))
+    model, out = str(tiny_graph[1]), tmp_path / "poses"
+    code = main(["run", "--model", model, "--events", *map(str, files), "--out", str(out), "--threads", "1"])
+    assert code == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["run.report.json", "seq_0000.csv", "seq_0001.csv"]
+    report = json.loads((out / "run.report.json").read_text())
+    assert {entry["events_file"]: entry["csv"] for entry in report["streams"].values()} == {
+        str(files[0]): str(out / "seq_0000.csv"), str(files[1]): str(out / "seq_0001.csv")}
+    for name, events in zip(("seq_0000", "seq_0001"), files):
+        alone = tmp_path / f"{name}_alone.csv"
+        code = main(["run", "--model", model, "--events", str(events), "--out", str(alone), "--threads", "1"])
+        assert code == 0, capsys.readouterr().err
+        header, table = read_csv(out / f"{name}.csv")
+        alone_header, alone_table = read_csv(alone)
+        assert header == alone_header and table.shape == alone_table.shape and len(table) >= 4
+        assert table[:, 0].tolist() == alone_table[:, 0].tolist()
+        np.testing.assert_allclose(table[:, 1:], alone_table[:, 1:], rtol=0, atol=CSV_TOL_MM)
+
+
+@pytest.mark.parametrize("events, names", [
+    (["data/seq_0000/events.h5", "data/seq_0001/events.h5"], ["seq_0000", "seq_0001"]),  # one stem: folders
+    (["walk.npz", "data/sit.h5", "a/b/jump.hdf5"], ["walk", "sit", "jump"]),  # stems differ: plain stems
+    (["a/seq_0000/events.h5", "b/seq_0000/events.h5", "a/seq_0001/events.h5"],  # deeper clash: joined
+     ["a__seq_0000", "b__seq_0000", "seq_0001"]),
+    (["x/walk.npz", "y/walk.npz", "x/sit.npz"], ["x__walk", "y__walk", "sit"]),  # clash only among some
+    (["/data/events.h5", "/x/data/events.h5"], ["data", "x__data"]),  # one path ends the other
+    (["/r/a/seq/events.h5", "/r/b/seq/events.h5"], ["a", "b"]),  # every shared trailing part dropped
+])
+def test_stream_names_rule(events, names):
+    assert stream_names(events) == names
+
+
+@pytest.mark.parametrize("events, words", [
+    (["a/events.h5", "a/events.h5"], "same file"),
+    (["a/events.h5", "a/x/../events.h5"], "same file"),
+    (["a/events.h5", "a/events.npz"], "only in their extension"),
+    (["a/seq/events.h5", "a/Seq/events.h5"], "letter case"),
+    (["a__b.h5", "a/b.h5", "c/b.h5"], "both write a__b.csv"),  # a/b is named a__b after the clash with c/b
+])
+def test_stream_names_refuses_paths_it_cannot_tell_apart(events, words):
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        stream_names(events)

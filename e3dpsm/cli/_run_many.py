@@ -2,69 +2,72 @@
 through one session (e3dpsm.runtime.MultiStreamEstimator), one CSV per file.
 
 Each file is one stream with its own window grid and states; the streams' chunks are pushed
-together, so the windows they complete share batched session calls. `--out` is a folder:
-`<event file stem>.csv` per file (same columns as the one-file form) and one
-`run.report.json`. Everything is written under temporary names and renamed only once every
-stream ran; a file that yields no complete window fails the whole run, as in the one-file form.
-Torch-free, like the one-file command.
+together, so the windows they complete share batched session calls. `--out` is a folder: one
+CSV per file, named by `stream_names` (same columns as the one-file form), and one
+`run.report.json` recording which file went to which CSV. Everything is written under
+temporary names and renamed only once every stream ran; a file that yields no complete window
+fails the whole run, as in the one-file form. Torch-free, like the one-file command.
+
+run.py checks the options both forms share (and refuses --render here) before dispatching;
+this module takes its helpers from _run_common and never imports run.py.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import csv
+import os
 from pathlib import Path
-from types import SimpleNamespace
-from typing import Any
+from typing import Any, Iterator
 
+from e3dpsm.cli._run_common import (
+    check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
+)
+from e3dpsm.errors import ConfigError
+
+NAME_JOIN = "__"  # between the folder names that tell two sequences apart: a__seq_0000.csv
 REPORT_NAME = "run.report.json"
 
 
 def run_many(args: argparse.Namespace) -> int:
-    from e3dpsm.cli.run import _check_writable_folder, _chunks, _no_window_error
+    """The many-file form of `e3dpsm run`; `args` as run.run passes them, shared options checked."""
     from e3dpsm.data.readers import read_events
-    from e3dpsm.errors import ConfigError, DataError, OutputExistsError
+    from e3dpsm.errors import DataError, OutputExistsError
     from e3dpsm.runtime import MultiStreamEstimator, StepSession
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
-    if args.chunk_events <= 0:
-        raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
-    if args.threads is not None and args.threads <= 0:
-        raise ConfigError(f"--threads must be positive, got {args.threads}")
-    if getattr(args, "render", None) is not None:
-        raise ConfigError("--render works with one --events file; run the files one by one to render them")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise DataError(f"--out {out} is a file; with several --events files it names a folder of CSVs")
-    targets = _csv_targets(args.events, out)
+    sources = dict(zip(stream_names(args.events), args.events))  # stream name -> event file
+    targets = {name: out / f"{name}.csv" for name in sources}
     existing = [str(p) for p in [*targets.values(), out / REPORT_NAME] if p.exists()]
     if existing and not args.force:
         raise OutputExistsError(f"{existing[0]} exists; pass --force to replace it")
-    _check_writable_folder(out)
+    check_writable_folder(out)
 
     session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
-    streams = {stem: read_events(path) for stem, path in zip(targets, args.events)}
+    streams = {name: read_events(path) for name, path in sources.items()}
     estimator = MultiStreamEstimator(session, window_ms=args.window_ms)
-    for stem, stream in streams.items():  # the file's own sensor size wins over the graph's default
-        estimator.add_stream(stem, start_us=args.start_us, sensor_hw=stream.sensor_hw)
-    columns = ["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")]
+    for name, stream in streams.items():  # the file's own sensor size wins over the graph's default
+        estimator.add_stream(name, start_us=args.start_us, sensor_hw=stream.sensor_hw)
 
     with contextlib.ExitStack() as stack:
+        stack.enter_context(_removed_on_failure_if_new(out))  # entered first: leaves after the temporaries
         tmp_report = stack.enter_context(atomic_path(out / REPORT_NAME, suffix=".json"))
         writers = {}
-        for stem, target in targets.items():
+        for name, target in targets.items():
             handle = stack.enter_context(open(stack.enter_context(atomic_path(target, suffix=".csv")), "w",
                                               newline="", encoding="utf-8"))
-            writers[stem] = csv.writer(handle)
-            writers[stem].writerow(columns)
-        _run_streams(estimator, {stem: _chunks(stream, args.chunk_events) for stem, stream in streams.items()},
+            writers[name] = csv.writer(handle)
+            writers[name].writerow(pose_columns(estimator.joints))
+        _run_streams(estimator, {name: event_chunks(stream, args.chunk_events) for name, stream in streams.items()},
                      writers)
-        for stem, stream in streams.items():  # documented choice: an error, not an empty CSV
-            stats = estimator.stream_stats(stem)
-            if stats.windows == 0:
-                view = SimpleNamespace(window_ms=estimator.window_ms, stats=stats)  # every stream has the default window
-                raise _no_window_error(_source(args.events, targets, stem), stream, view)
-        report = _report(args, out, estimator, streams, targets)
+        for name, stream in streams.items():  # documented choice: an error, not an empty CSV
+            stats = estimator.stream_stats(name)
+            if stats.windows == 0:  # every stream has the estimator's window
+                raise no_window_error(sources[name], stream, estimator.window_ms, stats)
+        report = _report(args, out, estimator, streams, sources, targets)
         write_json_atomic(tmp_report, report)
     totals = report["totals"]
     print(
@@ -75,25 +78,67 @@ def run_many(args: argparse.Namespace) -> int:
     return 0
 
 
-def _csv_targets(events: list[str], out: Path) -> dict[str, Path]:
-    """Stream name (the event file stem) -> CSV path; two files with one stem are refused."""
-    from e3dpsm.errors import ConfigError
+def stream_names(events: list[str]) -> list[str]:
+    """One name per event file (its CSV is `<name>.csv`), saying what tells the files apart.
 
-    targets: dict[str, Path] = {}
+    Each path is read as its folder names then its file stem (made absolute, not resolving
+    links, so `..` never shows up). The run of trailing parts that every path shares is
+    dropped (`events` when every file is `<sequence>/events.h5`), keeping at least one part.
+    Each file is then named by the shortest trailing run of what is left that does not end
+    any other path, its parts joined with `__`; a path whose whole rest ends another one is
+    named by that whole rest. So: `seq_0000/events.h5 seq_0001/events.h5` -> `seq_0000`,
+    `seq_0001`; `walk.h5 sit.h5` -> `walk`, `sit`; `a/seq_0000/events.h5 b/seq_0000/events.h5
+    a/seq_0001/events.h5` -> `a__seq_0000`, `b__seq_0000`, `seq_0001`.
+
+    Refused with ConfigError: the same file given twice, two paths that differ only in their
+    extension (`x/events.h5`, `x/events.npz`), and names that still clash once joined or
+    compared ignoring letter case (as on case-insensitive file systems).
+    """
+    seen: dict[Path, str] = {}
     for path in events:
-        stem = Path(path).stem
-        if stem in targets:
+        real = Path(path).resolve()
+        if real in seen:
+            raise ConfigError(f"--events {path} is the same file as {seen[real]}; give each event file once")
+        seen[real] = path
+    parts = [(*Path(os.path.abspath(path)).parent.parts[1:], Path(path).stem) for path in events]
+    first: dict[tuple[str, ...], str] = {}
+    for path, key in zip(events, parts):
+        if key in first:  # only the extension differs: no folder or stem is left to name the CSVs by
+            raise ConfigError(f"--events {first[key]} and {path} differ only in their extension; each CSV is "
+                              "named by folder and file names, so rename or link one of them")
+        first[key] = path
+    shared = 0  # trailing parts every path has, never all of the shortest path's parts
+    while shared < min(map(len, parts)) - 1 and len({p[len(p) - 1 - shared] for p in parts}) == 1:
+        shared += 1
+    rests = [p[:len(p) - shared] for p in parts]
+    names = []
+    for i, rest in enumerate(rests):
+        others = [other for j, other in enumerate(rests) if j != i]
+        length = next((k for k in range(1, len(rest) + 1) if all(other[-k:] != rest[-k:] for other in others)),
+                      len(rest))
+        names.append(NAME_JOIN.join(rest[-length:]))
+    clashes: dict[str, str] = {}
+    for name, path in zip(names, events):
+        if name.casefold() in clashes:
             raise ConfigError(
-                f"two --events files have the same name {stem!r} ({path} and another); each CSV is named "
-                "after its event file, so rename or link one of them"
+                f"--events {clashes[name.casefold()]} and {path} would both write {name}.csv (CSV names are "
+                "compared ignoring letter case, for case-insensitive file systems); rename or link one of them"
             )
-        targets[stem] = out / f"{stem}.csv"
-    return targets
+        clashes[name.casefold()] = path
+    return names
 
 
-def _source(events: list[str], targets: dict[str, Path], stem: str) -> str:
-    """The event file a stream came from."""
-    return events[list(targets).index(stem)]
+@contextlib.contextmanager
+def _removed_on_failure_if_new(folder: Path) -> Iterator[None]:
+    """A failed run leaves no empty --out folder that it created itself."""
+    new = not folder.exists()
+    try:
+        yield
+    except BaseException:
+        if new:
+            with contextlib.suppress(OSError):  # not empty (someone else wrote there): keep it
+                folder.rmdir()
+        raise
 
 
 def _run_streams(estimator: Any, chunk_iterators: dict[str, Any], writers: dict[str, Any]) -> None:
@@ -101,47 +146,38 @@ def _run_streams(estimator: Any, chunk_iterators: dict[str, Any], writers: dict[
     active = dict(chunk_iterators)
     while active:
         batch, ended = {}, []
-        for stem, chunks in active.items():
+        for name, chunks in active.items():
             chunk = next(chunks, None)
             if chunk is None:
-                ended.append(stem)
+                ended.append(name)
             else:
-                batch[stem] = chunk
-        for stem in ended:
-            del active[stem]
+                batch[name] = chunk
+        for name in ended:
+            del active[name]
         results = [estimator.push_many(batch)] if batch else []
         if ended:
             results.append(estimator.finish_many(ended))
         for poses_by_stream in results:
-            for stem, poses in poses_by_stream.items():
+            for name, poses in poses_by_stream.items():
                 for pose in poses:
-                    writers[stem].writerow([pose.t_us, *(f"{v:.4f}" for v in pose.pose.reshape(-1).tolist())])
+                    writers[name].writerow(pose_row(pose))
 
 
-def _report(args: argparse.Namespace, out: Path, estimator: Any, streams: dict, targets: dict[str, Path]) -> dict:
-    from e3dpsm.utils.env import report_header
-
-    meta = estimator.session.meta
-    config = {
-        "model": str(args.model), "events": [str(e) for e in args.events], "out": str(out),
-        "window_ms": estimator.window_ms, "threads": args.threads, "start_us": args.start_us,
-        "chunk_events": args.chunk_events,
-    }
+def _report(args: argparse.Namespace, out: Path, estimator: Any, streams: dict, sources: dict[str, str],
+            targets: dict[str, Path]) -> dict:
     per_stream = {}
-    for stem, stream in streams.items():
-        stats = estimator.stream_stats(stem).to_dict()
-        per_stream[stem] = {
-            "events_file": _source(args.events, targets, stem), "csv": str(targets[stem]),
-            "sensor_hw": list(stream.sensor_hw), "first_window_start_us": estimator.first_window_start_us(stem),
+    for name, stream in streams.items():
+        stats = estimator.stream_stats(name).to_dict()
+        per_stream[name] = {
+            "events_file": sources[name], "csv": str(targets[name]),
+            "sensor_hw": list(stream.sensor_hw), "first_window_start_us": estimator.first_window_start_us(name),
             "events_in_file": len(stream), **stats,
         }
     return {
-        **report_header("run", config),
-        "graph": {"variant": meta.config.get("variant"), "quantization": meta.quantization,
-                  "frame_hw": list(estimator.frame_hw)},
-        "pose_timestamp": "window end",
-        "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
+        **report_head(args, out, estimator, [str(e) for e in args.events]),
         "batching": "the streams' complete windows share batched session calls (one row per stream)",
+        "csv_naming": "each CSV is named by the shortest end of its event file's path (folders, stem; joined with "
+                      f"{NAME_JOIN!r}) that tells it apart from the other files, after the end they all share",
         "streams": per_stream,
         "totals": estimator.stats.to_dict(),
     }

@@ -13,13 +13,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
+from e3dpsm.cli._run_common import (
+    check_stream_options, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
+)
+
 if TYPE_CHECKING:  # pragma: no cover
-    from e3dpsm.data.sequence import EventStream
     from e3dpsm.runtime import StreamingPoseEstimator
     from e3dpsm.runtime.stream import EventChunk
 
@@ -41,7 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "independent streams batched through one session")
     parser.add_argument("--out", required=True,
                         help="CSV of poses to write (report: <stem>.report.json); with several --events files a "
-                        "folder getting <event file stem>.csv each and one run.report.json")
+                        "folder getting one CSV per file and one run.report.json. Each CSV is named by the "
+                        "shortest end of its file's path that tells it apart from the others, after dropping the "
+                        "end all files share: seq_0000/events.h5 seq_0001/events.h5 -> seq_0000.csv seq_0001.csv, "
+                        "a.h5 b.h5 -> a.csv b.csv, deeper clashes join folders with __ (a__seq_0000.csv)")
     parser.add_argument("--window-ms", type=float, default=None,
                         help="window length T in ms (default: the graph's training window, 20)")
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: ORT's)")
@@ -71,30 +76,28 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.runtime import StepSession, StreamingPoseEstimator
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
+    # The one --render check for both forms: the many-file form never sees --render.
     if len(args.events) > 1 and (args.render is not None or args.render_max_frames is not None):
         raise ConfigError("--render draws one stream: pass a single --events file")
+    check_stream_options(args)
     if len(args.events) > 1:  # several streams, one session: e3dpsm/cli/_run_many.py
         from e3dpsm.cli._run_many import run_many
 
         return run_many(args)
     args.events = args.events[0]  # one file: exactly the single-stream command below
     out = Path(args.out)
-    if args.chunk_events <= 0:
-        raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
-    if args.threads is not None and args.threads <= 0:
-        raise ConfigError(f"--threads must be positive, got {args.threads}")
     if out.is_dir():
         raise DataError(f"--out {out} is a folder; expected a CSV file path")
     if out.exists() and not args.force:
         raise OutputExistsError(f"{out} exists; pass --force to replace it")
-    _check_writable_folder(out.parent)  # fail before minutes of inference, not after
+    check_writable_folder(out.parent)  # fail before minutes of inference, not after
     if args.render is None and args.render_max_frames is not None:
         raise ConfigError("--render-max-frames needs --render PATH")
     if args.render is not None:  # a missing .mp4 encoder is reported before the stream runs
         from e3dpsm.runtime.render import check_render_path
 
         check_render_path(args.render, force=args.force, max_frames=args.render_max_frames)
-        _check_writable_folder(Path(args.render).parent)
+        check_writable_folder(Path(args.render).parent)
 
     session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
     # The file's own sensor size (attributes or event_meta.json) wins over the graph's default.
@@ -104,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         keep_frames=args.render is not None,
     )
     video = _stream_render(args, estimator)
-    chunks = _chunks(stream, args.chunk_events)
+    chunks = event_chunks(stream, args.chunk_events)
     if not args.no_progress and sys.stderr.isatty():
         chunks = _with_progress(chunks, len(stream))
 
@@ -114,13 +117,13 @@ def run(args: argparse.Namespace) -> int:
             video or contextlib.nullcontext():
         with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
             writer = csv.writer(fh)
-            writer.writerow(["t_us", *(f"{joint}_{axis}" for joint in estimator.joints for axis in "xyz")])
+            writer.writerow(pose_columns(estimator.joints))
             for pose in estimator.run(chunks):
-                writer.writerow([pose.t_us, *(f"{v:.4f}" for v in pose.pose.reshape(-1).tolist())])
+                writer.writerow(pose_row(pose))
                 if video is not None:
                     video.add(pose)
         if estimator.stats.windows == 0:  # documented choice: an error, not an empty CSV
-            raise _no_window_error(args.events, stream, estimator)
+            raise no_window_error(args.events, stream, estimator.window_ms, estimator.stats)
         report = _report(args, out, estimator, len(stream))
         write_json_atomic(tmp_report, report)
     print(
@@ -144,46 +147,15 @@ def _stream_render(args: argparse.Namespace, estimator: StreamingPoseEstimator):
 
 
 def _report(args: argparse.Namespace, out: Path, estimator: StreamingPoseEstimator, events_in_file: int) -> dict:
-    from e3dpsm.utils.env import report_header
-
     summary = estimator.stats.to_dict()
-    meta = estimator.session.meta
-    config = {
-        "model": str(args.model), "events": str(args.events), "out": str(out), "window_ms": estimator.window_ms,
-        "threads": args.threads, "start_us": args.start_us, "chunk_events": args.chunk_events,
-    }
     return {
-        **report_header("run", config),
-        "graph": {"variant": meta.config.get("variant"), "quantization": meta.quantization,
-                  "frame_hw": list(estimator.frame_hw)},
+        **report_head(args, out, estimator, str(args.events)),
         "sensor_hw": list(estimator.sensor_hw),
         "first_window_start_us": estimator.first_window_start_us,
-        "pose_timestamp": "window end",
-        "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
         "events_in_file": events_in_file,
         **summary,
         "overhead_ms": summary["mean_overhead_ms"],  # per window: validation, windowing, LNES, feeds
     }
-
-
-def _no_window_error(events: str, stream: EventStream, estimator: StreamingPoseEstimator) -> Exception:
-    from e3dpsm.errors import DataError
-
-    if not len(stream):
-        return DataError(f"{events}: the event stream is empty; nothing to estimate")
-    span = int(stream.t_us[-1] - stream.t_us[0])
-    skipped = estimator.stats.events_before_start
-    before = f", {skipped} of them before --start-us" if skipped else ""
-    return DataError(
-        f"{events}: no complete {estimator.window_ms:g} ms window in {len(stream)} events spanning "
-        f"{span} us{before}; nothing to estimate"
-    )
-
-
-def _chunks(stream: EventStream, size: int) -> Iterator[EventChunk]:
-    for lo in range(0, len(stream), size):
-        hi = lo + size
-        yield stream.x[lo:hi], stream.y[lo:hi], stream.t_us[lo:hi], stream.p[lo:hi]
 
 
 def _with_progress(chunks: Iterator[EventChunk], total_events: int) -> Iterator[EventChunk]:
@@ -197,15 +169,3 @@ def _with_progress(chunks: Iterator[EventChunk], total_events: int) -> Iterator[
             yield chunk
             bar.update(len(chunk[2]))
 
-
-def _check_writable_folder(folder: Path) -> None:
-    """The nearest existing ancestor of `folder` must be a writable directory."""
-    from e3dpsm.errors import DataError
-
-    probe = folder.absolute()
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise DataError(f"cannot write to {folder}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise DataError(f"cannot write to {folder}: {probe} is not writable")
