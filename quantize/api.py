@@ -335,9 +335,12 @@ def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: Gra
 def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
                     options: QuantizeOptions, work: Path, build: Callable[[list[str]], onnx.ModelProto],
                     timing: _Timing, ranked: NodeRanking | None = None) -> tuple[SearchResult, LatencySearch]:
-    """The greedy search, then a bounded number of its trial graphs timed beside the fp32
-    graph and one picked by the objective (front.py). The returned result's `chosen` /
-    `excluded_nodes` / `error_pct` are that final choice; its trials are the greedy's."""
+    """The exclusion search, then a bounded number of its trial graphs timed beside the fp32
+    graph and one picked by the objective (front.py). With `ranked` (`--search nodes`, the
+    INT8 default) the search keeps the fewest top-ranked Conv/MatMul/Gemm nodes (ranked by
+    their solo error) in float; without it (`--search groups`, the FP16 default) it adds
+    whole groups greedily. The returned result's `chosen` / `excluded_nodes` / `error_pct`
+    are that final choice; its trials are the search's."""
     built: list[tuple[list[str], Path]] = []
     try:
         greedy = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)

@@ -1,18 +1,25 @@
 """Latency-aware choice among the graphs the exclusion search built.
 
-The greedy search (exclusions.py) measures the held-out distance to fp32 of every trial.
-Every float group costs speed, and groups that cost the same accuracy can cost very
-different time, so the candidates are also timed (side by side, latency.py) and:
+`--exclude auto` first runs one of two searches (exclusions.py), each measuring the held-out
+distance to fp32 of every trial graph it builds:
+
+- `--search nodes` (the INT8 default): each Conv/MatMul/Gemm is quantised alone and the nodes
+  are ranked by that solo error; the search then keeps the fewest top-ranked nodes in float
+  that meet the budget (doubling, then bisection);
+- `--search groups` (the FP16 default): whole module / op-type groups are added to the float
+  set greedily, the most helpful group each round.
+
+Every node kept in float costs speed, and trials that cost the same accuracy can cost very
+different time, so the trial graphs are also timed (side by side with fp32, step_timer.py) and:
 
 - objective "latency" (default): the fastest candidate within the accuracy budget (within
   LATENCY_TIE of the fastest counts as a tie, which the lower distance breaks);
-- objective "accuracy": the greedy search's own result (the fewest groups in float that
+- objective "accuracy": the search's own result (the fewest nodes or groups in float that
   reach the budget, or the most accurate graph found when none does).
 
 No candidate outside the budget is chosen while one within it exists. The report holds
 every timed candidate and the Pareto front of (distance to fp32, p50 step latency).
-"""
-from __future__ import annotations
+"""from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field

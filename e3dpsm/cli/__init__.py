@@ -22,6 +22,37 @@ COMMANDS: tuple[str, ...] = (
     "parity", "quantize", "validate", "convert", "golden", "diagnose", "profile", "compare", "run",
 )
 
+# The guide page of each command (relative to the repository root), shown at the end of its
+# --help; tests/test_docs.py checks that every command has one and that the page exists.
+DOCS: dict[str, str] = {
+    "pipeline": "docs/pipeline.md",
+    "synth": "docs/data.md",
+    "prepare": "docs/data.md",
+    "model_info": "docs/model.md",
+    "train": "docs/training.md",
+    "import_weights": "docs/model.md",
+    "evaluate": "docs/training.md",
+    "ablation": "docs/training.md",
+    "export": "docs/export-and-parity.md",
+    "parity": "docs/export-and-parity.md",
+    "quantize": "docs/quantize.md",
+    "validate": "docs/validate-and-profile.md",
+    "convert": "docs/runtimes.md",
+    "golden": "docs/golden-and-diagnose.md",
+    "diagnose": "docs/golden-and-diagnose.md",
+    "profile": "docs/validate-and-profile.md",
+    "compare": "docs/validate-and-profile.md",
+    "run": "docs/runtimes.md",
+}
+
+
+def _set_guide(parser: argparse.ArgumentParser, page: str) -> None:
+    """End the command's --help (and its actions', e.g. `golden record`) with its guide page."""
+    for target in [parser] + [child for action in parser._actions
+                              if isinstance(action, argparse._SubParsersAction)
+                              for child in action.choices.values()]:
+        target.epilog = f"{target.epilog} Guide: {page}" if target.epilog else f"Guide: {page}"
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -35,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
         module_name = f"e3dpsm.cli.{name}"
         if importlib.util.find_spec(module_name) is None:
             continue
-        importlib.import_module(module_name).register(sub)
+        command = importlib.import_module(module_name).register(sub)
+        if name in DOCS and isinstance(command, argparse.ArgumentParser):
+            _set_guide(command, DOCS[name])
     return parser
 
 

@@ -24,9 +24,9 @@ Semantics (one stream):
   out-of-range coordinates, unsorted timestamps, polarity; -1/+1 is converted to 0/1).
   Events before an explicit `start_us` are skipped and counted.
 
-The state carries a batch axis (StateSpec layout from the graph metadata), so several
-streams can be batched later by one `EventWindower` per stream stacking its frames; this
-class drives a batch of one.
+The state carries a batch axis (StateSpec layout from the graph metadata); this class
+drives a batch of one. Several streams batched through one session, each with its own
+`EventWindower` and state row, are `MultiStreamEstimator` (e3dpsm.runtime.multistream).
 """
 from __future__ import annotations
 
