@@ -44,7 +44,7 @@ def test_greedy_takes_a_group_exactly_at_budget_and_stops():
     assert [t["round"] for t in result.trials] == [0, 1, 1]  # no second round
 
 
-def _ranked(errors: dict[int, float], caplog=None):
+def _ranked(errors: dict[int, float]):
     """The ranked-prefix search over 8 nodes with error `errors[k]` for the top-k in float."""
     probed = []
 
