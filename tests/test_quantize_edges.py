@@ -1,0 +1,148 @@
+"""`--exclude auto` at its edges (issue 25, part 6), with injected evaluators and timers:
+an error exactly at the budget is within it at every place a search compares them, and the
+latency-aware choice is made against the user's budget, not the mode's default."""
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from e3dpsm.quantize import api
+from e3dpsm.quantize.api import DEFAULT_BUDGET_PCT, QuantizeOptions
+from e3dpsm.quantize.exclusions import NodeRanking, SearchResult, greedy_exclusions, ranked_prefix_exclusions
+from e3dpsm.quantize.graph_groups import NodeGroup
+
+BUDGET = 1.0  # exactly representable, and every injected error below is too
+NODES = [f"n{i}" for i in range(8)]
+
+
+# -- within budget is inclusive ------------------------------------------------------------
+@pytest.mark.parametrize("error, within", [(1.0, True), (1.0 + 2**-40, False), (0.5, True)])
+def test_search_result_exactly_at_budget_is_within(error, within):
+    result = SearchResult([], ["r"], error, BUDGET)
+    assert result.within_budget is within and result.to_dict()["within_budget"] is within
+
+
+def test_greedy_stops_at_a_base_error_exactly_at_budget_and_does_not_warn(caplog):
+    calls = []
+
+    def evaluate(excluded, label):
+        calls.append(label)
+        return BUDGET
+
+    with caplog.at_level(logging.WARNING, logger="e3dpsm.quantize.exclusions"):
+        result = greedy_exclusions(["r"], [NodeGroup("a", "module", ("a1",))], BUDGET, evaluate)
+    assert calls == ["base"] and result.chosen == [] and result.within_budget
+    assert not [r for r in caplog.records if "above" in r.getMessage()]
+
+
+def test_greedy_takes_a_group_exactly_at_budget_and_stops():
+    errors = {"base": 2.0, "a": 1.0, "b": 1.5}
+    result = greedy_exclusions(["r"], [NodeGroup("a", "module", ("a1",)), NodeGroup("b", "module", ("b1",))],
+                               BUDGET, lambda excluded, label: errors[label], max_rounds=3)
+    assert result.chosen == ["a"] and result.error_pct == 1.0 and result.within_budget
+    assert [t["round"] for t in result.trials] == [0, 1, 1]  # no second round
+
+
+def _ranked(errors: dict[int, float]):
+    """The ranked-prefix search over 8 nodes with error `errors[k]` for the top-k in float."""
+    probed = []
+
+    def evaluate(excluded, label):
+        k = len(excluded) - 1  # beyond the one recurrent node
+        probed.append(k)
+        return errors[k]
+
+    ranking = NodeRanking([{"node": n, "error_pct": 1.0} for n in NODES], frames=4)
+    return ranked_prefix_exclusions(["r"], ranking, BUDGET, evaluate), probed
+
+
+def test_ranked_doubling_stops_at_an_error_exactly_at_budget(caplog):
+    # k = 1 over, k = 2 exactly at the budget: the answer, without probing 4 (or bisecting)
+    errors = {0: 2.0, 1: 1.5, 2: 1.0, 3: 0.75, 4: 0.5, 8: 0.0}
+    with caplog.at_level(logging.WARNING, logger="e3dpsm.quantize.exclusions"):
+        result, probed = _ranked(errors)
+    assert probed == [0, 1, 2]
+    assert result.chosen == ["top2"] and result.excluded_nodes == ["r", "n0", "n1"]
+    assert result.error_pct == 1.0 and result.within_budget
+    assert not [r for r in caplog.records if "above" in r.getMessage()]
+
+
+def test_ranked_bisection_takes_an_error_exactly_at_budget():
+    # doubling: 1, 2 over, 4 within; bisection probes 3, exactly at the budget: the answer
+    errors = {0: 2.0, 1: 1.75, 2: 1.5, 3: 1.0, 4: 0.5}
+    result, probed = _ranked(errors)
+    assert probed == [0, 1, 2, 4, 3]
+    assert result.chosen == ["top3"] and result.error_pct == 1.0 and result.within_budget
+
+
+def test_ranked_base_exactly_at_budget_needs_no_float_node():
+    result, probed = _ranked({0: 1.0})
+    assert probed == [0] and result.chosen == [] and result.within_budget
+
+
+# -- the latency-aware choice reads the user's budget ---------------------------------------
+# Keeping a in float removes 1.375 points of error, b 1.125, c 0.25 (base 2.0): a -> 0.625, b -> 0.875,
+# c -> 1.75 (all exact in binary).
+COST = {"a1": 1.375, "b1": 1.125, "c1": 0.25}
+GROUPS = [NodeGroup("a", "module", ("a1",)), NodeGroup("b", "module", ("b1",)), NodeGroup("c", "op_type", ("c1",))]
+P50_MS = {"base": 5.0, "r1:a": 30.0, "r1:b": 20.0, "r1:c": 10.0, "fp32": 40.0}  # b is faster than a
+
+
+def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, objective: str = "latency"):
+    """api._latency_search with the held-out evaluation and the step timer injected."""
+    def fake_evaluator(meta, holdout, options, work, build, built=None):
+        def evaluate(excluded, label):
+            built.append((list(excluded), tmp_path / f"{label}.onnx"))  # never opened: the timer is injected
+            return 2.0 - sum(COST.get(n, 0.0) for n in excluded)
+        return evaluate
+
+    asked = []
+
+    def timer(graphs):
+        asked.append(set(graphs))
+        return {label: P50_MS[label] for label in graphs}
+
+    monkeypatch.setattr(api, "_evaluator", fake_evaluator)
+    options = QuantizeOptions(mode=mode, budget_pct=budget_pct, search="groups", max_rounds=1, objective=objective)
+    final, latency = api._latency_search(["r"], GROUPS, None, None, options, tmp_path, None,
+                                         api._Timing(timer, tmp_path / "fp32.onnx"))
+    return final, latency, asked
+
+
+@pytest.mark.parametrize("mode, budget_pct, chosen, groups", [
+    # int8 (default 1%): a (0.625) and b (0.875) are within 1%, b is faster. Under 0.7%
+    # only a is within; under 0.5% none is, so the most accurate (a) is kept.
+    ("int8", None, "r1:b", ["b"]),
+    ("int8", 1.0, "r1:b", ["b"]),
+    ("int8", 0.875, "r1:b", ["b"]),  # b exactly at the budget
+    ("int8", 0.875 - 2**-40, "r1:a", ["a"]),
+    ("int8", 0.7, "r1:a", ["a"]),
+    ("int8", 0.5, "r1:a", ["a"]),
+    # fp16 (default 0.1%): nothing is within it; a user's 1% makes b the fastest within
+    ("fp16", None, "r1:a", ["a"]),
+    ("fp16", 1.0, "r1:b", ["b"]),
+])
+def test_latency_choice_uses_the_given_budget_not_the_mode_default(monkeypatch, tmp_path, mode, budget_pct,
+                                                                    chosen, groups):
+    final, latency, asked = _search_with(monkeypatch, tmp_path, mode, budget_pct)
+    budget = DEFAULT_BUDGET_PCT[mode] if budget_pct is None else budget_pct
+    assert latency.chosen.label == chosen and final.chosen == groups
+    assert latency.budget_pct == budget and final.budget_pct == budget
+    assert final.within_budget is (final.error_pct <= budget)
+    block = latency.to_dict()
+    assert block["chosen"]["label"] == chosen
+    assert [c["label"] for c in block["candidates"] if c["within_budget"]] == \
+        [c.label for c in latency.candidates if c.error_pct <= budget]
+    assert "fp32" in asked[0]
+
+
+def test_the_faster_group_is_chosen_only_when_within_the_users_budget(monkeypatch, tmp_path):
+    """The case the mutation hides in: a user budget tighter than the mode's default,
+    between the two candidates' errors (0.625 < 0.7 < 0.875 < 1.0): b is faster (P50_MS)
+    but outside the budget, so it is neither worth timing nor chosen."""
+    final, latency, asked = _search_with(monkeypatch, tmp_path, "int8", 0.7)
+    assert P50_MS["r1:b"] < P50_MS["r1:a"]
+    assert "r1:b" not in asked[0] and {"r1:a", "base", "fp32"} <= asked[0]
+    assert latency.chosen.label == "r1:a" and final.error_pct == 0.625
+    assert final.excluded_nodes == ["r", "a1"] and final.within_budget
