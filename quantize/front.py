@@ -19,7 +19,8 @@ different time, so the trial graphs are also timed (side by side with fp32, step
 
 No candidate outside the budget is chosen while one within it exists. The report holds
 every timed candidate and the Pareto front of (distance to fp32, p50 step latency).
-"""from __future__ import annotations
+"""
+from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
