@@ -2,7 +2,7 @@
 
 The greedy search (exclusions.py) measures the held-out distance to fp32 of every trial.
 Every float group costs speed, and groups that cost the same accuracy can cost very
-different time, so the candidates are also timed (side by side, latency.py) and:
+different time, so the candidates are also timed (side by side, step_timer.py) and:
 
 - objective "latency" (default): the fastest candidate within the accuracy budget (within
   LATENCY_TIE of the fastest counts as a tie, which the lower distance breaks);
@@ -21,7 +21,7 @@ from typing import Any, Sequence
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.exclusions import SearchResult
-from e3dpsm.quantize.latency import StepTimer
+from e3dpsm.quantize.step_timer import StepTimer
 
 log = logging.getLogger(__name__)
 
