@@ -115,7 +115,7 @@ def bench_changes(args: argparse.Namespace) -> int:
     timed side by side (interleaved chunks, same frames and threads), `--repeats` fresh
     sessions, medians of the per-repeat medians. Writes RESULTS_CHANGES(.json, .md)."""
     from e3dpsm.profiles.latency import measure_side_by_side
-    from e3dpsm.quantize.latency import _StepRunner
+    from e3dpsm.quantize.step_timer import _StepRunner
 
     result = report_header("bench_quantize_changes", vars(args))
     with tempfile.TemporaryDirectory(prefix="bench-quant-changes-") as tmp:

@@ -15,7 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
-from e3dpsm.errors import InputError
+from e3dpsm.errors import ConfigError, InputError
 
 LNES_CHANNELS = 2  # one per polarity
 
@@ -161,6 +161,17 @@ def _polarity(p: np.ndarray, repair: bool) -> np.ndarray:
         return (p > 0).astype(np.uint8)  # paper convention -1/+1 -> channel index 0/1
     shown = np.unique(p)[:5].tolist()
     raise InputError(f"event polarity must be 0/1 (or -1/+1), found values {shown}")
+
+
+def window_us_from_ms(window_ms: float) -> int:
+    """Window length in whole microseconds (event timestamps are integer microseconds).
+
+    Beside the window grid so that data preparation and the torch-free runtime share one
+    conversion without the runtime importing the data-preparation module."""
+    window_us = round(window_ms * 1000)
+    if window_ms <= 0 or abs(window_us - window_ms * 1000) > 1e-6:
+        raise ConfigError(f"--window-ms must be a positive whole number of microseconds, got {window_ms}")
+    return int(window_us)
 
 
 def window_bounds(

@@ -11,7 +11,7 @@ from e3dpsm.quantize.calibration import (
 )
 from e3dpsm.quantize.front import OBJECTIVES
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
-from e3dpsm.quantize.latency import SideBySideTimer, StepTimer
+from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 
 __all__ = [
     "MIN_CALIBRATION_FRAMES", "MODES", "OBJECTIVES", "CalibrationSet", "SideBySideTimer", "StepTimer", "FeedListReader", "NodeGroup", "QuantizeOptions",

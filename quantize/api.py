@@ -26,8 +26,8 @@ from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_sea
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
-from e3dpsm.quantize.latency import SideBySideTimer, StepTimer
 from e3dpsm.quantize.static import DEFAULT_OP_TYPES, StaticConfig, preprocess, quantize_int8, quantised_node_count
+from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
 

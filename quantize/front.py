@@ -29,7 +29,7 @@ from typing import Any, Sequence
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.exclusions import SearchResult
-from e3dpsm.quantize.latency import StepTimer
+from e3dpsm.quantize.step_timer import StepTimer
 
 log = logging.getLogger(__name__)
 

@@ -319,7 +319,8 @@ def test_golden_record_of_1000_small_steps_stays_under_20_mb(tmp_path, prepared_
 def test_pipeline_checks_every_graph_on_both_runtimes_and_reports_verdicts(tmp_path, quant_data, trained_graph,
                                                                           int8_dir, fp16_dir):  # noqa: F811
     pytest.importorskip("openvino")
-    from e3dpsm.pipeline import FP16, GRAPH, INT8, INT8_DYNAMIC, PipelineConfig, run_pipeline
+    from e3dpsm.pipeline.runner import run_pipeline
+    from e3dpsm.pipeline.stages import FP16, GRAPH, INT8, INT8_DYNAMIC, PipelineConfig
 
     run = tmp_path / "run"
     (run / "prepared").parent.mkdir(parents=True)

@@ -7,7 +7,8 @@ import pytest
 
 from _quantize_helpers import TRAINED_TINY
 from e3dpsm.checkpoint import CheckpointError
-from e3dpsm.pipeline import STAGES, PipelineConfig, run_pipeline
+from e3dpsm.pipeline.runner import run_pipeline
+from e3dpsm.pipeline.stages import STAGES, PipelineConfig
 
 
 def test_stages_use_the_given_checkpoint_and_its_resolution(tmp_path) -> None:
@@ -32,7 +33,7 @@ def test_a_bad_checkpoint_is_refused_before_any_stage_runs(tmp_path) -> None:
 
 
 def test_report_names_the_given_checkpoint_and_its_variant(tmp_path) -> None:
-    from e3dpsm.pipeline_report import write_index
+    from e3dpsm.pipeline.report import write_index
 
     (tmp_path / "export").mkdir()
     (tmp_path / "export" / "export.json").write_text(json.dumps({"model": {"variant": "released"}}))

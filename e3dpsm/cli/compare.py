@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from e3dpsm.compare import compare, table
+    from e3dpsm.pipeline.compare import compare, table
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic
 

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from e3dpsm.data.prepared import PreparedData
-    from e3dpsm.evaluation.pipeline import evaluate_checkpoint, write_report
+    from e3dpsm.evaluation.evaluate import evaluate_checkpoint, write_report
     from e3dpsm.utils.env import report_header
 
     if args.threads:

@@ -9,9 +9,10 @@ from e3dpsm.cli._common import positive_float
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "pipeline", help="run the whole flow on synthetic data (about 10 minutes on 2 cores)",
+        "pipeline", help="run the whole flow on synthetic data (about 15-20 minutes on two cores)",
         description="synth -> prepare -> train -> evaluate -> export -> parity -> quantize -> validate -> "
-                    "profile -> OUT/report/index.md. Finished stages are skipped on a rerun.")
+                    "golden -> clip -> profile -> OUT/report/index.md, each stage in its own process. "
+                    "Finished stages are skipped on a rerun.")
     p.add_argument("--out", default="runs/pipeline", help="output folder (default runs/pipeline)")
     p.add_argument("--variant", choices=("tiny", "small"), default="small")
     p.add_argument("--checkpoint", type=Path, help="use this trained or imported checkpoint (e3dpsm import) instead "
@@ -26,7 +27,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from e3dpsm.pipeline import PipelineConfig, run_pipeline
+    from e3dpsm.pipeline.runner import run_pipeline
+    from e3dpsm.pipeline.stages import PipelineConfig
 
     cfg = PipelineConfig(out=Path(args.out), variant=args.variant, minutes=args.minutes, seed=args.seed,
                          threads=args.threads, checkpoint=args.checkpoint)

@@ -25,20 +25,12 @@ from e3dpsm.data import prepared
 from e3dpsm.data.layout import detect_layout, list_sequences, read_sequence
 from e3dpsm.data.sequence import Sequence
 from e3dpsm.errors import ConfigError, DataError
-from e3dpsm.events import LNES_CHANNELS, events_to_lnes, window_bounds
+from e3dpsm.events import LNES_CHANNELS, events_to_lnes, window_bounds, window_us_from_ms
 from e3dpsm.joints import JOINT_NAMES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
-
-
-def window_us_from_ms(window_ms: float) -> int:
-    """Window length in whole microseconds (event timestamps are integer microseconds)."""
-    window_us = round(window_ms * 1000)
-    if window_ms <= 0 or abs(window_us - window_ms * 1000) > 1e-6:
-        raise ConfigError(f"--window-ms must be a positive whole number of microseconds, got {window_ms}")
-    return int(window_us)
 
 
 def sequence_windows(seq: Sequence, window_us: int) -> tuple[np.ndarray, np.ndarray]:

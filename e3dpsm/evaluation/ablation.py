@@ -7,7 +7,7 @@ from typing import Any, Mapping
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.evaluation.core import METRICS
-from e3dpsm.evaluation.pipeline import evaluate_checkpoint
+from e3dpsm.evaluation.evaluate import evaluate_checkpoint
 from e3dpsm.evaluation.tables import markdown_table
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic

@@ -15,8 +15,8 @@ from typing import Any, Mapping, Protocol
 import numpy as np
 
 from e3dpsm.errors import DataError
-from e3dpsm.golden.profiles import ToleranceProfile
 from e3dpsm.golden.store import GoldenRecord
+from e3dpsm.golden.tolerances import ToleranceProfile
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.metrics import joint_errors
 

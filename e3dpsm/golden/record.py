@@ -14,8 +14,8 @@ import numpy as np
 
 from e3dpsm.data.prepared import ALL_SPLITS, PreparedData
 from e3dpsm.errors import DataError
-from e3dpsm.golden.profiles import PROFILES
 from e3dpsm.golden.store import GoldenWriter
+from e3dpsm.golden.tolerances import PROFILES
 from e3dpsm.metrics import mpjpe
 
 StateArrays = dict[str, np.ndarray]

@@ -8,8 +8,8 @@ from typing import Any, Sequence
 
 from e3dpsm.errors import InputError
 from e3dpsm.golden.check import GoldenCheck, check_golden, plot_check
-from e3dpsm.golden.profiles import PROFILES, ToleranceProfile, profile_for_quantization
 from e3dpsm.golden.store import GoldenRecord, load_golden
+from e3dpsm.golden.tolerances import PROFILES, ToleranceProfile, profile_for_quantization
 
 RUNTIMES = ("onnxruntime", "openvino")
 CHECK_FILE = "check.json"

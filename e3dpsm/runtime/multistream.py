@@ -34,9 +34,8 @@ from typing import Any, Hashable, Iterable, Mapping
 
 import numpy as np
 
-from e3dpsm.data.prepare import window_us_from_ms
 from e3dpsm.errors import InputError
-from e3dpsm.events import events_to_lnes
+from e3dpsm.events import events_to_lnes, window_us_from_ms
 from e3dpsm.runtime.session import StepSession
 from e3dpsm.runtime.stream import EventChunk, EventWindower, PoseEstimate, StreamStats
 

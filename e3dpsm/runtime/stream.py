@@ -37,9 +37,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from e3dpsm.data.prepare import window_us_from_ms
 from e3dpsm.errors import InputError
-from e3dpsm.events import events_to_lnes, validate_events, window_bounds
+from e3dpsm.events import events_to_lnes, validate_events, window_bounds, window_us_from_ms
 from e3dpsm.runtime.session import StateArrays, StepSession
 
 EventChunk = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # x, y, t_us, p

@@ -1,26 +1,18 @@
-"""The main job: synth -> prepare -> train -> evaluate -> export -> parity -> quantize ->
-validate -> profile -> report, on the embedded default (synthetic data, small model).
-
-Each stage is one CLI command run in-process; a stage whose marker file exists is not
-redone on a rerun, so an interrupted pipeline resumes where it stopped.
+"""The pipeline's one stage table: for each stage its name, the file whose existence means it
+is done, its CLI command (argv, built from the PipelineConfig) and its human- and
+machine-readable reports. The runner and the report index both read this table.
 """
 from __future__ import annotations
 
 import logging
-import subprocess
-import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from e3dpsm.errors import ConfigError, E3DPSMError
+from e3dpsm.errors import ConfigError
 
 log = logging.getLogger(__name__)
-
-
-class StageFailed(E3DPSMError):
-    """A pipeline stage exited non-zero."""
 
 
 @dataclass(frozen=True)
@@ -48,8 +40,11 @@ class PipelineConfig:
 
 @dataclass(frozen=True)
 class Stage:
+    """Paths are relative to the pipeline's output folder."""
     name: str
-    marker: str                                  # relative path that exists once the stage is done
+    marker: str                                  # exists once the stage is done
+    human_report: str                            # what the index links for a reader
+    machine_report: str                          # the JSON a tool reads (the same file for some stages)
     argv: Callable[[PipelineConfig], list[str]]  # the CLI command of the stage
 
 
@@ -103,44 +98,48 @@ def _quantize(mode: str) -> Callable[[PipelineConfig], list[str]]:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("synth", "data/report.json", lambda c: [
+    Stage("synth", "data/report.json", "data/report.json", "data/report.json", lambda c: [
         "synth", "--out", _p(c, "data"), "--sequences", str(c.sequences), "--seconds", str(c.seconds),
         "--seed", str(c.seed), "--preview", "--force"]),
-    Stage("prepare", "prepared/report.json", lambda c: [
+    Stage("prepare", "prepared/report.json", "prepared/report.json", "prepared/report.json", lambda c: [
         "prepare", "--data", _p(c, "data"), "--out", _p(c, "prepared"), "--window-ms", f"{c.window_ms:g}",
         *_frame_args(c), "--force"]),
-    Stage("train", "train/report.json", _train_argv),  # written when the run ends
-    Stage("evaluate", "evaluate/metrics.json", lambda c: [
+    # train/report.json is written when the run ends; the log grows while it runs.
+    Stage("train", "train/report.json", "train/log.jsonl", "train/report.json", _train_argv),
+    Stage("evaluate", "evaluate/metrics.json", "evaluate/metrics.md", "evaluate/metrics.json", lambda c: [
         "evaluate", "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--out", _p(c, "evaluate"),
         "--split", "test", "--causal", "--threads", str(c.threads), "--force"]),
-    Stage("export", GRAPH, lambda c: [
+    Stage("export", GRAPH, "export/export.json", "export/export.json", lambda c: [
         "export", "--checkpoint", _ckpt(c), "--out", _p(c, "export"), "--force"]),
-    Stage("parity", "parity/report.json", lambda c: [
+    Stage("parity", "parity/report.json", "parity/report.json", "parity/report.json", lambda c: [
         "parity", "--model", _p(c, GRAPH), "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"),
         "--split", "test", "--steps", str(c.parity_steps), "--window-ms", "20", "25", "50",
         "--threads", str(c.threads), "--report", _p(c, "parity/report.json")]),
-    Stage("quantize-int8", INT8, _quantize("int8")),
-    Stage("quantize-fp16", FP16, _quantize("fp16")),
-    Stage("quantize-int8-dynamic", INT8_DYNAMIC, _quantize("int8-dynamic")),
-    Stage("validate", "validate/report.json", lambda c: [
+    Stage("quantize-int8", INT8, "quantize/int8/report.md", "quantize/int8/report.json", _quantize("int8")),
+    Stage("quantize-fp16", FP16, "quantize/fp16/report.json", "quantize/fp16/report.json", _quantize("fp16")),
+    Stage("quantize-int8-dynamic", INT8_DYNAMIC, "quantize/int8-dynamic/report.json",
+          "quantize/int8-dynamic/report.json", _quantize("int8-dynamic")),
+    Stage("validate", "validate/report.json", "validate/validation.md", "validate/report.json", lambda c: [
         "validate", "--models", _p(c, GRAPH), _p(c, INT8), _p(c, FP16), _p(c, INT8_DYNAMIC),
         "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--split", "test",
         "--out", _p(c, "validate"), "--threads", str(c.threads), "--force"]),
-    Stage("golden-record", "golden/record/golden.json", lambda c: [
+    Stage("golden-record", "golden/record/golden.json", "golden/record/golden.json",
+          "golden/record/golden.json", lambda c: [
         "golden", "record", "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--split", "test",
         "--steps", str(c.golden_steps), "--threads", str(c.threads), "--out", _p(c, "golden/record"), "--force"]),
     # Every graph on both runtimes, torch-free, as a device would check them; verdicts go to
     # the report (a failing compressed graph is a finding of the run, not a crash).
-    Stage("golden-check", "golden/checks/summary.json", lambda c: [
+    Stage("golden-check", "golden/checks/summary.json", "golden/checks/summary.md",
+          "golden/checks/summary.json", lambda c: [
         "golden", "check", "--model", _p(c, GRAPH), _p(c, INT8), _p(c, FP16), _p(c, INT8_DYNAMIC),
         "--runtime", "onnxruntime", "openvino", "--golden", _p(c, "golden/record"), "--threads", str(c.threads),
         "--out", _p(c, "golden/checks"), "--exit-zero"]),
     # A clip to watch: the held-out sequence streamed through the fp32 graph, torch-free.
-    Stage("clip", "clip/poses.gif", lambda c: [
+    Stage("clip", "clip/poses.gif", "clip/poses.gif", "clip/poses.report.json", lambda c: [
         "run", "--model", _p(c, GRAPH), "--events", _held_out_events(c), "--out", _p(c, "clip/poses.csv"),
         "--render", _p(c, "clip/poses.gif"), "--render-max-frames", "100", "--threads", str(c.threads),
         "--no-progress", "--force"]),
-    Stage("profile", "profile/report.json", lambda c: [
+    Stage("profile", "profile/report.json", "profile/report.md", "profile/report.json", lambda c: [
         "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),
         "--threads", str(c.threads), "--out", _p(c, "profile"), "--force"]),
@@ -167,48 +166,3 @@ def estimate_train_steps(cfg: PipelineConfig, probe_steps: int = 3) -> int:
     steps = int(cfg.train_budget_s / per_step)
     log.info("training budget %.0f s at ~%.2f s/step -> %d steps", cfg.train_budget_s, per_step, steps)
     return max(20, steps)
-
-
-def run_stage(argv: list[str]) -> int:
-    """One stage in its own process, as a user would run it: thread pools, environment and
-    memory start clean (an OpenMP pool left busy by training would slow the next stage)."""
-    return subprocess.run([sys.executable, "-m", "e3dpsm", *argv], check=False).returncode
-
-
-def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dict]:
-    from e3dpsm.pipeline_report import write_index
-
-    if cfg.variant not in ("tiny", "small", "paper"):
-        raise ConfigError(f"unknown variant {cfg.variant!r}; use tiny, small or paper")
-    if cfg.checkpoint:
-        from e3dpsm.checkpoint import read_checkpoint
-
-        read_checkpoint(cfg.checkpoint)  # a clear error now, not at the evaluate stage
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    done: list[dict] = []
-    names = [s.name for s in STAGES]
-    unknown = sorted(set(only or []) - set(names))
-    if unknown:
-        raise ConfigError(f"unknown stages {unknown}; stages: {', '.join(names)}")
-    for index, stage in enumerate(STAGES, 1):
-        marker = cfg.out / stage.marker
-        header = f"[{index}/{len(STAGES)}] {stage.name}"
-        if stage.name == "train" and cfg.checkpoint:
-            log.info("%s: skipped, --checkpoint %s given", header, cfg.checkpoint)
-            done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
-            continue
-        if (only and stage.name not in only) or (marker.exists() and not only):
-            log.info("%s: done before, skipped (%s exists)", header, stage.marker)
-            done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
-            continue
-        argv = stage.argv(cfg)
-        log.info("%s: e3dpsm %s", header, " ".join(argv))
-        start = time.perf_counter()
-        code = run_stage(argv)
-        seconds = time.perf_counter() - start
-        if code != 0:
-            raise StageFailed(f"stage {stage.name} failed (exit {code}); fix it and rerun: finished stages are kept")
-        done.append({"stage": stage.name, "status": "ran", "seconds": round(seconds, 1)})
-        log.info("%s: finished in %.0f s", header, seconds)
-    write_index(cfg.out, asdict(cfg), done)
-    return done

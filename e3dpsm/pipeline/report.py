@@ -6,26 +6,10 @@ import json
 from pathlib import Path
 from typing import Any
 
+from e3dpsm.pipeline.stages import STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
-# Stage name -> (human-readable report, machine-readable report), relative to OUT.
-STAGE_REPORTS: dict[str, tuple[str, str]] = {
-    "synth": ("data/report.json", "data/report.json"),
-    "prepare": ("prepared/report.json", "prepared/report.json"),
-    "train": ("train/log.jsonl", "train/report.json"),
-    "evaluate": ("evaluate/metrics.md", "evaluate/metrics.json"),
-    "export": ("export/export.json", "export/export.json"),
-    "parity": ("parity/report.json", "parity/report.json"),
-    "quantize-int8": ("quantize/int8/report.md", "quantize/int8/report.json"),
-    "quantize-fp16": ("quantize/fp16/report.json", "quantize/fp16/report.json"),
-    "quantize-int8-dynamic": ("quantize/int8-dynamic/report.json", "quantize/int8-dynamic/report.json"),
-    "validate": ("validate/validation.md", "validate/report.json"),
-    "golden-record": ("golden/record/golden.json", "golden/record/golden.json"),
-    "golden-check": ("golden/checks/summary.md", "golden/checks/summary.json"),
-    "clip": ("clip/poses.gif", "clip/poses.report.json"),
-    "profile": ("profile/report.md", "profile/report.json"),
-}
 # Which profile target measures which validated variant.
 _TARGET_OF = {("pytorch", "fp32"): "torch-eager-cpu", ("onnx", "fp32"): "ort-cpu-fp32",
               ("onnx", "fp16"): "ort-cpu-fp16", ("onnx", "int8"): "ort-cpu-int8"}
@@ -111,9 +95,11 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
                   "(red positive, blue negative), predicted skeleton in gold, ground truth in green.", "",
                   "![held-out clip](../clip/poses.gif)", ""]
     lines += ["## Stages", "", "| stage | status | seconds | report |", "|---|---|---:|---|"]
+    by_name = {stage.name: stage for stage in STAGES}
     for s in stages:
-        human, machine = STAGE_REPORTS.get(s["stage"], ("", ""))
-        links = " · ".join(f"[{p}](../{p})" for p in dict.fromkeys((human, machine)) if p and (out / p).exists())
+        stage = by_name.get(s["stage"])
+        reports = (stage.human_report, stage.machine_report) if stage else ()
+        links = " · ".join(f"[{p}](../{p})" for p in dict.fromkeys(reports) if (out / p).exists())
         lines.append(f"| {s['stage']} | {s['status']} | {s['seconds']} | {links or '-'} |")
     figures = sorted(p for p in out.glob("*/**/*.png") if "report" not in p.parts[len(out.parts):][:1])
     if figures:
