@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from e3dpsm.cli import main
-from e3dpsm.compare import Change, compare
+from e3dpsm.pipeline.compare import Change, compare
 
 
 def _profile(path: Path, p50_ms: float, model_bytes: int) -> Path:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from e3dpsm.golden.check import MIN_GROWTH_STEPS, TensorCheck, check_golden
-from e3dpsm.golden.profiles import PROFILES
+from e3dpsm.golden.tolerances import PROFILES
 from e3dpsm.golden.store import GoldenRecord, GoldenWriter
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.state import StateSpec, initial_states
