@@ -29,6 +29,7 @@ from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.static import DEFAULT_OP_TYPES, StaticConfig, preprocess, quantize_int8, quantised_node_count
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
+from e3dpsm.utils.isa import detect_isa
 from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -169,8 +170,10 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             model = onnx.load(str(dyn))
             info["excluded_nodes"] = keep
             info["mode"] = options.mode
-        # The graph carries its accuracy budget: `golden check` holds it to that budget.
+        # The graph carries its accuracy budget: `golden check` holds it to that budget. INT8
+        # error depends on the CPU's kernels (utils/isa.py), so it also says where it was checked.
         info["budget_pct"] = options.budget
+        info["checked_on_isa"] = detect_isa().to_dict()
         finalize(model, meta, info)
         out_path = tmp / artifact_name(options.mode)
         size = save_model(model, out_path)

@@ -16,11 +16,6 @@ from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
 SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
 TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
 FAST = dict(frames=16, holdout_frames=40, rank_frames=20, max_rounds=1)
-# The trained tiny's INT8 graph is 10.4% of its MPJPE away from fp32 with only the recurrence
-# in float, 3.7% once the search keeps the decoder in float too (measured). The 1% bar is
-# for trained full-size models (benchmarks/bench_quantize.py on `small`); a budget between
-# the two makes the search work for its pass here.
-INT8_TEST_BUDGET_PCT = 5.0
 
 
 def make_prepared(root: Path, seconds: float = 1.0) -> Path:
@@ -72,13 +67,30 @@ def trained_graph(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def int8_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
+def int8_test_budget_pct(tmp_path_factory, trained_graph, quant_data) -> float:  # noqa: F811
+    """Half the trained tiny's INT8 error with only the recurrence in float, measured on this
+    host, so that the search has work to do and a result to find on every kind of CPU.
+
+    That error depends on the CPU (e3dpsm/utils/isa.py): 10.4% of MPJPE on AVX2 hosts, whose
+    U8S8 kernels add product pairs in saturating 16-bit arithmetic, and 2.19% on a Xeon with
+    AVX-512 VNNI and AMX. A fixed 5% budget sat below the first and above the second, where
+    the search then had nothing to do and the tests expecting it to work failed."""
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    out = tmp_path_factory.mktemp("q") / "int8_recurrent_float"
+    options = QuantizeOptions(mode="int8", exclude="recurrent", frames=FAST["frames"],
+                              holdout_frames=FAST["holdout_frames"])
+    return round(quantize_graph(trained_graph, quant_data, out, options)["holdout"]["bound_pct"] / 2, 4)
+
+
+@pytest.fixture(scope="session")
+def int8_dir(tmp_path_factory, trained_graph, quant_data, int8_test_budget_pct) -> Path:  # noqa: F811
     """The trained tiny quantised to INT8 under the test budget (shared by the quantise and
     golden tests)."""
     from e3dpsm.quantize import QuantizeOptions, quantize_graph
 
     out = tmp_path_factory.mktemp("q") / "int8"
-    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="int8", budget_pct=INT8_TEST_BUDGET_PCT, **FAST))
+    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="int8", budget_pct=int8_test_budget_pct, **FAST))
     return out
 
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 from onnx import numpy_helper
 
-from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT, TRAINED_TINY
+from _quantize_helpers import FAST, TRAINED_TINY
 from e3dpsm.checkpoint import load_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
@@ -168,14 +168,15 @@ def test_nudged_kalman_noise_fails_at_the_first_step_that_leaves_tolerance(tmp_p
     assert f"first at step {expected_step}" in printed and "FAIL from step" in printed
 
 
-def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golden_holdout, int8_dir):  # noqa: F811
+def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golden_holdout, int8_dir,  # noqa: F811
+                                                                  int8_test_budget_pct):
     int8_graph = int8_dir / "step_int8.onnx"
     args = ["golden", "check", "--model", str(int8_graph), "--golden", str(golden_holdout)]
     assert main([*args, "--out", str(tmp_path / "fp32"), "--profile", "fp32"]) == 1
     assert main([*args, "--out", str(tmp_path / "int8")]) == 0
     report = json.loads((tmp_path / "int8" / "check.json").read_text())
     # Profile and budget from the graph's own metadata (`quantize` writes both).
-    assert report["profile"]["name"] == "int8" and report["profile"]["budget_pct"] == INT8_TEST_BUDGET_PCT
+    assert report["profile"]["name"] == "int8" and report["profile"]["budget_pct"] == int8_test_budget_pct
     # The budget measure recomputed by hand: mean joint distance to the golden poses / golden MPJPE.
     golden = load_golden(golden_holdout)
     session = StepSession(int8_graph, threads=2)
@@ -187,7 +188,7 @@ def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golde
     distance = joint_errors(np.stack(poses), golden.output("pose")).mean()
     pose = next(t for t in report["tensors"] if t["name"] == "pose")
     assert pose["mean"] == pytest.approx(distance, rel=1e-5)
-    assert pose["mean_limit"] == pytest.approx(INT8_TEST_BUDGET_PCT / 100 * golden.manifest["mpjpe_scale_mm"])
+    assert pose["mean_limit"] == pytest.approx(int8_test_budget_pct / 100 * golden.manifest["mpjpe_scale_mm"])
     # Same frames as quantize's held-out check, so the same distance (its fp32 side is the graph).
     holdout = json.loads((int8_dir / "report.json").read_text())["holdout"]
     assert distance == pytest.approx(holdout["deviation_from_fp32_mm"], rel=1e-3)

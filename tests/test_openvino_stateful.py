@@ -197,10 +197,13 @@ def test_int8_graph_converts_and_runs(tmp_path, int8_graph, tiny_step_graph, fra
         ref32, state32 = fp32.step(frame[None], state32, 20.0)
         to_explicit.append(float(np.abs(got - want["pose"]).max()))
         int8_to_fp32.append(float(np.abs(want["pose"] - ref32["pose"]).max()))
-    # Equal for the first steps, then not bit-equal: the fixed batch lets OpenVINO pick other
-    # kernels, and a value on a quantiser's rounding boundary may land one step apart
-    # (measured 0.11 mm), far below what int8 itself moves the poses (0.8-5 mm here).
-    assert max(to_explicit) <= 1.0 and max(to_explicit) < 0.25 * np.mean(int8_to_fp32), (to_explicit, int8_to_fp32)
+    # Not bit-equal: the fixed batch lets OpenVINO pick other kernels, and a value on a
+    # quantiser's rounding boundary may land one step apart. Measured: at most 0.11 mm on an
+    # AVX2 host, where int8 itself moves these poses 0.8-5 mm, and 0.098 mm on an AVX-512 VNNI
+    # host, where it moves them 0.11-0.36 mm (INT8 error depends on the CPU: utils/isa.py).
+    # What holds on both: a few hundredths of a mm per step, and on average well below what
+    # int8 itself moves the poses.
+    assert max(to_explicit) <= 0.25 and np.mean(to_explicit) < 0.5 * np.mean(int8_to_fp32), (to_explicit, int8_to_fp32)
 
 
 # -- CLI: bad input, plain conversion, parity, profile ------------------------------------

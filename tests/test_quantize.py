@@ -7,7 +7,7 @@ import numpy as np
 import onnx
 import pytest
 
-from _quantize_helpers import FAST, INT8_TEST_BUDGET_PCT, mean_pose_model
+from _quantize_helpers import FAST, mean_pose_model
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError, OutputExistsError
@@ -62,14 +62,15 @@ def test_int8_never_quantises_the_state_tensors(int8_dir):
     assert all(producers[s.output_name] != "DequantizeLinear" for s in meta.states)
 
 
-def test_int8_within_budget_and_runs_as_stream(int8_dir, quant_data):  # noqa: F811
+def test_int8_within_budget_and_runs_as_stream(int8_dir, int8_test_budget_pct, quant_data):  # noqa: F811
     report = json.loads((int8_dir / "report.json").read_text())
+    assert report["config"]["budget_pct"] == int8_test_budget_pct
     holdout = report["holdout"]
     # The search's guarantee: the budgeted bound (distance to fp32 / fp32 MPJPE) within budget,
     # reached by keeping at least one group in float (the base graph is above it).
     search = report["exclusion_search"]
-    assert search["within_budget"] and holdout["bound_pct"] <= INT8_TEST_BUDGET_PCT
-    assert search["trials"][0]["error_pct"] > INT8_TEST_BUDGET_PCT and search["chosen_groups"]
+    assert search["within_budget"] and holdout["bound_pct"] <= int8_test_budget_pct
+    assert search["trials"][0]["error_pct"] > int8_test_budget_pct and search["chosen_groups"]
     assert abs(holdout["loss_pct"]) <= holdout["bound_pct"] + 1e-9  # triangle inequality
     session = StepSession(int8_dir / "step_int8.onnx", threads=1)
     seq = PreparedData.open(quant_data).split("val")[0]

@@ -35,6 +35,9 @@ def machine_info() -> dict[str, Any]:
         info["memory_gb"] = round(psutil.virtual_memory().total / 2**30, 1)
     except ImportError:  # psutil is a dependency; keep reports working without it anyway
         pass
+    from e3dpsm.utils.isa import detect_isa
+
+    info["isa"] = detect_isa().to_dict()  # INT8 / bf16 speed and error depend on it (utils/isa.py)
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as fh:
             for line in fh:
