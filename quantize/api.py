@@ -63,7 +63,7 @@ class QuantizeOptions:
     threads: int | None = None
     seed: int = 0
     # `--exclude auto`: among the candidates within the budget, the fastest (latency) or the
-    # greedy search's own choice (accuracy); timing costs `timing_steps` steps per candidate.
+    # search's own choice (accuracy); timing costs `timing_steps` steps per candidate.
     objective: str = "latency"
     timing_steps: int = 30
     max_timed: int = 6
@@ -346,10 +346,10 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
     are that final choice; its trials are the search's."""
     built: list[tuple[list[str], Path]] = []
     try:
-        greedy = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
-        candidates = candidates_from_search(greedy, built)
+        searched = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
+        candidates = candidates_from_search(searched, built)
         info = getattr(timing.timer, "describe", lambda: {"kind": "injected"})()
-        latency = latency_aware_choice(greedy, candidates, timing.timer, options.objective, options.budget,
+        latency = latency_aware_choice(searched, candidates, timing.timer, options.objective, options.budget,
                                        max_timed=options.max_timed, reference=timing.reference, timer_info=info)
     finally:
         for _, path in built:
@@ -358,7 +358,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         cand.path = None
     chosen = latency.chosen
     final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.budget,
-                         greedy.trials, greedy.strategy, greedy.sensitivity, greedy.rank_frames)
+                         searched.trials, searched.strategy, searched.sensitivity, searched.rank_frames)
     return final, latency
 
 

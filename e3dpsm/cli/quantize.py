@@ -12,8 +12,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "quantize", help="quantise an exported step graph (int8, int8-dynamic, fp16)",
         description="Quantise the step graph. INT8 static calibrates on frames of real sequences "
         "paired with the states a continuous FP32 rollout carried into them; the S5 recurrences "
-        "and the Kalman fusion stay in float; --exclude auto keeps more node groups in float "
-        "until the held-out error is within --budget-pct and, by default, picks the fastest such graph "
+        "and the Kalman fusion stay in float; --exclude auto searches which compute nodes to keep in float "
+        "(int8: nodes ranked by their solo error, the fewest top-ranked; fp16: whole groups) until the "
+        "held-out error is within --budget-pct and, by default, picks the fastest such graph "
         "(--objective). Writes DIR/step_<mode>.onnx, DIR/report.json, DIR/report.md and DIR/front.png.")
     p.add_argument("--model", required=True, help="fp32 step graph from `e3dpsm export`")
     p.add_argument("--data", required=True, help="prepared folder (`e3dpsm prepare`) at the graph's window and size")
@@ -34,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--objective", choices=("latency", "accuracy"), default="latency",
                    help="--exclude auto: among the candidate graphs within the budget pick the fastest "
                    "(latency, default; candidates are timed side by side with the fp32 graph) or the "
-                   "search's fewest-float-groups choice (accuracy)")
+                   "search's own choice, the fewest nodes or groups in float (accuracy)")
     p.add_argument("--timing-steps", type=positive_int, default=30,
                    help="--exclude auto: timed steps per candidate graph (default 30)")
     p.add_argument("--int8-elementwise", action="store_true",
