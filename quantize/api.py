@@ -6,7 +6,7 @@ import logging
 import os
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -26,7 +26,9 @@ from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_sea
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
-from e3dpsm.quantize.static import DEFAULT_OP_TYPES, StaticConfig, preprocess, quantize_int8, quantised_node_count
+from e3dpsm.quantize.ranges import summarise as summarise_ranges
+from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, preprocess, quantize_int8,
+                                   quantised_node_count)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.isa import detect_isa
@@ -221,8 +223,10 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                    state_source=options.state_source, seed=options.seed, threads=options.threads)
     cache = work / "calibration.json"
     out = work / "int8.onnx"
-    calib_seconds = quantize_int8(pre, out, config, exclude=keep if fixed is None else fixed,
-                                  calibration=calib, cache=cache)
+    started = time.perf_counter()
+    ranges = calibrate(pre, config, calib, cache)
+    calib_seconds = time.perf_counter() - started
+    quantize_int8(pre, out, config, exclude=keep if fixed is None else fixed, cache=cache)
     search = latency = None
     if fixed is None:
         def build(excluded: list[str]) -> onnx.ModelProto:
@@ -253,7 +257,9 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     }
     extra = {
         "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
-                        "frames": len(calib), "sequences": {k: len(v) for k, v in calib.frames.items()}},
+                        "frames": len(calib), "sequences": {k: len(v) for k, v in calib.frames.items()},
+                        **({"ranges": summarise_ranges(ranges),
+                            "range_per_tensor": {n: asdict(c) for n, c in ranges.items()}} if ranges else {})},
         **_search_report(search, [*recurrent, *groups], latency),
     }
     return model, info, extra

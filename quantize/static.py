@@ -8,19 +8,26 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
+import numpy as np
 import onnx
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.calibration import CalibrationSet, FeedListReader
 
+if TYPE_CHECKING:
+    from e3dpsm.quantize.ranges import RangeChoice
+
 log = logging.getLogger(__name__)
 
-CALIBRATION_METHODS: tuple[str, ...] = ("minmax", "entropy", "percentile")
+# "mse": each activation's own range, the one with the lowest expected quantisation error on
+# its calibration histogram (ranges.py); the others are ONNX Runtime's rules, one per graph.
+CALIBRATION_METHODS: tuple[str, ...] = ("minmax", "entropy", "percentile", "mse")
 # The compute-heavy ops only. Measured (benchmarks/results/quantize.changes.md; ORT 1.31, 2
 # threads, AVX2 without VNNI): also quantising the CNN blocks' Add/Mul/Sigmoid, with BatchNorm
 # rewritten as a depthwise Conv (ELEMENTWISE_OP_TYPES + batchnorm_as_conv), made `paper` ~6%
@@ -74,8 +81,39 @@ def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticCon
 def _method(name: str):
     from onnxruntime.quantization import CalibrationMethod
 
+    # "mse" starts from min-max ranges and is written to the cache as min-max ranges.
     return {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
-            "percentile": CalibrationMethod.Percentile}[name]
+            "percentile": CalibrationMethod.Percentile, "mse": CalibrationMethod.MinMax}[name]
+
+
+def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: CalibrationSet,
+              cache: str | os.PathLike) -> dict[str, "RangeChoice"]:
+    """Write ONNX Runtime's calibration cache (tensor ranges) for the graph `src`; return the
+    per-tensor range choices under "mse" ({} otherwise).
+
+    The calibrator is built here rather than by `quantize_static`, which does not pass a bin
+    count on (ONNX Runtime 1.31 forwards CalibPercentile but not CalibNumBins), so the entropy
+    and percentile histograms would silently get ORT's defaults (128 and 2048 bins)."""
+    from onnxruntime.quantization.calibrate import create_calibrator, save_tensors_data
+
+    from e3dpsm.quantize.ranges import HISTOGRAM_BINS, select_ranges, write_minmax_cache
+
+    options: dict = {"symmetric": False}
+    if config.calibration in ("entropy", "percentile"):
+        options.update(num_bins=HISTOGRAM_BINS, percentile=config.percentile)
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-calib-") as work:
+        calibrator = create_calibrator(Path(src), list(config.op_types), augmented_model_path=str(Path(work) / "aug.onnx"),
+                                       calibrate_method=_method(config.calibration), extra_options=options)
+        calibrator.collect_data(FeedListReader(calibration.feeds))
+        ranges = calibrator.compute_data()
+        del calibrator
+    if config.calibration != "mse":
+        save_tensors_data(ranges, cache)
+        return {}
+    minmax = {name: tuple(float(np.ravel(v)[0]) for v in ranges[name].range_value) for name in ranges}
+    chosen = select_ranges(src, minmax, calibration.feeds)
+    write_minmax_cache(cache, chosen)
+    return chosen
 
 
 def quantize_int8(
@@ -87,21 +125,16 @@ def quantize_int8(
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
 
     cache = Path(cache)
-    needs_calibration = not cache.is_file()
-    if needs_calibration and calibration is None:
-        raise ValueError("no calibration cache yet: pass the calibration set")
-    extra = {
-        # Weights symmetric around 0 (per channel); activations asymmetric U8.
-        "WeightSymmetric": True,
-        "ActivationSymmetric": False,
-        "CalibPercentile": config.percentile,
-        # Entropy/percentile histograms need a fixed bin count to be comparable across runs.
-        "CalibNumBins": 2048,
-    }
     started = time.perf_counter()
+    seconds = 0.0
+    if not cache.is_file():
+        if calibration is None:
+            raise ValueError("no calibration cache yet: pass the calibration set")
+        calibrate(src, config, calibration, cache)
+        seconds = time.perf_counter() - started
     quantize_static(
         str(src), str(dst),
-        calibration_data_reader=FeedListReader(calibration.feeds) if needs_calibration else None,
+        calibration_data_reader=None,  # the ranges come from the cache written above
         quant_format=QuantFormat.QDQ,
         op_types_to_quantize=list(config.op_types),
         per_channel=config.per_channel,
@@ -110,10 +143,10 @@ def quantize_int8(
         weight_type=getattr(QuantType, config.weight_type),
         nodes_to_exclude=sorted(set(exclude)),
         calibrate_method=_method(config.calibration),
-        extra_options=extra,
+        # Weights symmetric around 0 (per channel); activations asymmetric U8.
+        extra_options={"WeightSymmetric": True, "ActivationSymmetric": False},
         calibration_cache_path=str(cache),
     )
-    seconds = time.perf_counter() - started if needs_calibration else 0.0
     log.debug("quantised %s -> %s (%d nodes kept float)", src, dst, len(set(exclude)))
     return seconds
 

@@ -20,7 +20,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="prepared folder (`e3dpsm prepare`) at the graph's window and size")
     p.add_argument("--out", required=True, help="output folder (must not exist unless --force)")
     p.add_argument("--mode", choices=("int8", "int8-dynamic", "fp16"), default="int8")
-    p.add_argument("--calibration", choices=("minmax", "entropy", "percentile"), default="minmax")
+    p.add_argument("--calibration", choices=("minmax", "entropy", "percentile", "mse"), default="minmax",
+                   help="activation ranges: minmax, entropy and percentile apply one ONNX Runtime rule to every "
+                   "tensor; mse gives each tensor the range with the lowest expected quantisation error on its "
+                   "calibration histogram (min-max, percentiles or narrower; default minmax)")
     p.add_argument("--frames", type=positive_int, default=200, help="calibration frames (default 200, minimum 16)")
     p.add_argument("--exclude", default="auto",
                    help="float-kept nodes: auto (search), none, recurrent, or comma-separated group/node "

@@ -1,0 +1,116 @@
+"""Per-tensor activation ranges (quantize/ranges.py, `quantize --calibration mse`).
+
+References independent of the code: the expected error against the error of actually
+quantising samples (numpy), the known MSE-optimal clipping of a Laplace distribution on
+8 bits (Banner et al. 2019, "ACIQ": alpha* = 9.89 b), and ONNX Runtime's own QDQ scales
+computed from the chosen range by the QuantizeLinear formula.
+"""
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from e3dpsm.quantize.calibration import CalibrationSet
+from e3dpsm.quantize.ranges import Histogram, choose_range, expected_squared_error
+from e3dpsm.quantize.static import StaticConfig, calibrate, quantize_int8
+
+LAPLACE_8BIT_OPTIMUM = 9.89  # ACIQ table, in units of the Laplace scale b
+
+
+def _histogram(x: np.ndarray) -> Histogram:
+    low, high = float(min(x.min(), 0.0)), float(max(x.max(), 0.0))
+    return Histogram(np.histogram(x, 2048, range=(low, high))[0], low, high)
+
+
+def _sample_mse(x: np.ndarray, low: float, high: float) -> float:
+    """Quantise the samples themselves, as QuantizeLinear / DequantizeLinear do (U8)."""
+    scale = (high - low) / 255.0
+    zero = np.round(-low / scale)
+    q = np.clip(np.round(x / scale) + zero, 0, 255)
+    return float(np.mean(((q - zero) * scale - x) ** 2))
+
+
+@pytest.fixture(scope="module")
+def laplace() -> np.ndarray:
+    x = np.random.default_rng(0).laplace(0.0, 1.0, 1_000_000)
+    return np.concatenate([x, -x])  # symmetric, so the optimum is a symmetric clip
+
+
+@pytest.mark.parametrize("low, high", [(-15.0, 15.0), (-9.89, 9.89), (-6.0, 6.0), (-3.0, 12.0)])
+def test_expected_error_matches_quantising_the_samples(laplace, low, high) -> None:
+    hist = _histogram(laplace)
+    assert expected_squared_error(hist, low, high) == pytest.approx(_sample_mse(laplace, low, high), rel=0.06)
+
+
+def test_laplace_range_lands_on_the_known_optimum(laplace) -> None:
+    choice = choose_range(_histogram(laplace))
+    assert choice.kind == "shrink" and choice.low == pytest.approx(-choice.high)
+    # the shrink grid steps 8.7%: within half a step of the optimum
+    assert choice.high == pytest.approx(LAPLACE_8BIT_OPTIMUM, rel=0.045)
+    sweep = np.linspace(7.0, 13.0, 61)
+    best = min(_sample_mse(laplace, -a, a) for a in sweep)
+    assert _sample_mse(laplace, choice.low, choice.high) <= 1.01 * best
+    assert choice.mse < 0.6 * choice.minmax_mse  # clipping pays on a heavy tail
+
+
+def test_a_uniform_tensor_keeps_its_min_max_range() -> None:
+    """No tail to clip: every narrower range costs more than it saves."""
+    x = np.random.default_rng(1).uniform(0.0, 4.0, 200_000)
+    choice = choose_range(_histogram(x))
+    assert choice.kind == "minmax" and (choice.low, choice.high) == pytest.approx((0.0, 4.0), abs=1e-3)
+
+
+def test_ranges_always_hold_zero() -> None:
+    x = np.random.default_rng(2).normal(5.0, 0.1, 100_000)  # all positive, far from 0
+    choice = choose_range(_histogram(x))
+    assert choice.low == 0.0 and choice.high > 5.0
+
+
+def _one_matmul_graph(path) -> None:
+    """y = relu(x) @ W: the MatMul's input activation is what gets a range."""
+    w = numpy_helper.from_array(np.random.default_rng(3).normal(size=(8, 4)).astype(np.float32), "w")
+    graph = helper.make_graph(
+        [helper.make_node("Relu", ["x"], ["h"], name="relu"), helper.make_node("MatMul", ["h", "w"], ["y"], name="mm")],
+        "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", 8])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 4])], [w])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(path))
+
+
+def test_chosen_range_reaches_the_qdq_graph(tmp_path) -> None:
+    """The graph's activation scale and zero point are the chosen range's, by the U8 formula."""
+    _one_matmul_graph(tmp_path / "g.onnx")
+    rng = np.random.default_rng(4)
+    # heavy-tailed activations: most small, a few large, so mse narrows the range
+    # a Laplace tensor of 512k values: min-max spends its levels on a tail that is rare
+    feeds = [{"x": rng.laplace(0, 1, (256, 8)).astype(np.float32)} for i in range(2000)]
+    chosen = calibrate(tmp_path / "g.onnx", StaticConfig(calibration="mse"), CalibrationSet(feeds, "test"),
+                       tmp_path / "cache.json")
+    quantize_int8(tmp_path / "g.onnx", tmp_path / "q.onnx", StaticConfig(calibration="mse"), cache=tmp_path / "cache.json")
+    model = onnx.load(str(tmp_path / "q.onnx"))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    q = next(n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == "h")
+    scale, zero = float(inits[q.input[1]]), int(inits[q.input[2]])
+    c = chosen["h"]
+    assert c.kind != "minmax" and c.high < 0.85 * max(float(f["x"].max()) for f in feeds)
+    assert scale == pytest.approx((c.high - c.low) / 255.0, rel=1e-6) and zero == round(-c.low / scale)
+
+
+def test_percentile_calibration_uses_the_stated_bin_count(tmp_path) -> None:
+    """ONNX Runtime's quantize_static drops CalibNumBins; calibrate() passes 2048 bins on.
+    ORT's asymmetric percentile p cuts (100 - p) / 2 per cent from each tail: at p = 99 the
+    top of a relu'd Laplace over 2048 bins lands within two bins of numpy's 99.5th
+    percentile (128 bins are 16 times coarser)."""
+    from onnxruntime.quantization.calibrate import load_tensors_data
+
+    _one_matmul_graph(tmp_path / "g.onnx")
+    rng = np.random.default_rng(5)
+    feeds = [{"x": rng.laplace(0, 1, (1, 8)).astype(np.float32)} for _ in range(20000)]
+    calibrate(tmp_path / "g.onnx", StaticConfig(calibration="percentile", percentile=99.0), CalibrationSet(feeds, "test"),
+              tmp_path / "cache.json")
+    high = float(np.ravel(load_tensors_data(tmp_path / "cache.json")["h"].range_value[1])[0])
+    values = np.maximum(np.concatenate([f["x"].ravel() for f in feeds]), 0)
+    # ORT's percentile histogram spans [-max, max]; its bin width at 2048 bins:
+    bin_width = 2 * values.max() / 2048
+    assert abs(high - np.percentile(values, 99.5)) <= 2 * bin_width
