@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from e3dpsm.quantize.front import LATENCY_TIE
 from e3dpsm.utils.io import atomic_path, write_text_atomic
 
 
@@ -26,9 +27,36 @@ def front_table(search: dict[str, Any], rows_key: str = "candidates") -> str:
     return "\n".join(lines)
 
 
+def speed_verdict(report: dict[str, Any]) -> str | None:
+    """One line on whether the chosen graph pays in speed on the host that timed it, and
+    what would pay there when it does not; None when nothing was timed."""
+    search = report.get("search") or {}
+    chosen, fp32 = (search.get("chosen") or {}).get("p50_ms"), search.get("fp32_p50_ms")
+    if not chosen or not fp32:
+        return None
+    isa = (report.get("machine") or {}).get("isa") or {}
+    host = f"{isa.get('kind', 'unknown')} host ({' '.join(isa.get('flags', [])) or 'flags unknown'})"
+    ratio = fp32 / chosen
+    within = (report.get("exclusion_search") or {}).get("within_budget", search.get("within_budget"))
+    budget = "within budget" if within else "over budget"
+    sizes = report.get("sizes") or {}
+    size = (f" Its gain here is size: {sizes['output_bytes'] / 1e6:.1f} MB against {sizes['source_bytes'] / 1e6:.1f}."
+            if sizes.get("source_bytes") else "")
+    if ratio > 1.0 + LATENCY_TIE:
+        return f"Verdict: the {report['mode']} graph ({budget}) runs {ratio:.2f}x fp32 on this {host}."
+    alternatives = ["the fp32 graph"]
+    if isa.get("bf16"):
+        alternatives.insert(0, "bf16 (this CPU has bf16 units; OpenVINO with INFERENCE_PRECISION_HINT=bf16)")
+    alternatives.append("fewer operations (a smaller variant)")
+    return (f"Verdict: no {report['mode']} graph {budget} beats fp32 on this {host}: the chosen one runs "
+            f"{ratio:.2f}x fp32 ({chosen:.2f} against {fp32:.2f} ms per step).{size} For speed here: "
+            f"{', '.join(alternatives)}.")
+
+
 def markdown_report(report: dict[str, Any]) -> str:
     h = report["holdout"]
-    lines = [f"# e3dpsm quantize: {report['mode']}", "",
+    verdict = speed_verdict(report)
+    lines = [f"# e3dpsm quantize: {report['mode']}", "", *([f"**{verdict}**", ""] if verdict else []),
              f"Artifact `{report['artifact']}`; held-out ({h['split']}, {h['frames']} frames) MPJPE "
              f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
              f"{h['bound_pct']:.3f}% of fp32 MPJPE.", ""]

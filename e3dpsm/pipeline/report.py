@@ -60,7 +60,11 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
     variant = (export.get("model") or {}).get("variant", config.get("variant"))
     model = (f"Checkpoint `{config['checkpoint']}` (variant `{variant}`, not trained here)" if config.get("checkpoint")
              else f"Variant `{variant}`")
-    lines = ["# E-3DPSM pipeline report", "",
+    int8_report = _load(out / "quantize/int8/report.json") or {}
+    from e3dpsm.quantize.front_report import front_table, speed_verdict
+
+    verdict = speed_verdict(int8_report) if int8_report else None
+    lines = ["# E-3DPSM pipeline report", "", *([f"**{verdict}**", ""] if verdict else []),
              f"{model}, synthetic data (seed {config.get('seed')}), "
              f"{config.get('window_ms')} ms windows. Accuracy on the held-out test sequences, streamed "
              "with states never reset; latency on this machine with the stated thread count.", "",
@@ -70,10 +74,8 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
         runs = ", ".join(f"{r['window_ms']:g} ms" for r in parity.get("runs", []))
         lines += [f"Parity ONNX Runtime vs PyTorch ({runs}): **{status}** (details in "
                   "[parity/report.json](../parity/report.json)).", ""]
-    quantised = (_load(out / "quantize/int8/report.json") or {}).get("search")
+    quantised = int8_report.get("search")
     if quantised:
-        from e3dpsm.quantize.front_report import front_table
-
         lines += [f"## INT8 exclusion search (objective: {quantised['objective']}, budget {quantised['budget_pct']:g}%)",
                   "", "Candidate graphs timed side by side with the fp32 graph "
                   f"({_fmt(quantised['fp32_p50_ms'])} ms/step); the front of (held-out distance to fp32, latency) "

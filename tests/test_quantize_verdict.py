@@ -1,0 +1,40 @@
+"""The speed verdict of `quantize` (first line of report.md and of the pipeline's index)."""
+from __future__ import annotations
+
+import pytest
+
+from e3dpsm.quantize.front_report import markdown_report, speed_verdict
+
+
+def _report(chosen_ms: float, fp32_ms: float, *, bf16: bool, within: bool = True) -> dict:
+    flags = ["avx2", "avx512_vnni"] + (["avx512_bf16"] if bf16 else [])
+    return {
+        "mode": "int8", "artifact": "step_int8.onnx",
+        "machine": {"isa": {"kind": "vnni", "flags": flags, "bf16": bf16, "int8_dot_product": True}},
+        "sizes": {"source_bytes": 6_000_000, "output_bytes": 1_800_000},
+        "holdout": {"split": "val", "frames": 100, "mpjpe_mm": 100.5, "fp32_mpjpe_mm": 100.0, "bound_pct": 0.8},
+        "exclusion_search": {"within_budget": within},
+        "search": {"chosen": {"p50_ms": chosen_ms}, "fp32_p50_ms": fp32_ms, "objective": "latency",
+                   "budget_pct": 1.0, "candidates": [], "front": [], "timer": {}},
+    }
+
+
+def test_slower_than_fp32_says_so_and_names_what_would_pay() -> None:
+    """The Xeon case of issue 24: 12.08 against 10.34 ms (0.86x) was chosen with nothing said."""
+    verdict = speed_verdict(_report(12.08, 10.34, bf16=True))
+    assert verdict.startswith("Verdict: no int8 graph within budget beats fp32 on this vnni host")
+    assert "0.86x fp32 (12.08 against 10.34 ms" in verdict and "bf16" in verdict and "1.8 MB against 6.0" in verdict
+    assert "bf16" not in speed_verdict(_report(12.08, 10.34, bf16=False))
+    assert markdown_report(_report(12.08, 10.34, bf16=True)).splitlines()[2] == f"**{verdict}**"
+
+
+@pytest.mark.parametrize("chosen_ms, pays", [(10.0, False), (10.0 / 1.03, False), (10.0 / 1.031, True), (5.0, True)])
+def test_a_speed_up_within_the_timing_tie_does_not_count(chosen_ms, pays) -> None:
+    verdict = speed_verdict(_report(chosen_ms, 10.0, bf16=False))
+    assert verdict.startswith("Verdict: the int8 graph (within budget) runs") == pays, verdict
+
+
+def test_no_timing_no_verdict() -> None:
+    report = _report(1.0, 1.0, bf16=False)
+    report["search"]["chosen"]["p50_ms"] = None
+    assert speed_verdict(report) is None and "Verdict" not in markdown_report(report)
