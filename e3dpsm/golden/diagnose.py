@@ -38,6 +38,7 @@ import onnx
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.runtime.session import StepSession
 
 GROWTH_RATIO = 2.0
 REPORT_STEPS = (1, 10, 100)
@@ -147,24 +148,6 @@ def _expose(model: onnx.ModelProto, names: Iterable[str], folder: Path, tag: str
     return path
 
 
-class _Stepper:
-    """A session over an exposed graph, carrying its states from the metadata."""
-
-    def __init__(self, path: Path, meta: GraphMetadata, threads: int | None) -> None:
-        from e3dpsm.runtime.session import build_feeds, make_session
-
-        self._build_feeds = build_feeds
-        self.session = make_session(path, threads=threads)
-        self.meta = meta
-        self.names = [o.name for o in self.session.get_outputs()]
-        self.state = {s.name: s.initial_value(1) for s in meta.states}
-
-    def step(self, frame: np.ndarray, window_ms: float) -> dict[str, np.ndarray]:
-        values = dict(zip(self.names, self.session.run(self.names, self._build_feeds(self.meta, frame, self.state, window_ms))))
-        self.state = {s.name: values[s.output_name] for s in self.meta.states}
-        return values
-
-
 @dataclass
 class Series:
     name: str
@@ -210,9 +193,11 @@ def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, f
     plan = make_plan(reference, model, meta)
     qdq_tensors = [name for pair in plan.qdq.items() for name in (pair[0], pair[1][0])]
     with tempfile.TemporaryDirectory(prefix="e3dpsm-diagnose-") as tmp:
-        ref = _Stepper(_expose(reference, plan.boundary, Path(tmp), "reference"), meta, threads)
-        got = _Stepper(_expose(model, [*plan.model_name.values(), *qdq_tensors], Path(tmp), "model"), model_meta,
-                       threads)
+        # all_outputs: the exposed tensors come back beside the poses and states.
+        ref = StepSession(_expose(reference, plan.boundary, Path(tmp), "reference"), threads=threads, all_outputs=True)
+        got = StepSession(_expose(model, [*plan.model_name.values(), *qdq_tensors], Path(tmp), "model"),
+                          threads=threads, all_outputs=True)
+        ref_state, got_state = ref.init_state(1), got.init_state(1)
         del reference, model
         tensor_err: dict[str, list[float]] = defaultdict(list)
         state_err: dict[str, list[float]] = defaultdict(list)
@@ -225,7 +210,8 @@ def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, f
             iterator = tqdm(frames, desc="diagnose", unit="step", leave=False, disable=None)
         for frame in iterator:
             lnes = np.ascontiguousarray(frame[None], dtype=np.float32)
-            a, b = ref.step(lnes, window_ms), got.step(lnes, window_ms)
+            a, ref_state = ref.step(lnes, ref_state, window_ms)
+            b, got_state = got.step(lnes, got_state, window_ms)
             for tensor, other in plan.model_name.items():
                 tensor_err[tensor].append(relative_l2(b[other], a[tensor]))
             for name, out in plan.states.items():
