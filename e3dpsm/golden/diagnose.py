@@ -7,8 +7,8 @@ quantised activation, so on the compressed side a tensor is read where its consu
 it (the DequantizeLinear output when there is one), as ONNX Runtime's `qdq_loss_debug`
 matches single steps.
 
-For every module group (the quantiser's groups: `stem`, `stages.N`, `attention.N`,
-`decoder`, ..., and the recurrent groups `s5_stageN`, `fusion`) and every step:
+For every group (e3dpsm.onnx_groups: the recurrent groups `s5_stageN`, `fusion`, then the
+module scopes `stem`, `stages.N`, `attention.N`, `ssm`, `decoder`, ...) and every step:
 - output error: relative L2 error ||x' - x|| / ||x|| of the group's boundary tensors (those
   read by another group or leaving the graph), the worst of them;
 - added error: output error minus the worst output error of the groups feeding it, a
@@ -38,11 +38,11 @@ import onnx
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_groups import OTHER, module_scopes, recurrent_groups
 from e3dpsm.runtime.session import StepSession
 
 GROWTH_RATIO = 2.0
 REPORT_STEPS = (1, 10, 100)
-OTHER = "other"
 TINY = 1e-12
 
 
@@ -56,19 +56,14 @@ def relative_l2(got: np.ndarray, ref: np.ndarray) -> float:
 
 
 def node_groups(model: onnx.ModelProto, meta: GraphMetadata) -> dict[str, str]:
-    """Node name -> group name: recurrent groups first, then module scopes, else "other"."""
-    from e3dpsm.quantize.graph_groups import candidate_groups, recurrent_groups
-
-    recurrent = recurrent_groups(model, meta)
+    """Node name -> group name: recurrent groups first, then module scopes, else OTHER."""
     group_of: dict[str, str] = {}
-    for group in recurrent:
+    for group in recurrent_groups(model, meta):
         for node in group.nodes:
             group_of.setdefault(node, group.name)
-    kept = set(group_of)
-    for group in candidate_groups(model, kept):
-        if group.kind == "module":
-            for node in group.nodes:
-                group_of.setdefault(node, group.name)
+    for node, scope in module_scopes(model).items():
+        if scope != OTHER:
+            group_of.setdefault(node, scope)
     return group_of
 
 
