@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Iterable, Protocol
+from typing import Any, Iterable
 
 import numpy as np
-import torch
 
 from e3dpsm.errors import E3DPSMError
 from e3dpsm.export.spec import step_io_spec
-from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.export.torch_stepper import TorchStepper
 from e3dpsm.models import OUTPUT_NAMES, E3DPSM
+from e3dpsm.runtime.stepping import GraphStepper
 
 
 class ParityError(E3DPSMError):
@@ -37,17 +37,6 @@ class DtypeMismatchError(ParityError):
 
 class ValueMismatchError(ParityError):
     pass
-
-
-class StepRunner(Protocol):
-    """What parity needs of a runtime (StepSession for ONNX Runtime, OpenVINOStepSession)."""
-
-    meta: GraphMetadata
-
-    def input_names(self) -> list[str]: ...
-    def output_names_all(self) -> list[str]: ...
-    def init_state(self, batch: int = 1) -> dict[str, np.ndarray]: ...
-    def step(self, lnes: np.ndarray, state: dict[str, np.ndarray], window_ms: float) -> tuple[dict, dict]: ...
 
 
 @dataclass(frozen=True)
@@ -124,7 +113,7 @@ class ParityReport:
         }
 
 
-def _check_names(model: E3DPSM, runner: StepRunner) -> None:
+def _check_names(model: E3DPSM, runner: GraphStepper) -> None:
     spec = step_io_spec(model)
     if sorted(runner.input_names()) != sorted(spec.input_names):
         raise NameMismatchError(f"graph inputs {sorted(runner.input_names())} differ from the model's {sorted(spec.input_names)}")
@@ -144,7 +133,7 @@ def _check_shapes_dtypes(name: str, got: np.ndarray, ref: np.ndarray) -> None:
 
 
 def run_parity(
-    model: E3DPSM, runner: StepRunner, frames: Iterable[np.ndarray], window_ms: float,
+    model: E3DPSM, runner: GraphStepper, frames: Iterable[np.ndarray], window_ms: float,
     tolerances: Tolerances = Tolerances(), runtime: str = "onnxruntime", progress: bool = False,
 ) -> ParityReport:
     """Step `model` and `runner` side by side over `frames` ([2, H, W] float32 each)."""
@@ -153,28 +142,27 @@ def run_parity(
     specs = model.state_spec()
     diffs = {n: TensorDiff(n, "output", limit=tolerances.pose_atol_mm, limit_kind="abs") for n in OUTPUT_NAMES}
     diffs.update({s.name: TensorDiff(s.name, "state", limit=tolerances.state_rtol, limit_kind="rel") for s in specs})
-    torch_state = model.init_state(1)
+    reference = TorchStepper(model)
+    torch_state = reference.init_state(1)
     graph_state = runner.init_state(1)
-    window_t = torch.tensor([window_ms], dtype=torch.float32)
     steps = 0
     iterator: Iterable[np.ndarray] = frames
     if progress:
         from tqdm import tqdm
 
         iterator = tqdm(frames, desc=f"parity {runtime} {window_ms:g} ms", unit="step", leave=False, disable=None)
-    with torch.no_grad():
-        for step, frame in enumerate(iterator):
-            lnes = np.ascontiguousarray(frame[None], dtype=np.float32)
-            ref_out, torch_state = model.step(torch.from_numpy(lnes), torch_state, window_t)
-            got_out, graph_state = runner.step(lnes, graph_state, window_ms)
-            pairs = [(n, got_out[n], ref_out[n].numpy()) for n in OUTPUT_NAMES]
-            pairs += [(s.name, graph_state[s.name], torch_state[s.name].numpy()) for s in specs]
-            if step == 0:
-                for name, got, ref in pairs:
-                    _check_shapes_dtypes(name, got, ref)
+    for step, frame in enumerate(iterator):
+        lnes = np.ascontiguousarray(frame[None], dtype=np.float32)
+        ref_out, torch_state = reference.step(lnes, torch_state, window_ms)
+        got_out, graph_state = runner.step(lnes, graph_state, window_ms)
+        pairs = [(n, got_out[n], ref_out[n]) for n in OUTPUT_NAMES]
+        pairs += [(s.name, graph_state[s.name], torch_state[s.name]) for s in specs]
+        if step == 0:
             for name, got, ref in pairs:
-                diffs[name].update(step, got, ref)
-            steps += 1
+                _check_shapes_dtypes(name, got, ref)
+        for name, got, ref in pairs:
+            diffs[name].update(step, got, ref)
+        steps += 1
     return ParityReport(steps, float(window_ms), runtime, asdict(tolerances), list(diffs.values()))
 
 

@@ -15,7 +15,7 @@ from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 from e3dpsm.quantize import QuantizeOptions, quantize_graph, recurrent_groups
 from e3dpsm.quantize.artifact import MAX_IR_VERSION, finalize
 from e3dpsm.quantize.calibration import frame_plan, record_calibration_set
-from e3dpsm.quantize.graph_groups import module_scopes
+from e3dpsm.onnx_groups import module_scopes
 from e3dpsm.quantize.holdout import accuracy_of, make_holdout
 from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8
 from e3dpsm.runtime import StepSession

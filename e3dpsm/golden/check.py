@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Mapping, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -19,17 +19,11 @@ from e3dpsm.golden.store import GoldenRecord
 from e3dpsm.golden.tolerances import ToleranceProfile
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.metrics import joint_errors
+from e3dpsm.runtime.stepping import GraphStepper
 
 REPORT_STEPS = (1, 10, 100)  # errors reported at these steps (1-based) and at the last one
 MIN_GROWTH_STEPS = 20  # growth compares quarters of the rollout: shorter ones are not judged
 TINY = 1e-12
-
-
-class Runner(Protocol):
-    meta: GraphMetadata
-
-    def init_state(self, batch: int = 1) -> dict[str, np.ndarray]: ...
-    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float) -> tuple[dict, dict]: ...
 
 
 @dataclass
@@ -191,7 +185,7 @@ def _state_error(golden: GoldenRecord, name: str, step: int, state: np.ndarray, 
     return diff / norm if norm > TINY else (0.0 if diff <= TINY else math.inf)
 
 
-def check_golden(runner: Runner, golden: GoldenRecord, profile: ToleranceProfile, *,
+def check_golden(runner: GraphStepper, golden: GoldenRecord, profile: ToleranceProfile, *,
                  progress: bool = False) -> GoldenCheck:
     """Step `runner` over the golden frames with its own states; compare every step."""
     check_layout(golden, runner.meta)

@@ -7,8 +7,8 @@ quantised activation, so on the compressed side a tensor is read where its consu
 it (the DequantizeLinear output when there is one), as ONNX Runtime's `qdq_loss_debug`
 matches single steps.
 
-For every module group (the quantiser's groups: `stem`, `stages.N`, `attention.N`,
-`decoder`, ..., and the recurrent groups `s5_stageN`, `fusion`) and every step:
+For every group (e3dpsm.onnx_groups: the recurrent groups `s5_stageN`, `fusion`, then the
+module scopes `stem`, `stages.N`, `attention.N`, `ssm`, `decoder`, ...) and every step:
 - output error: relative L2 error ||x' - x|| / ||x|| of the group's boundary tensors (those
   read by another group or leaving the graph), the worst of them;
 - added error: output error minus the worst output error of the groups feeding it, a
@@ -38,10 +38,11 @@ import onnx
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_groups import OTHER, module_scopes, recurrent_groups
+from e3dpsm.runtime.session import StepSession
 
 GROWTH_RATIO = 2.0
 REPORT_STEPS = (1, 10, 100)
-OTHER = "other"
 TINY = 1e-12
 
 
@@ -55,19 +56,14 @@ def relative_l2(got: np.ndarray, ref: np.ndarray) -> float:
 
 
 def node_groups(model: onnx.ModelProto, meta: GraphMetadata) -> dict[str, str]:
-    """Node name -> group name: recurrent groups first, then module scopes, else "other"."""
-    from e3dpsm.quantize.graph_groups import candidate_groups, recurrent_groups
-
-    recurrent = recurrent_groups(model, meta)
+    """Node name -> group name: recurrent groups first, then module scopes, else OTHER."""
     group_of: dict[str, str] = {}
-    for group in recurrent:
+    for group in recurrent_groups(model, meta):
         for node in group.nodes:
             group_of.setdefault(node, group.name)
-    kept = set(group_of)
-    for group in candidate_groups(model, kept):
-        if group.kind == "module":
-            for node in group.nodes:
-                group_of.setdefault(node, group.name)
+    for node, scope in module_scopes(model).items():
+        if scope != OTHER:
+            group_of.setdefault(node, scope)
     return group_of
 
 
@@ -147,24 +143,6 @@ def _expose(model: onnx.ModelProto, names: Iterable[str], folder: Path, tag: str
     return path
 
 
-class _Stepper:
-    """A session over an exposed graph, carrying its states from the metadata."""
-
-    def __init__(self, path: Path, meta: GraphMetadata, threads: int | None) -> None:
-        from e3dpsm.runtime.session import build_feeds, make_session
-
-        self._build_feeds = build_feeds
-        self.session = make_session(path, threads=threads)
-        self.meta = meta
-        self.names = [o.name for o in self.session.get_outputs()]
-        self.state = {s.name: s.initial_value(1) for s in meta.states}
-
-    def step(self, frame: np.ndarray, window_ms: float) -> dict[str, np.ndarray]:
-        values = dict(zip(self.names, self.session.run(self.names, self._build_feeds(self.meta, frame, self.state, window_ms))))
-        self.state = {s.name: values[s.output_name] for s in self.meta.states}
-        return values
-
-
 @dataclass
 class Series:
     name: str
@@ -210,9 +188,11 @@ def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, f
     plan = make_plan(reference, model, meta)
     qdq_tensors = [name for pair in plan.qdq.items() for name in (pair[0], pair[1][0])]
     with tempfile.TemporaryDirectory(prefix="e3dpsm-diagnose-") as tmp:
-        ref = _Stepper(_expose(reference, plan.boundary, Path(tmp), "reference"), meta, threads)
-        got = _Stepper(_expose(model, [*plan.model_name.values(), *qdq_tensors], Path(tmp), "model"), model_meta,
-                       threads)
+        # all_outputs: the exposed tensors come back beside the poses and states.
+        ref = StepSession(_expose(reference, plan.boundary, Path(tmp), "reference"), threads=threads, all_outputs=True)
+        got = StepSession(_expose(model, [*plan.model_name.values(), *qdq_tensors], Path(tmp), "model"),
+                          threads=threads, all_outputs=True)
+        ref_state, got_state = ref.init_state(1), got.init_state(1)
         del reference, model
         tensor_err: dict[str, list[float]] = defaultdict(list)
         state_err: dict[str, list[float]] = defaultdict(list)
@@ -225,7 +205,8 @@ def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, f
             iterator = tqdm(frames, desc="diagnose", unit="step", leave=False, disable=None)
         for frame in iterator:
             lnes = np.ascontiguousarray(frame[None], dtype=np.float32)
-            a, b = ref.step(lnes, window_ms), got.step(lnes, window_ms)
+            a, ref_state = ref.step(lnes, ref_state, window_ms)
+            b, got_state = got.step(lnes, got_state, window_ms)
             for tensor, other in plan.model_name.items():
                 tensor_err[tensor].append(relative_l2(b[other], a[tensor]))
             for name, out in plan.states.items():

@@ -8,7 +8,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Protocol
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -17,15 +17,7 @@ from e3dpsm.errors import DataError
 from e3dpsm.golden.store import GoldenWriter
 from e3dpsm.golden.tolerances import PROFILES
 from e3dpsm.metrics import mpjpe
-
-StateArrays = dict[str, np.ndarray]
-
-
-class Stepper(Protocol):
-    """What recording needs of a reference: numpy in, numpy out, batch of one."""
-
-    def init_state(self, batch: int = 1) -> StateArrays: ...
-    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float) -> tuple[dict, StateArrays]: ...
+from e3dpsm.runtime.stepping import Stepper
 
 
 @dataclass(frozen=True)
@@ -67,23 +59,9 @@ def onnx_reference(path: str | os.PathLike, threads: int | None = None) -> Refer
 
 def torch_reference(model: Any, kind: str, path: str | os.PathLike | None) -> Reference:
     """A PyTorch model's `step` as the reference (what `e3dpsm parity` compares graphs with)."""
-    import torch
-
+    from e3dpsm.export.torch_stepper import TorchStepper  # torch: imported only when a checkpoint is the reference
     from e3dpsm.joints import JOINT_NAMES
     from e3dpsm.models import OUTPUT_NAMES
-
-    class TorchStepper:
-        def __init__(self, model: Any) -> None:
-            self.model = model.eval()
-
-        def init_state(self, batch: int = 1) -> StateArrays:
-            return {k: v.numpy() for k, v in self.model.init_state(batch).items()}
-
-        @torch.no_grad()
-        def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float):
-            window = torch.tensor([window_ms], dtype=torch.float32)
-            out, new = self.model.step(torch.from_numpy(lnes), {k: torch.from_numpy(v) for k, v in state.items()}, window)
-            return {k: v.numpy() for k, v in out.items()}, {k: v.numpy() for k, v in new.items()}
 
     cfg = model.config
     return Reference(TorchStepper(model), kind, Path(path) if path else None, cfg.variant,

@@ -10,6 +10,7 @@ from e3dpsm.errors import InputError
 from e3dpsm.golden.check import GoldenCheck, check_golden, plot_check
 from e3dpsm.golden.store import GoldenRecord, load_golden
 from e3dpsm.golden.tolerances import PROFILES, ToleranceProfile, profile_for_quantization
+from e3dpsm.runtime.stepping import GraphStepper
 
 RUNTIMES = ("onnxruntime", "openvino")
 CHECK_FILE = "check.json"
@@ -17,7 +18,7 @@ PLOT_FILE = "check.png"
 
 
 def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threads: int | None = None,
-                providers: Sequence[str] | None = None) -> Any:
+                providers: Sequence[str] | None = None) -> GraphStepper:
     if runtime == "onnxruntime":
         from e3dpsm.runtime import StepSession
 

@@ -134,7 +134,7 @@ class OpenVINOStatefulSession:
 
 
 class ExplicitStateView:
-    """The explicit-state runner protocol of `e3dpsm.export.parity` over a stateful session.
+    """A `GraphStepper` (e3dpsm.runtime.stepping) over a stateful session, for parity.
 
     `step` ignores the state it is given and returns the variables read back from the
     request, so a parity check compares the runtime's own internal states with PyTorch's.

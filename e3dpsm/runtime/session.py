@@ -13,9 +13,8 @@ import numpy as np
 
 from e3dpsm.errors import DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.runtime.stepping import StateArrays, Stepper
 from e3dpsm.state import check_state_shapes, initial_states
-
-StateArrays = dict[str, np.ndarray]
 
 
 def make_session(
@@ -68,11 +67,19 @@ def build_feeds(
 
 
 class StepSession:
-    """One exported E-3DPSM step graph: `step(lnes, state, window_ms) -> (outputs, state)`."""
+    """One exported E-3DPSM step graph: `step(lnes, state, window_ms) -> (outputs, state)`
+    (a `GraphStepper`).
+
+    `all_outputs=True`: `step`'s outputs hold every graph output by name, not only the
+    metadata's pose outputs; diagnose exposes intermediate tensors as extra graph outputs
+    and reads them there.
+    """
 
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None,
-                 providers: Sequence[str] | None = None, options: Any = None, spin: bool = True) -> None:
+                 providers: Sequence[str] | None = None, options: Any = None, spin: bool = True,
+                 all_outputs: bool = False) -> None:
         self.path = Path(path)
+        self.all_outputs = all_outputs
         self.session = make_session(path, threads=threads, providers=providers, options=options, spin=spin)
         self.meta = GraphMetadata.from_session(self.session, source=str(path))
         self.frame_name = self.meta.frame_input["name"]
@@ -105,7 +112,7 @@ class StepSession:
     def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
         values = self.session.run(self.output_names, dict(feeds))
         named = dict(zip(self.output_names, values))
-        outputs = {name: named[name] for name in self.meta.output_names}
+        outputs = named if self.all_outputs else {name: named[name] for name in self.meta.output_names}
         new_state = {s.name: named[s.output_name] for s in self.meta.states}
         return outputs, new_state
 
@@ -114,10 +121,10 @@ class StepSession:
 
 
 class CarriedStateRunner:
-    """A step session stepping one stream at one window length with its own carried state:
+    """Any `Stepper` stepping one stream at one window length with its own carried state:
     `reset()` / `step(lnes)`, the runner protocol of the profiler and the latency timers."""
 
-    def __init__(self, session: StepSession, window_ms: float) -> None:
+    def __init__(self, session: Stepper, window_ms: float) -> None:
         self.session = session
         self.window_ms = window_ms
         self.reset()
