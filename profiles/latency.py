@@ -66,6 +66,13 @@ class OrtRunner(CarriedStateRunner):
         return self.session.session.end_profiling()
 
 
+def openvino_precision(target: Target) -> str:
+    """The inference precision OpenVINO is told: bf16 for bf16 targets, f32 otherwise (no
+    silent bf16 / fp16 on capable CPUs: an int8 graph's float parts stay float32, as they do
+    in ONNX Runtime). fp16 targets run the fp16 graph, whose Casts decide its precision."""
+    return "bf16" if target.precision == "bf16" else "f32"
+
+
 class OpenVinoRunner:
     """OpenVINO compiled model; state outputs fed back by the names in the graph metadata."""
 
@@ -77,11 +84,8 @@ class OpenVinoRunner:
 
         self.meta = GraphMetadata.from_onnx(onnx.load(path, load_external_data=False))
         core = openvino_core()
-        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY"}
-        if target.precision in ("fp32", "int8"):
-            # No silent bf16 / fp16 on capable CPUs: an int8 graph's float parts stay float32,
-            # as they do in ONNX Runtime.
-            config["INFERENCE_PRECISION_HINT"] = "f32"
+        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY",
+                  "INFERENCE_PRECISION_HINT": openvino_precision(target)}
         self.compiled = core.compile_model(path, target.provider, config)
         self.request = self.compiled.create_infer_request()
         self.window = np.full((1,), window_ms, np.float32)
@@ -110,9 +114,8 @@ class OpenVinoStatefulRunner:
 
         model, _ = convert_step_graph(path, stateful=True, batch=1)  # in memory; no IR file needed to time it
         meta = metadata_from_ir(model, path)
-        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY"}
-        if target.precision in ("fp32", "int8"):
-            config["INFERENCE_PRECISION_HINT"] = "f32"  # as OpenVinoRunner: no silent bf16 / fp16
+        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY",
+                  "INFERENCE_PRECISION_HINT": openvino_precision(target)}
         self.request = ov.Core().compile_model(model, target.provider, config).create_infer_request()
         self.frame_name, self.window_name = meta.frame_input["name"], meta.window_input["name"]
         self.window = np.full((1,), window_ms, np.float32)

@@ -17,7 +17,8 @@ else:  # pragma: no cover - Python 3.10
 
 # openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables)
 RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful")
-PRECISIONS = ("fp32", "fp16", "int8")
+# bf16: the fp32 graph with its float parts in bf16 (OpenVINO on CPUs with bf16 units).
+PRECISIONS = ("fp32", "fp16", "int8", "bf16")
 GRAPHS = ("none", "fp32", "fp16", "int8")
 GRAPH_HINTS = {
     "int8": "no int8 graph: run e3dpsm quantize first or pass --int8-model",
@@ -120,6 +121,12 @@ def runtime_availability(target: Target) -> Availability:
         devices = ov.Core().available_devices
         if target.provider not in devices:
             return Availability(False, f"OpenVINO device {target.provider} not in Core().available_devices {devices}")
+        if target.precision == "bf16" and target.provider == "CPU":
+            from e3dpsm.utils.isa import BF16_FLAGS, detect_isa
+
+            if not detect_isa().bf16:
+                return Availability(False, f"this CPU has no bf16 units ({', '.join(BF16_FLAGS)}); OpenVINO would "
+                                           "run f32 under a bf16 label")
     elif target.provider != "cpu":
         return Availability(False, f"torch target provider {target.provider!r} is not supported (only 'cpu')")
     return Availability(True)

@@ -42,12 +42,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                           "check goes to OUT/<graph>-<runtime>/ and OUT/summary.json lists the verdicts")
     chk.add_argument("--golden", required=True, help="golden folder written by `golden record`")
     chk.add_argument("--out", required=True, help="folder for check.json and check.png")
-    chk.add_argument("--runtime", choices=("onnxruntime", "openvino"), nargs="+", default=["onnxruntime"])
+    chk.add_argument("--runtime", choices=("onnxruntime", "openvino", "openvino-bf16"), nargs="+", default=["onnxruntime"],
+                     help="openvino-bf16: the graph's float parts in bf16 (CPUs with bf16 units; held to the bf16 "
+                          "profile unless --profile says otherwise)")
     chk.add_argument("--exit-zero", action="store_true",
                      help="exit 0 even when a check fails (the verdicts are in the reports), e.g. in a pipeline")
     chk.add_argument("--providers", nargs="+", default=None,
                      help="ONNX Runtime execution providers, e.g. CUDAExecutionProvider CPUExecutionProvider")
-    chk.add_argument("--profile", choices=("fp32", "fp16", "int8"), default=None,
+    chk.add_argument("--profile", choices=("fp32", "fp16", "int8", "bf16"), default=None,
                      help="tolerance profile (default: the graph's precision from its metadata)")
     chk.add_argument("--budget-pct", type=positive_float, default=None,
                      help="accuracy budget of the fp16/int8 profiles (default: the profile's, 0.1 / 1 %%)")

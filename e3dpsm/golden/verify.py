@@ -12,7 +12,9 @@ from e3dpsm.golden.store import GoldenRecord, load_golden
 from e3dpsm.golden.tolerances import PROFILES, ToleranceProfile, profile_for_quantization
 from e3dpsm.runtime.stepping import GraphStepper
 
-RUNTIMES = ("onnxruntime", "openvino")
+# "openvino-bf16": the graph's float parts in bf16 on a CPU with bf16 units (held to the bf16
+# profile by default, since the graph itself says fp32).
+RUNTIMES = ("onnxruntime", "openvino", "openvino-bf16")
 CHECK_FILE = "check.json"
 PLOT_FILE = "check.png"
 
@@ -23,20 +25,24 @@ def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threa
         from e3dpsm.runtime import StepSession
 
         return StepSession(model, threads=threads, providers=providers)
-    if runtime == "openvino":
+    if runtime in ("openvino", "openvino-bf16"):
         if providers:
             raise InputError("--providers applies to onnxruntime; OpenVINO runs on its CPU device here")
         from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 
-        return OpenVINOStepSession(model, threads=threads)
+        return OpenVINOStepSession(model, threads=threads, precision="bf16" if runtime == "openvino-bf16" else "f32")
     raise InputError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
 
 
 def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golden_manifest: dict[str, Any],
-                    budget_pct: float | None = None) -> ToleranceProfile:
-    """The named profile (default: the graph's own precision), with the values the golden was
-    recorded for, and the graph's own accuracy budget where its metadata names one."""
-    name = name or profile_for_quantization(quantization)
+                    budget_pct: float | None = None, runtime: str = "onnxruntime") -> ToleranceProfile:
+    """The named profile (default: the graph's own precision, or bf16 for an fp32 graph run in
+    bf16), with the values the golden was recorded for, and the graph's own accuracy budget
+    where its metadata names one."""
+    if name is None:
+        name = profile_for_quantization(quantization)
+        if runtime == "openvino-bf16" and name == "fp32":
+            name = "bf16"
     if name not in PROFILES:
         raise InputError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}")
     recorded = golden_manifest.get("tolerances", {}).get(name)
@@ -56,7 +62,7 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
 
     golden = golden_dir if isinstance(golden_dir, GoldenRecord) else load_golden(golden_dir)
     runner = open_runner(model, runtime, threads=threads, providers=providers)
-    chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, budget_pct)
+    chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, budget_pct, runtime)
     result = check_golden(runner, golden, chosen, progress=progress)
     report = {
         **(header or {}),
