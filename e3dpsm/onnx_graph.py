@@ -8,6 +8,19 @@ from typing import Callable, Iterable
 import onnx
 
 
+def with_outputs(model: onnx.ModelProto, names: Iterable[str]) -> onnx.ModelProto:
+    """A copy of `model` that also outputs the named intermediate tensors (calibration
+    histograms, diagnosis), each once; shapes and types are left for the runtime to infer."""
+    exposed = onnx.ModelProto()
+    exposed.CopyFrom(model)
+    present = {o.name for o in exposed.graph.output}
+    for name in names:
+        if name not in present:
+            exposed.graph.output.append(onnx.ValueInfoProto(name=name))
+            present.add(name)
+    return exposed
+
+
 def node_key(node: onnx.NodeProto) -> str:
     """A node's name, or its first output's name if it has none (outputs are unique)."""
     return node.name or node.output[0]

@@ -141,10 +141,14 @@ def module_scopes(model: onnx.ModelProto, dtypes: Mapping[str, int] | None = Non
     return {key: label or OTHER for key, label in labels.items()}
 
 
-def _named_index(model: onnx.ModelProto) -> GraphIndex:
-    # The quantiser keeps nodes in float by name, so every node needs one.
+def require_named_nodes(model: onnx.ModelProto) -> None:
+    """The quantiser keeps nodes in float by name, so every node needs one."""
     if any(not node.name for node in model.graph.node):
         raise ValueError("graph has unnamed nodes; re-export it")
+
+
+def _named_index(model: onnx.ModelProto) -> GraphIndex:
+    require_named_nodes(model)
     return GraphIndex(model)
 
 

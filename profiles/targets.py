@@ -122,11 +122,11 @@ def runtime_availability(target: Target) -> Availability:
         if target.provider not in devices:
             return Availability(False, f"OpenVINO device {target.provider} not in Core().available_devices {devices}")
         if target.precision == "bf16" and target.provider == "CPU":
-            from e3dpsm.utils.isa import BF16_FLAGS, detect_isa
+            from e3dpsm.utils.isa import bf16_unavailable_reason
 
-            if not detect_isa().bf16:
-                return Availability(False, f"this CPU has no bf16 units ({', '.join(BF16_FLAGS)}); OpenVINO would "
-                                           "run f32 under a bf16 label")
+            reason = bf16_unavailable_reason()
+            if reason:
+                return Availability(False, reason)
     elif target.provider != "cpu":
         return Availability(False, f"torch target provider {target.provider!r} is not supported (only 'cpu')")
     return Availability(True)

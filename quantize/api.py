@@ -226,7 +226,6 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     started = time.perf_counter()
     ranges = calibrate(pre, config, calib, cache)
     calib_seconds = time.perf_counter() - started
-    quantize_int8(pre, out, config, exclude=keep if fixed is None else fixed, cache=cache)
     search = latency = None
     if fixed is None:
         def build(excluded: list[str]) -> onnx.ModelProto:
@@ -247,7 +246,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                 lambda subset: _evaluator(pre_meta, subset, options, work, build))
         search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
         fixed = search.excluded_nodes
-        quantize_int8(pre, out, config, exclude=fixed, cache=cache)
+    quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
     info = {
         "mode": "int8", **config.to_dict(), "calibration_frames": len(calib),

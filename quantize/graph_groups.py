@@ -13,7 +13,7 @@ from typing import Iterable
 
 import onnx
 
-from e3dpsm.onnx_groups import OTHER, NodeGroup, module_scopes, recurrent_groups
+from e3dpsm.onnx_groups import OTHER, NodeGroup, module_scopes, recurrent_groups, require_named_nodes
 
 __all__ = ["NodeGroup", "OP_TYPE_CANDIDATES", "QUANTISABLE", "candidate_groups", "recurrent_groups"]
 
@@ -27,8 +27,7 @@ OP_TYPE_CANDIDATES = ("LayerNormalization", "Softmax", "InstanceNormalization", 
 def candidate_groups(model: onnx.ModelProto, keep_float: Iterable[str] = ()) -> list[NodeGroup]:
     """Groups the exclusion search may add: module scopes, then op types; nodes already kept
     in float are left out, and groups without a quantisable op are dropped."""
-    if any(not node.name for node in model.graph.node):
-        raise ValueError("graph has unnamed nodes; re-export it")  # the quantiser keeps nodes in float by name
+    require_named_nodes(model)
     kept = set(keep_float)
     by_scope: dict[str, list[str]] = defaultdict(list)
     for name, scope in module_scopes(model).items():

@@ -28,6 +28,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import onnx
 
+from e3dpsm.onnx_graph import with_outputs
+
 HISTOGRAM_BINS = 2048
 PERCENTILES: tuple[float, ...] = (99.9, 99.99, 99.999)
 # Narrower ranges tried besides min-max and the percentiles: the min-max range's ends pulled
@@ -122,10 +124,7 @@ def collect_histograms(model_path: str | os.PathLike, ranges: Mapping[str, tuple
     """Histograms of the named tensors over the calibration feeds, on their min-max ranges."""
     import onnxruntime as ort
 
-    model = onnx.load(str(model_path))
-    present = {o.name for o in model.graph.output}
-    names = [n for n in ranges if n not in present]
-    model.graph.output.extend(onnx.ValueInfoProto(name=n) for n in names)
+    model = with_outputs(onnx.load(str(model_path)), ranges)
     options = ort.SessionOptions()
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])

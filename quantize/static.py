@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterable
@@ -91,16 +90,15 @@ def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: Calibra
     """Write ONNX Runtime's calibration cache (tensor ranges) for the graph `src`; return the
     per-tensor range choices under "mse" ({} otherwise).
 
-    The calibrator is built here rather than by `quantize_static`, which does not pass a bin
-    count on (ONNX Runtime 1.31 forwards CalibPercentile but not CalibNumBins), so the entropy
-    and percentile histograms would silently get ORT's defaults (128 and 2048 bins)."""
+    minmax, entropy and percentile run ONNX Runtime's calibrators with the options
+    `quantize_static` gives them (the percentile; ORT's defaults otherwise: entropy 128 bins,
+    percentile 2048 bins on |x|, a symmetric range). A bins setting this project used to pass
+    (CalibNumBins) never reached them: ORT 1.31's quantize_static does not forward it."""
     from onnxruntime.quantization.calibrate import create_calibrator, save_tensors_data
 
-    from e3dpsm.quantize.ranges import HISTOGRAM_BINS, select_ranges, write_minmax_cache
+    from e3dpsm.quantize.ranges import select_ranges, write_minmax_cache
 
-    options: dict = {"symmetric": False}
-    if config.calibration in ("entropy", "percentile"):
-        options.update(num_bins=HISTOGRAM_BINS, percentile=config.percentile)
+    options = {"percentile": config.percentile} if config.calibration == "percentile" else {}
     with tempfile.TemporaryDirectory(prefix="e3dpsm-calib-") as work:
         calibrator = create_calibrator(Path(src), list(config.op_types), augmented_model_path=str(Path(work) / "aug.onnx"),
                                        calibrate_method=_method(config.calibration), extra_options=options)
@@ -119,19 +117,16 @@ def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: Calibra
 def quantize_int8(
     src: str | os.PathLike, dst: str | os.PathLike, config: StaticConfig, *,
     exclude: Iterable[str] = (), calibration: CalibrationSet | None = None, cache: str | os.PathLike,
-) -> float:
-    """Quantise the pre-processed graph `src` to `dst`; return the calibration seconds
-    (0 when the ranges came from `cache`). `calibration` is needed on the first call only."""
+) -> None:
+    """Quantise the pre-processed graph `src` to `dst` with the ranges of `cache`, calibrating
+    first (`calibrate`) if there is no cache yet: `calibration` is needed then only."""
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
 
     cache = Path(cache)
-    started = time.perf_counter()
-    seconds = 0.0
     if not cache.is_file():
         if calibration is None:
             raise ValueError("no calibration cache yet: pass the calibration set")
         calibrate(src, config, calibration, cache)
-        seconds = time.perf_counter() - started
     quantize_static(
         str(src), str(dst),
         calibration_data_reader=None,  # the ranges come from the cache written above
@@ -148,7 +143,6 @@ def quantize_int8(
         calibration_cache_path=str(cache),
     )
     log.debug("quantised %s -> %s (%d nodes kept float)", src, dst, len(set(exclude)))
-    return seconds
 
 
 def quantised_node_count(model: onnx.ModelProto) -> dict[str, int]:

@@ -49,12 +49,12 @@ def _run_ort(graph: bytes, feeds: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def _run_openvino(graph: bytes, feeds: dict[str, np.ndarray], tmp_path) -> np.ndarray:
-    from e3dpsm.runtime.openvino_session import fp32_compile_config, openvino_core
+    from e3dpsm.runtime.openvino_session import compile_config, openvino_core
 
     path = tmp_path / "graph.onnx"
     path.write_bytes(graph)
     core = openvino_core()
-    compiled = core.compile_model(core.read_model(str(path)), "CPU", fp32_compile_config(1))
+    compiled = core.compile_model(core.read_model(str(path)), "CPU", compile_config(1))
     return next(iter(compiled(feeds).values()))
 
 

@@ -177,6 +177,9 @@ def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golde
     report = json.loads((tmp_path / "int8" / "check.json").read_text())
     # Profile and budget from the graph's own metadata (`quantize` writes both).
     assert report["profile"]["name"] == "int8" and report["profile"]["budget_pct"] == int8_test_budget_pct
+    # and the ISA the budget was checked on beside this host's (the same host here)
+    assert report["isa"]["budget_checked_on"] == report["isa"]["host"] == report["machine"]["isa"]
+    assert report["isa"]["same_kind"] is True
     # The budget measure recomputed by hand: mean joint distance to the golden poses / golden MPJPE.
     golden = load_golden(golden_holdout)
     session = StepSession(int8_graph, threads=2)

@@ -19,7 +19,7 @@ NEOVERSE = "processor\t: 0\nFeatures\t: fp asimd crc32 atomics asimddp sve i8mm 
     (EPYC_ZEN4, "vnni", True, True, ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16")),
     (XEON_AMX, "vnni", True, True,
      ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile", "amx_int8", "amx_bf16")),
-    (NEOVERSE, "vnni", True, True, ("asimddp", "i8mm", "bf16", "sve")),
+    (NEOVERSE, "dotprod", True, False, ("asimddp", "i8mm", "bf16", "sve")),  # OpenVINO ARM: no bf16
     ("flags\t: fpu sse2\n", "other", False, False, ()),
     ("model name\t: nothing else\n", "unknown", False, False, ()),
 ])
@@ -44,3 +44,14 @@ def test_unreadable_cpuinfo_gives_unknown(tmp_path) -> None:
 def test_every_report_records_the_isa() -> None:
     isa = machine_info()["isa"]
     assert isa == detect_isa().to_dict() and set(isa) == {"kind", "flags", "int8_dot_product", "bf16"}
+
+
+def test_golden_check_compares_the_host_with_the_graphs_isa(monkeypatch) -> None:
+    from e3dpsm.golden.verify import isa_comparison
+    from e3dpsm.utils import isa as isa_module
+
+    monkeypatch.setattr(isa_module, "detect_isa", lambda cpuinfo="/proc/cpuinfo": parse_cpuinfo(EPYC_AVX2))
+    vnni = parse_cpuinfo(XEON_AMX).to_dict()
+    assert isa_comparison({"mode": "int8", "checked_on_isa": vnni})["same_kind"] is False
+    assert isa_comparison({"mode": "int8", "checked_on_isa": parse_cpuinfo(EPYC_AVX2).to_dict()})["same_kind"] is True
+    assert isa_comparison(None)["same_kind"] is None  # an fp32 graph has no budget to compare

@@ -97,20 +97,27 @@ def test_chosen_range_reaches_the_qdq_graph(tmp_path) -> None:
     assert scale == pytest.approx((c.high - c.low) / 255.0, rel=1e-6) and zero == round(-c.low / scale)
 
 
-def test_percentile_calibration_uses_the_stated_bin_count(tmp_path) -> None:
-    """ONNX Runtime's quantize_static drops CalibNumBins; calibrate() passes 2048 bins on.
-    ORT's asymmetric percentile p cuts (100 - p) / 2 per cent from each tail: at p = 99 the
-    top of a relu'd Laplace over 2048 bins lands within two bins of numpy's 99.5th
-    percentile (128 bins are 16 times coarser)."""
+@pytest.mark.parametrize("method", ["minmax", "entropy", "percentile"])
+def test_ort_rules_calibrate_as_quantize_static_does(tmp_path, method) -> None:
+    """calibrate() builds ONNX Runtime's calibrator itself (so that "mse" can start from its
+    min-max ranges); for ORT's own rules it must give the ranges quantize_static computes
+    when left to calibrate on its own: the same options, nothing silently changed."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, quantize_static
     from onnxruntime.quantization.calibrate import load_tensors_data
+
+    from e3dpsm.quantize.calibration import FeedListReader
 
     _one_matmul_graph(tmp_path / "g.onnx")
     rng = np.random.default_rng(5)
-    feeds = [{"x": rng.laplace(0, 1, (1, 8)).astype(np.float32)} for _ in range(20000)]
-    calibrate(tmp_path / "g.onnx", StaticConfig(calibration="percentile", percentile=99.0), CalibrationSet(feeds, "test"),
-              tmp_path / "cache.json")
-    high = float(np.ravel(load_tensors_data(tmp_path / "cache.json")["h"].range_value[1])[0])
-    values = np.maximum(np.concatenate([f["x"].ravel() for f in feeds]), 0)
-    # ORT's percentile histogram spans [-max, max]; its bin width at 2048 bins:
-    bin_width = 2 * values.max() / 2048
-    assert abs(high - np.percentile(values, 99.5)) <= 2 * bin_width
+    feeds = [{"x": rng.laplace(0, 1, (64, 8)).astype(np.float32)} for _ in range(50)]
+    config = StaticConfig(calibration=method)
+    calibrate(tmp_path / "g.onnx", config, CalibrationSet(feeds, "test"), tmp_path / "ours.json")
+    ort_method = {"minmax": CalibrationMethod.MinMax, "entropy": CalibrationMethod.Entropy,
+                  "percentile": CalibrationMethod.Percentile}[method]
+    quantize_static(str(tmp_path / "g.onnx"), str(tmp_path / "q.onnx"), FeedListReader(feeds), quant_format=QuantFormat.QDQ,
+                    op_types_to_quantize=list(config.op_types), calibrate_method=ort_method,
+                    extra_options={"CalibPercentile": config.percentile}, calibration_cache_path=str(tmp_path / "ort.json"))
+    ours, theirs = load_tensors_data(tmp_path / "ours.json"), load_tensors_data(tmp_path / "ort.json")
+    assert set(ours) == set(theirs) and "h" in ours
+    for name in ours:
+        np.testing.assert_array_equal(np.ravel(ours[name].range_value), np.ravel(theirs[name].range_value))

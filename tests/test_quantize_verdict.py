@@ -6,6 +6,11 @@ import pytest
 from e3dpsm.quantize.front_report import markdown_report, speed_verdict
 
 
+def _candidate(label: str, p50_ms: float, within: bool, chosen: bool = False) -> dict:
+    return {"label": label, "float_groups": [], "distance_pct": 0.5, "p50_ms": p50_ms, "speedup_vs_fp32": None,
+            "within_budget": within, "on_front": True, "chosen": chosen}
+
+
 def _report(chosen_ms: float, fp32_ms: float, *, bf16: bool, within: bool = True) -> dict:
     flags = ["avx2", "avx512_vnni"] + (["avx512_bf16"] if bf16 else [])
     return {
@@ -15,15 +20,17 @@ def _report(chosen_ms: float, fp32_ms: float, *, bf16: bool, within: bool = True
         "holdout": {"split": "val", "frames": 100, "mpjpe_mm": 100.5, "fp32_mpjpe_mm": 100.0, "bound_pct": 0.8},
         "exclusion_search": {"within_budget": within},
         "search": {"chosen": {"p50_ms": chosen_ms}, "fp32_p50_ms": fp32_ms, "objective": "latency",
-                   "budget_pct": 1.0, "candidates": [], "front": [], "timer": {}},
+                   "budget_pct": 1.0, "front": [], "timer": {},
+                   "candidates": [_candidate("base", chosen_ms, within, chosen=True)]},
     }
 
 
 def test_slower_than_fp32_says_so_and_names_what_would_pay() -> None:
     """The Xeon case of issue 24: 12.08 against 10.34 ms (0.86x) was chosen with nothing said."""
     verdict = speed_verdict(_report(12.08, 10.34, bf16=True))
-    assert verdict.startswith("Verdict: no int8 graph within budget beats fp32 on this vnni host")
-    assert "0.86x fp32 (12.08 against 10.34 ms" in verdict and "bf16" in verdict and "1.8 MB against 6.0" in verdict
+    assert verdict.startswith("Verdict: the chosen int8 graph (within budget) does not beat fp32 on this vnni host")
+    assert "0.86x fp32 (12.08 against 10.34 ms" in verdict and "No timed int8 graph within budget beats fp32" in verdict
+    assert "bf16" in verdict and "1.8 MB against 6.0" in verdict
     assert "bf16" not in speed_verdict(_report(12.08, 10.34, bf16=False))
     assert markdown_report(_report(12.08, 10.34, bf16=True)).splitlines()[2] == f"**{verdict}**"
 
@@ -31,7 +38,15 @@ def test_slower_than_fp32_says_so_and_names_what_would_pay() -> None:
 @pytest.mark.parametrize("chosen_ms, pays", [(10.0, False), (10.0 / 1.03, False), (10.0 / 1.031, True), (5.0, True)])
 def test_a_speed_up_within_the_timing_tie_does_not_count(chosen_ms, pays) -> None:
     verdict = speed_verdict(_report(chosen_ms, 10.0, bf16=False))
-    assert verdict.startswith("Verdict: the int8 graph (within budget) runs") == pays, verdict
+    assert verdict.startswith("Verdict: the chosen int8 graph (within budget) runs") == pays, verdict
+
+
+def test_objective_accuracy_chose_a_slower_graph_than_a_timed_one_within_budget() -> None:
+    """The verdict speaks of the chosen graph, and names a faster one within budget."""
+    report = _report(12.0, 10.0, bf16=False)
+    report["search"]["candidates"] += [_candidate("top2", 8.0, True), _candidate("top1", 5.0, False)]
+    verdict = speed_verdict(report)
+    assert "does not beat fp32" in verdict and "within budget runs 1.25x" in verdict
 
 
 def test_no_timing_no_verdict() -> None:

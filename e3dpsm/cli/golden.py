@@ -94,6 +94,11 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
     states = sum(t.kind == "state" for t in result.tensors)
     print(f"  states within limits: {states_ok}/{states}; {report['ms_per_step']:.2f} ms per step; "
           f"wrote {out / 'check.json'}")
+    isa = report["isa"]
+    print(f"  host ISA: {isa['host']['kind']} ({' '.join(isa['host']['flags']) or 'no flags read'})"
+          + ("" if isa["same_kind"] is not False else
+             f"; the graph's budget was checked on a {isa['budget_checked_on']['kind']} host: INT8 error "
+             "differs between AVX2 and VNNI/AMX kernels, so this check is the one that counts here"))
 
 
 def run_check(args: argparse.Namespace) -> int:

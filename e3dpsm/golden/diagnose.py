@@ -38,6 +38,7 @@ import onnx
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_graph import with_outputs
 from e3dpsm.onnx_groups import OTHER, module_scopes, recurrent_groups
 from e3dpsm.runtime.session import StepSession
 
@@ -131,15 +132,8 @@ def make_plan(reference: onnx.ModelProto, model: onnx.ModelProto, meta: GraphMet
 
 
 def _expose(model: onnx.ModelProto, names: Iterable[str], folder: Path, tag: str) -> Path:
-    exposed = onnx.ModelProto()
-    exposed.CopyFrom(model)
-    present = {o.name for o in exposed.graph.output}
-    for name in names:
-        if name not in present:
-            exposed.graph.output.append(onnx.ValueInfoProto(name=name))
-            present.add(name)
     path = folder / f"{tag}.onnx"
-    onnx.save(exposed, str(path))
+    onnx.save(with_outputs(model, names), str(path))
     return path
 
 

@@ -51,6 +51,17 @@ def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golde
     return profile.with_budget(budget_pct if budget_pct is not None else own_budget)
 
 
+def isa_comparison(quantization: dict[str, Any] | None) -> dict[str, Any]:
+    """The ISA this check runs on beside the one the graph's budget was checked on
+    (`quantize` records it): INT8 error differs between AVX2 and VNNI/AMX hosts."""
+    from e3dpsm.utils.isa import detect_isa
+
+    host = detect_isa().to_dict()
+    checked = (quantization or {}).get("checked_on_isa")
+    same = None if not checked else checked.get("kind") == host["kind"]
+    return {"host": host, "budget_checked_on": checked, "same_kind": same}
+
+
 def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | GoldenRecord, out_dir: str | os.PathLike | None = None, *,
                  runtime: str = "onnxruntime", providers: Sequence[str] | None = None, threads: int | None = None,
                  profile: str | None = None, budget_pct: float | None = None, progress: bool = False,
@@ -71,6 +82,7 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
         "golden": {"path": str(golden.folder), "source": golden.manifest.get("source"), "steps": golden.steps,
                    "window_ms": golden.manifest.get("window_ms")},
         "runtime": runtime, "providers": list(providers or []),
+        "isa": isa_comparison(runner.meta.quantization),
         **result.to_dict(),
     }
     if out_dir is not None:

@@ -80,28 +80,23 @@ def read_openvino_model(path: str | os.PathLike) -> tuple[Any, Any]:
 OPENVINO_PRECISIONS = ("f32", "bf16")
 
 
-def fp32_compile_config(threads: int | None, extra: Mapping[str, Any] | None = None,
-                        precision: str = "f32") -> dict[str, Any]:
+def compile_config(threads: int | None, extra: Mapping[str, Any] | None = None,
+                   precision: str = "f32") -> dict[str, Any]:
     """Float parts in f32 (parity checks and int8 graphs alike): no silent bf16 / fp16 on CPUs
     that have them; `threads` intra-op threads when given. `precision="bf16"` asks for bf16
     instead, which needs bf16 units (checked: without them OpenVINO would quietly run f32)."""
     if precision not in OPENVINO_PRECISIONS:
         raise ConfigError(f"unknown OpenVINO precision {precision!r}; choose one of {', '.join(OPENVINO_PRECISIONS)}")
     if precision == "bf16":
-        require_bf16_units()
+        from e3dpsm.utils.isa import bf16_unavailable_reason
+
+        reason = bf16_unavailable_reason()
+        if reason:
+            raise ConfigError(f"bf16 needs a CPU with bf16 units: {reason}; run f32 (or int8) here")
     config: dict[str, Any] = {"INFERENCE_PRECISION_HINT": precision, **(extra or {})}
     if threads:
         config["INFERENCE_NUM_THREADS"] = int(threads)
     return config
-
-
-def require_bf16_units() -> None:
-    from e3dpsm.utils.isa import BF16_FLAGS, detect_isa
-
-    isa = detect_isa()
-    if not isa.bf16:
-        raise ConfigError(f"bf16 needs a CPU with bf16 units ({', '.join(BF16_FLAGS)}); this one has "
-                          f"{' '.join(isa.flags) or 'no flags read'}: run f32 (or int8) here")
 
 
 def _contract_name(port, contract: set[str]) -> str:
@@ -119,7 +114,7 @@ class OpenVINOStepSession:
 
         self.path = Path(path)
         self.meta = GraphMetadata.from_onnx(onnx.load(str(self.path), load_external_data=False), source=str(self.path))
-        self._compiled = core.compile_model(self._model, device, fp32_compile_config(threads, precision=precision))
+        self._compiled = core.compile_model(self._model, device, compile_config(threads, precision=precision))
         self._request = self._compiled.create_infer_request()
         inputs = {self.meta.frame_input["name"], self.meta.window_input["name"], *(s.input_name for s in self.meta.states)}
         outputs = {*self.meta.output_names, *(s.output_name for s in self.meta.states)}

@@ -20,7 +20,7 @@ import numpy as np
 
 from e3dpsm.errors import ConfigError, InputError
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
-from e3dpsm.runtime.openvino_session import fp32_compile_config, openvino_available, read_openvino_model
+from e3dpsm.runtime.openvino_session import compile_config, openvino_available, read_openvino_model
 from e3dpsm.state import initial_states, state_input_name, state_output_name
 
 RT_METADATA = "e3dpsm"            # rt_info section: the ONNX metadata_props, key for key
@@ -63,7 +63,7 @@ class OpenVINOStatefulSession:
         self.meta = metadata_from_ir(model, str(self.path))
         self.conversion = {k: json.loads(v) for k, v in read_rt_section(model, RT_CONVERSION).items()}
         self._check_stateful(model)
-        self._compiled = core.compile_model(model, device, fp32_compile_config(threads, config))
+        self._compiled = core.compile_model(model, device, compile_config(threads, config))
         self._request = self._compiled.create_infer_request()
         self.batch = int(model.input(self.meta.frame_input["name"]).get_partial_shape()[0].get_length())
         self._frame_shape = (self.batch, *(int(d) for d in self.meta.frame_input["shape"][1:]))

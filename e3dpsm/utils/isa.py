@@ -11,7 +11,6 @@ the set is empty and reports say "unknown".
 """
 from __future__ import annotations
 
-import platform
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +20,9 @@ REPORTED_FLAGS: tuple[str, ...] = (
     "asimddp", "i8mm", "bf16", "sve",
 )
 INT8_DOT_PRODUCT_FLAGS: tuple[str, ...] = ("avx512_vnni", "avx_vnni", "amx_int8", "asimddp", "i8mm")
-BF16_FLAGS: tuple[str, ...] = ("avx512_bf16", "amx_bf16", "bf16")
+# bf16 units OpenVINO's CPU plugin computes with (INFERENCE_PRECISION_HINT=bf16). Its ARM
+# plugin runs f32 / f16, so aarch64's `bf16` flag is reported but does not count here.
+BF16_FLAGS: tuple[str, ...] = ("avx512_bf16", "amx_bf16")
 
 
 @dataclass(frozen=True)
@@ -43,12 +44,13 @@ class CpuIsa:
 
     @property
     def kind(self) -> str:
-        """One word for reports and test branches: 'vnni' (int8 dot products), 'avx2',
-        'other' or 'unknown' (no flags read)."""
+        """One word for reports and test branches: 'vnni' (x86 int8 dot products: VNNI or
+        AMX), 'dotprod' (aarch64 int8 dot products), 'avx2', 'other' or 'unknown' (no flags
+        read)."""
         if not self.known:
             return "unknown"
         if self.int8_dot_product:
-            return "vnni"
+            return "vnni" if any(f.startswith(("avx", "amx")) for f in self.flags) else "dotprod"
         return "avx2" if "avx2" in self.flags else "other"
 
     def to_dict(self) -> dict[str, object]:
@@ -74,7 +76,11 @@ def detect_isa(cpuinfo: str | Path = "/proc/cpuinfo") -> CpuIsa:
         return CpuIsa((), known=False)
 
 
-def isa_label(isa: CpuIsa | None = None) -> str:
-    """'x86_64 vnni (avx2 fma avx512f avx512_vnni ...)': the line benchmark reports print."""
+def bf16_unavailable_reason(isa: CpuIsa | None = None) -> str | None:
+    """Why bf16 cannot run here (None where it can): without bf16 units OpenVINO would run f32
+    under a bf16 label."""
     isa = isa or detect_isa()
-    return f"{platform.machine()} {isa.kind} ({' '.join(isa.flags) or 'no flags read'})"
+    if isa.bf16:
+        return None
+    return (f"this CPU has no bf16 units ({', '.join(BF16_FLAGS)}; it has "
+            f"{' '.join(isa.flags) or 'no flags read'})")
