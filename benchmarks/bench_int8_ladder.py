@@ -1,0 +1,163 @@
+"""The INT8 ladder: full-integer distance to fp32 for each way of choosing activation ranges,
+the default search's graph, and bf16, with size and speed side by side on ONNX Runtime and
+OpenVINO, on the host's ISA.
+
+    python benchmarks/bench_int8_ladder.py --checkpoint benchmarks/checkpoints/small/checkpoint.pt \\
+        --data prep96_test [--split train --holdout-split test --check-split val] [--steps 200] [--threads 2]
+
+Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measured on
+--holdout-split):
+- full integer (`--exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
+  activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor);
+- the default `--exclude auto` graph with `--calibration mse`;
+- the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units).
+Every graph's distance is also measured on --check-split, which no search saw (the gap says
+how far a budget chosen on one split carries). Latency: all graphs stepped side by side in
+rounds (`profiles.latency.measure_side_by_side`), states carried, on real frames.
+Writes benchmarks/results/int8_<variant>_ladder.md/.json.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize.holdout import accuracy_of, make_holdout
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+from e3dpsm.utils.isa import detect_isa
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CALIBRATIONS = ("minmax", "percentile", "mse")
+
+
+def _runners(graphs: dict[str, Path], fp32: Path, threads: int, window_ms: float) -> dict:
+    from e3dpsm.profiles.latency import OpenVinoRunner, OrtRunner
+    from e3dpsm.profiles.targets import Target
+
+    def target(name: str, runtime: str, precision: str) -> Target:
+        provider = "CPUExecutionProvider" if runtime == "onnxruntime" else "CPU"
+        return Target(name=name, runtime=runtime, provider=provider, precision=precision, graph=precision,
+                      threads=threads)
+
+    runners = {"ort fp32": OrtRunner(str(fp32), target("ort fp32", "onnxruntime", "fp32"), window_ms),
+               "openvino fp32": OpenVinoRunner(str(fp32), target("ov fp32", "openvino", "fp32"), window_ms)}
+    if detect_isa().bf16:
+        runners["openvino bf16"] = OpenVinoRunner(str(fp32), target("ov bf16", "openvino", "bf16"), window_ms)
+    for label, path in graphs.items():
+        runners[f"ort {label}"] = OrtRunner(str(path), target(label, "onnxruntime", "int8"), window_ms)
+        runners[f"openvino {label}"] = OpenVinoRunner(str(path), target(label, "openvino", "int8"), window_ms)
+    return runners
+
+
+def _bf16_distance(fp32: Path, holdout, threads: int) -> float | None:
+    """Distance of the fp32 graph run in bf16 on OpenVINO, the measure quantize budgets on."""
+    from e3dpsm.runtime.openvino_session import OpenVINOStepSession
+    from e3dpsm.validation.streams import onnx_stream_outputs
+
+    if not detect_isa().bf16:
+        return None
+    session = OpenVINOStepSession(fp32, threads=threads, precision="bf16")
+    outputs = [onnx_stream_outputs(session, x, holdout.window_ms) for x in holdout.lnes]
+    from e3dpsm.metrics import joint_errors
+
+    worst = max(float(joint_errors(np.concatenate([o[k] for o in outputs]),
+                                   np.concatenate([o[k] for o in holdout.fp32_outputs])).mean())
+                for k in holdout.fp32_outputs[0])
+    return 100.0 * worst / holdout.fp32_mpjpe
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--data", required=True, help="prepared folder with the three splits below")
+    parser.add_argument("--split", default="train", help="calibration frames")
+    parser.add_argument("--holdout-split", default="test", help="quantize's own accuracy check and search")
+    parser.add_argument("--check-split", default="val", help="an independent check no search saw")
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--holdout-frames", type=int, default=200)
+    parser.add_argument("--steps", type=int, default=200, help="timed steps per graph")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--no-search", action="store_true", help="skip the default --exclude auto row")
+    args = parser.parse_args(argv)
+
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.export import export_step
+    from e3dpsm.profiles.latency import measure_side_by_side
+
+    model, _ = load_checkpoint(args.checkpoint)
+    variant = model.config.variant
+    data = PreparedData.open(args.data)
+    report = report_header("bench_int8_ladder", vars(args))
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-ladder-") as work:
+        work = Path(work)
+        fp32 = export_step(model, work / "step.onnx")
+        window_ms = model.config.train_window_ms
+        check = make_holdout(fp32, data.split(args.check_split), window_ms, args.holdout_frames, args.threads)
+        graphs: dict[str, Path] = {}
+        runs = [(f"full int8, {c}", QuantizeOptions(mode="int8", exclude="none", calibration=c)) for c in CALIBRATIONS]
+        if not args.no_search:
+            runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse")))
+        for label, options in runs:
+            options = QuantizeOptions(**{**options.__dict__, "frames": args.frames, "holdout_frames": args.holdout_frames,
+                                         "split": args.split, "holdout_split": args.holdout_split,
+                                         "threads": args.threads})
+            q = quantize_graph(fp32, args.data, work / label.replace(" ", "_").replace(",", ""), options)
+            path = work / label.replace(" ", "_").replace(",", "") / q["artifact"]
+            graphs[label] = path
+            independent = accuracy_of(path, check, args.threads)["bound_pct"]
+            ranked = q.get("exclusion_search") or {}
+            kept = [n for n in q["excluded_nodes"] if n in {r["node"] for r in ranked.get("sensitivity", [])}]
+            rows.append({"label": label, "distance_pct": q["holdout"]["bound_pct"], "check_distance_pct": independent,
+                         "mpjpe_loss_pct": q["holdout"]["loss_pct"], "bytes": path.stat().st_size,
+                         "compute_nodes_in_float": len(kept) if ranked else 0,
+                         "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
+            print(f"{label}: {rows[-1]['distance_pct']:.3f}% ({args.holdout_split}), {independent:.3f}% "
+                  f"({args.check_split}), {rows[-1]['bytes'] / 1e6:.2f} MB", flush=True)
+        holdout = make_holdout(fp32, data.split(args.holdout_split), window_ms, args.holdout_frames, args.threads)
+        bf16 = _bf16_distance(fp32, holdout, args.threads)
+        lnes = np.concatenate(holdout.lnes)[: max(args.steps, 50)]
+        runners = _runners(graphs, fp32, args.threads, window_ms)
+        times = measure_side_by_side(runners, lnes, args.steps, warmup=10)
+        p50 = {name: 1e3 * float(np.median(t)) for name, t in times.items()}
+        fp32_bytes = fp32.stat().st_size
+    report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows,
+                  bf16_distance_pct=bf16, p50_ms=p50, fp32_mpjpe_mm=holdout.fp32_mpjpe)
+    name = f"int8_{variant}_ladder"
+    write_json_atomic(RESULTS / f"{name}.json", report)
+    write_text_atomic(RESULTS / f"{name}.md", markdown(report))
+    print(markdown(report))
+    return 0
+
+
+def markdown(report: dict) -> str:
+    isa, p50 = report["isa"], report["p50_ms"]
+    cfg = report["config"]
+    lines = [f"# INT8 ladder, `{report['variant']}` ({report['created']})", "",
+             f"Host: {report['machine'].get('cpu_model', '?')}, ISA {isa['kind']} ({' '.join(isa['flags'])}), "
+             f"{cfg['threads']} threads. Distance to fp32: the largest mean joint distance over the fused, direct "
+             f"and delta poses relative to the fp32 MPJPE ({report['fp32_mpjpe_mm']:.1f} mm), on "
+             f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched). "
+             f"Step p50 side by side, {cfg['steps']} steps each.", "",
+             "| graph | distance % | independent % | compute nodes in float | MB | ORT p50 ms (x fp32) "
+             "| OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|"]
+    ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
+    lines.append(f"| fp32 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} | {ort32:.2f} | {ov32:.2f} |")
+    if "openvino bf16" in p50:
+        lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | "
+                     f"{report['fp32_bytes'] / 1e6:.2f} | | {p50['openvino bf16']:.2f} ({ov32 / p50['openvino bf16']:.2f}x) |")
+    for r in report["rows"]:
+        ort, ov = p50[f"ort {r['label']}"], p50[f"openvino {r['label']}"]
+        lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {r['check_distance_pct']:.3f} | "
+                     f"{r['compute_nodes_in_float']} | {r['bytes'] / 1e6:.2f} | {ort:.2f} ({ort32 / ort:.2f}x) | "
+                     f"{ov:.2f} ({ov32 / ov:.2f}x) |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
