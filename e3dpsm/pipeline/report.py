@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.pipeline.stages import STAGES
+from e3dpsm.pipeline.stages import INT8, STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -52,6 +52,28 @@ def key_table(out: Path) -> list[str]:
     return lines
 
 
+def budget_gap(out: Path, int8_report: dict[str, Any]) -> str | None:
+    """How far the INT8 budget carried to data the search never saw: quantize's own figure on
+    its held-out split beside each golden check of the same graph on the test split."""
+    holdout = int8_report.get("holdout")
+    if not holdout:
+        return None
+    checks = []
+    for path in sorted((out / "golden/checks").glob(f"{Path(INT8).stem}-*/check.json")):
+        check = _load(path) or {}
+        means = [t["mean"] for t in check.get("tensors", []) if t.get("kind") == "output" and t.get("mean") is not None]
+        if means and check.get("scale_mm"):
+            pct = 100.0 * max(means) / check["scale_mm"]
+            checks.append(f"{pct:.3f}% on {check.get('runtime')} ({pct / holdout['bound_pct']:.2f}x)"
+                          if holdout["bound_pct"] > 0 else f"{pct:.3f}% on {check.get('runtime')}")
+    if not checks:
+        return None
+    budget = (int8_report.get("quantization") or {}).get("budget_pct")
+    return (f"Budget on unseen data: the search measured {holdout['bound_pct']:.3f}% on `{holdout['split']}` "
+            f"({holdout['frames']} frames); the golden check of the same graph on the test split measured "
+            f"{', '.join(checks)}; budget {budget:g}%.")
+
+
 def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]]) -> Path:
     out = Path(out)
     report_dir = out / "report"
@@ -81,6 +103,9 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
                   f"({_fmt(quantised['fp32_p50_ms'])} ms/step); the front of (held-out distance to fp32, latency) "
                   "and the chosen graph ([quantize/int8/report.md](../quantize/int8/report.md)).", "",
                   front_table(quantised, "front"), ""]
+        gap = budget_gap(out, int8_report)
+        if gap:
+            lines += [gap, ""]
     golden = _load(out / "golden/checks/summary.json")
     if golden:
         record = _load(out / "golden/record/golden.json") or {}

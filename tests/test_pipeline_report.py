@@ -1,0 +1,29 @@
+"""The pipeline index's line on how far the INT8 budget carried to unseen data."""
+from __future__ import annotations
+
+import json
+
+from e3dpsm.pipeline.report import budget_gap
+
+
+def _check(folder, runtime: str, means: list[float], scale_mm: float) -> None:
+    folder.mkdir(parents=True)
+    tensors = [{"kind": "output", "name": n, "mean": m} for n, m in zip(("pose", "pose_direct", "pose_delta"), means)]
+    tensors.append({"kind": "state", "name": "fusion_pose", "mean": None})
+    (folder / "check.json").write_text(json.dumps({"runtime": runtime, "scale_mm": scale_mm, "tensors": tensors}))
+
+
+def test_gap_between_the_search_and_the_golden_checks(tmp_path) -> None:
+    report = {"holdout": {"bound_pct": 0.5, "split": "val", "frames": 100}, "quantization": {"budget_pct": 1.0}}
+    # worst output / scale: 1.5 / 200 = 0.75% on ORT (1.5x the search's 0.5%), 0.25 / 200 on OpenVINO
+    _check(tmp_path / "golden/checks/step_int8-onnxruntime", "onnxruntime", [1.0, 1.5, 0.2], 200.0)
+    _check(tmp_path / "golden/checks/step_int8-openvino", "openvino", [0.25, 0.1, 0.05], 200.0)
+    _check(tmp_path / "golden/checks/step_fp16-onnxruntime", "onnxruntime", [9.0, 9.0, 9.0], 200.0)  # not int8
+    line = budget_gap(tmp_path, report)
+    assert "measured 0.500% on `val` (100 frames)" in line
+    assert "0.750% on onnxruntime (1.50x), 0.125% on openvino (0.25x)" in line and line.endswith("budget 1%.")
+
+
+def test_no_golden_check_no_line(tmp_path) -> None:
+    assert budget_gap(tmp_path, {"holdout": {"bound_pct": 0.5, "split": "val", "frames": 100}}) is None
+    assert budget_gap(tmp_path, {}) is None
