@@ -72,6 +72,9 @@ class QuantizeOptions:
     # INT8 graph choices; None: StaticConfig's defaults (benchmarks/bench_quantize.py `changes`).
     op_types: tuple[str, ...] | None = None
     batchnorm_as_conv: bool | None = None
+    # The CPU kind the INT8 graph is for (utils/isa.py); None: this host's. AVX2 targets get
+    # 7-bit weights (StaticConfig.reduce_range).
+    target_isa: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -209,7 +212,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             timing: _Timing):
     overrides = {k: v for k, v in (("op_types", options.op_types), ("batchnorm_as_conv", options.batchnorm_as_conv))
                  if v is not None}
-    config = StaticConfig(calibration=options.calibration, **overrides)
+    target_isa = options.target_isa or detect_isa().kind
+    config = StaticConfig.for_target(target_isa, calibration=options.calibration, **overrides)
     pre = work / "pre.onnx"
     preprocess(model_path, pre, config)
     pre_model = onnx.load(str(pre))
@@ -249,7 +253,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
     info = {
-        "mode": "int8", **config.to_dict(), "calibration_frames": len(calib),
+        "mode": "int8", **config.to_dict(), "target_isa": target_isa, "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
         "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
         "excluded_nodes": fixed, **quantised_node_count(model),

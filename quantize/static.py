@@ -34,6 +34,9 @@ CALIBRATION_METHODS: tuple[str, ...] = ("minmax", "entropy", "percentile", "mse"
 # (10.4% -> 11.3% of MPJPE with only the recurrence in float), so it stays opt-in.
 ELEMENTWISE_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm", "Add", "Mul", "Sigmoid")
 DEFAULT_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm")
+# CPU kinds an INT8 graph can be quantised for (utils/isa.py: CpuIsa.kind; "unknown" hosts
+# are quantised as for int8 dot-product units, ONNX Runtime's default).
+TARGET_ISAS: tuple[str, ...] = ("vnni", "dotprod", "avx2", "other", "unknown")
 
 
 @dataclass(frozen=True)
@@ -52,10 +55,22 @@ class StaticConfig:
     percentile: float = 99.999
     # Rewrite inference-mode BatchNorm as depthwise 1x1 Conv before quantising (batchnorm.py).
     batchnorm_as_conv: bool = False
+    # 7-bit weights (ONNX Runtime's reduce_range): recommended by ONNX Runtime "for better
+    # accuracy on non-VNNI CPUs", whose U8S8 kernels add pairs of u8 x s8 products in
+    # saturating 16-bit arithmetic; 7-bit weights keep such a pair inside 16 bits.
+    reduce_range: bool = False
 
     def __post_init__(self) -> None:
         if self.calibration not in CALIBRATION_METHODS:
             raise ConfigError(f"unknown calibration {self.calibration!r}; choose from {list(CALIBRATION_METHODS)}")
+
+    @classmethod
+    def for_target(cls, target_isa: str, **fields) -> "StaticConfig":
+        """The config for a target CPU kind (`utils.isa.CpuIsa.kind`): 7-bit weights where the
+        target has no int8 dot-product units (AVX2 and other x86), 8-bit elsewhere."""
+        if target_isa not in TARGET_ISAS:
+            raise ConfigError(f"unknown --target-isa {target_isa!r}; choose from {list(TARGET_ISAS)}")
+        return cls(reduce_range=target_isa in ("avx2", "other"), **fields)
 
     def to_dict(self) -> dict:
         return {**asdict(self), "format": "QDQ", "op_types": list(self.op_types)}
@@ -133,7 +148,7 @@ def quantize_int8(
         quant_format=QuantFormat.QDQ,
         op_types_to_quantize=list(config.op_types),
         per_channel=config.per_channel,
-        reduce_range=False,
+        reduce_range=config.reduce_range,
         activation_type=getattr(QuantType, config.activation_type),
         weight_type=getattr(QuantType, config.weight_type),
         nodes_to_exclude=sorted(set(exclude)),

@@ -121,3 +121,26 @@ def test_ort_rules_calibrate_as_quantize_static_does(tmp_path, method) -> None:
     assert set(ours) == set(theirs) and "h" in ours
     for name in ours:
         np.testing.assert_array_equal(np.ravel(ours[name].range_value), np.ravel(theirs[name].range_value))
+
+
+@pytest.mark.parametrize("target, weight_limit", [("avx2", 64), ("other", 64), ("vnni", 127), ("dotprod", 127)])
+def test_targets_without_int8_dot_products_get_7_bit_weights(tmp_path, target, weight_limit) -> None:
+    """ONNX Runtime's non-VNNI U8S8 kernels add u8 x s8 product pairs in 16-bit saturating
+    arithmetic: 7-bit weights (reduce_range) keep a pair inside 16 bits (255 * 64 * 2 < 2^15)."""
+    from onnx import numpy_helper
+
+    _one_matmul_graph(tmp_path / "g.onnx")
+    feeds = [{"x": np.random.default_rng(6).laplace(0, 1, (16, 8)).astype(np.float32)} for _ in range(20)]
+    config = StaticConfig.for_target(target)
+    quantize_int8(tmp_path / "g.onnx", tmp_path / "q.onnx", config, calibration=CalibrationSet(feeds, "test"),
+                  cache=tmp_path / "cache.json")
+    model = onnx.load(str(tmp_path / "q.onnx"))
+    weights = [numpy_helper.to_array(i) for i in model.graph.initializer if i.data_type == TensorProto.INT8]
+    assert weights and max(int(np.abs(w.astype(np.int32)).max()) for w in weights) == weight_limit
+
+
+def test_an_unknown_target_is_refused() -> None:
+    from e3dpsm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown --target-isa 'arm'"):
+        StaticConfig.for_target("arm")

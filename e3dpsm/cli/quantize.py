@@ -41,6 +41,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "search's own choice, the fewest nodes or groups in float (accuracy)")
     p.add_argument("--timing-steps", type=positive_int, default=30,
                    help="--exclude auto: timed steps per candidate graph (default 30)")
+    p.add_argument("--target-isa", choices=("vnni", "dotprod", "avx2", "other", "unknown"), default=None,
+                   help="int8: the CPU kind the graph is for (default: this host's; see machine.isa in any report); "
+                   "avx2 and other targets without int8 dot-product units get 7-bit weights, as ONNX Runtime "
+                   "recommends for non-VNNI CPUs")
     p.add_argument("--int8-elementwise", action="store_true",
                    help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
                    "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")
@@ -65,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         budget_pct=args.budget_pct, split=args.split, holdout_split=args.holdout_split,
         holdout_frames=args.holdout_frames, rank_frames=args.rank_frames, threads=args.threads,
         objective=args.objective,
-        timing_steps=args.timing_steps, search=args.search,
+        timing_steps=args.timing_steps, search=args.search, target_isa=args.target_isa,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
