@@ -8,7 +8,8 @@ OpenVINO, on the host's ISA.
 Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measured on
 --holdout-split):
 - full integer (`--exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
-  activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor);
+  activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor), and
+  `mse` after `--equalize` (GEGLU scales folded into the weights);
 - the default `--exclude auto` graph with `--calibration mse`;
 - the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
@@ -101,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
         check = make_holdout(fp32, data.split(args.check_split), window_ms, args.holdout_frames, args.threads)
         graphs: dict[str, Path] = {}
         runs = [(f"full int8, {c}", QuantizeOptions(mode="int8", exclude="none", calibration=c)) for c in CALIBRATIONS]
+        runs.append(("full int8, mse, equalized", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
+                                                                   equalize=True)))
         if not args.no_search:
             runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse")))
         for label, options in runs:

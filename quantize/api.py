@@ -19,6 +19,7 @@ from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
+from e3dpsm.quantize.equalize import equalize_geglu
 from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclusions, node_sensitivity,
                                         ranked_prefix_exclusions, scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
@@ -75,6 +76,9 @@ class QuantizeOptions:
     # The CPU kind the INT8 graph is for (utils/isa.py); None: this host's. AVX2 targets get
     # 7-bit weights (StaticConfig.reduce_range).
     target_isa: str | None = None
+    # int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating
+    # (equalize.py; the fp32 function is unchanged).
+    equalize: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -225,6 +229,10 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
 
     calib = record_calibration_set(model_path, calib_seqs, options.frames, window_ms,
                                    state_source=options.state_source, seed=options.seed, threads=options.threads)
+    equalized: list[dict] = []
+    if options.equalize:
+        pre_model, equalized = equalize_geglu(pre_model, calib.feeds)
+        onnx.save(pre_model, str(pre))
     cache = work / "calibration.json"
     out = work / "int8.onnx"
     started = time.perf_counter()
@@ -253,7 +261,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     quantize_int8(pre, out, config, exclude=fixed, cache=cache)
     model = onnx.load(str(out))
     info = {
-        "mode": "int8", **config.to_dict(), "target_isa": target_isa, "calibration_frames": len(calib),
+        "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),
+        "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
         "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
         "excluded_nodes": fixed, **quantised_node_count(model),
@@ -264,6 +273,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                         **({"ranges": summarise_ranges(ranges),
                             "range_per_tensor": {n: asdict(c) for n, c in ranges.items()}} if ranges else {})},
         **_search_report(search, [*recurrent, *groups], latency),
+        **({"equalization": equalized} if options.equalize else {}),
     }
     return model, info, extra
 

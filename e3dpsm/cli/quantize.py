@@ -45,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="int8: the CPU kind the graph is for (default: this host's; see machine.isa in any report); "
                    "avx2 and other targets without int8 dot-product units get 7-bit weights, as ONNX Runtime "
                    "recommends for non-VNNI CPUs")
+    p.add_argument("--equalize", action="store_true",
+                   help="int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating "
+                   "(the fp32 function is unchanged; only the INT8 graph moves)")
     p.add_argument("--int8-elementwise", action="store_true",
                    help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
                    "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")
@@ -70,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         holdout_frames=args.holdout_frames, rank_frames=args.rank_frames, threads=args.threads,
         objective=args.objective,
         timing_steps=args.timing_steps, search=args.search, target_isa=args.target_isa,
+        equalize=args.equalize,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]

@@ -1,0 +1,155 @@
+"""Equivalent scaling folded into the weights of the GEGLU feed-forwards (`quantize --equalize`).
+
+A GEGLU block computes y = W_out (v * gelu(g)) with [v; g] = W_in x (+ b_in). Scaling the
+value rows of W_in (and b_in) by 1 / s_j and the matching columns of W_out by s_j leaves y
+unchanged for any s_j > 0, since (v_j / s_j) * gelu(g_j) * s_j = v_j * gelu(g_j): the fp32
+graph computes the same function to float32 round-off, only the INT8 graph changes. The
+product p = v * gelu(g), the activation the output projection reads, is where the trained
+`small`'s worst INT8 error sits (its S5 stage-4 feed-forward output projection, 6.7% of MPJPE
+alone): a few channels far larger than the rest force one coarse per-tensor step on all.
+
+The scales are SmoothQuant's (Xiao et al. 2023) with alpha = 1/2: s_j = sqrt(max|p_j| /
+max|W_out[j, :]|) over the calibration frames, which moves half of each channel's range
+from the activation (one scale per tensor) into the weights (one scale per output channel,
+so a column scaled up costs little). Exact in ONNX terms: MatMul weights are [in, out], so
+"rows of W_out" in the formula are W_out's input rows here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import onnx
+from onnx import numpy_helper
+
+from e3dpsm.onnx_graph import GraphIndex, with_outputs
+
+ALPHA = 0.5
+
+
+@dataclass(frozen=True)
+class GegluSite:
+    proj_in: str        # MatMul node: x @ W_in, W_in [D, 2H] (value columns first)
+    proj_in_bias: str | None  # Add node's initialiser after proj_in, if any
+    proj_out: str       # MatMul node: p @ W_out, W_out [H, D]
+    product: str        # the tensor p = value * gelu(gate)
+    value_columns: tuple[int, int]  # [start, end) of the value half in W_in's columns
+
+
+def _const(model: onnx.ModelProto, name: str) -> np.ndarray | None:
+    for init in model.graph.initializer:
+        if init.name == name:
+            return numpy_helper.to_array(init)
+    for node in model.graph.node:
+        if node.op_type == "Constant" and node.output[0] == name:
+            return numpy_helper.to_array(node.attribute[0].t)
+    return None
+
+
+def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
+    """Every MatMul(W_in) [-> Add(b)] -> Slice(value) * f(Slice(gate)) -> MatMul(W_out) whose
+    weights are initialisers, the value slice a plain column range, and the product read by
+    the output projection alone."""
+    index = GraphIndex(model)
+    inits = {i.name for i in model.graph.initializer}
+    sites = []
+    for key, node in index.nodes.items():
+        if node.op_type != "MatMul" or node.input[1] not in inits:
+            continue
+        out, bias = node.output[0], None
+        consumers = index.consumers.get(out, [])
+        if len(consumers) == 1 and index.nodes[consumers[0]].op_type == "Add":
+            add = index.nodes[consumers[0]]
+            other = add.input[1] if add.input[0] == out else add.input[0]
+            if other in inits:
+                bias, out, consumers = consumers[0], add.output[0], index.consumers.get(add.output[0], [])
+        slices = [index.nodes[c] for c in consumers if index.nodes[c].op_type == "Slice"]
+        if len(slices) != 2 or len(consumers) != 2:
+            continue
+        for value in slices:
+            muls = [index.nodes[c] for c in index.consumers.get(value.output[0], [])]
+            if len(muls) != 1 or muls[0].op_type != "Mul":
+                continue
+            product = muls[0].output[0]
+            readers = [index.nodes[c] for c in index.consumers.get(product, [])]
+            if len(readers) != 1 or readers[0].op_type != "MatMul" or readers[0].input[0] != product \
+                    or readers[0].input[1] not in inits:
+                continue
+            columns = _slice_columns(model, value)
+            if columns is None:
+                continue
+            sites.append(GegluSite(key, bias, readers[0].name or readers[0].output[0], product, columns))
+    return sites
+
+
+def _slice_columns(model: onnx.ModelProto, node: onnx.NodeProto) -> tuple[int, int] | None:
+    """[start, end) of a Slice over the last axis with step 1, or None."""
+    parts = [_const(model, name) if name else None for name in list(node.input[1:]) + [""] * (4 - len(node.input[1:]))]
+    starts, ends, axes, steps = parts[:4]
+    if starts is None or ends is None or starts.size != 1:
+        return None
+    if axes is not None and int(axes.ravel()[0]) != -1:
+        return None
+    if steps is not None and int(steps.ravel()[0]) != 1:
+        return None
+    return int(starts.ravel()[0]), int(ends.ravel()[0])
+
+
+def channel_maxima(model: onnx.ModelProto, tensors: Sequence[str],
+                   feeds: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """max |t[..., j]| over the feeds, per last-axis channel j, for each named tensor."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(with_outputs(model, tensors).SerializeToString(), providers=["CPUExecutionProvider"])
+    maxima: dict[str, np.ndarray] = {}
+    for feed in feeds:
+        for name, value in zip(tensors, session.run(list(tensors), dict(feed))):
+            m = np.abs(value).reshape(-1, value.shape[-1]).max(axis=0)
+            maxima[name] = np.maximum(maxima.get(name, m), m)
+    return maxima
+
+
+def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarray]],
+                   alpha: float = ALPHA) -> tuple[onnx.ModelProto, list[dict]]:
+    """A copy of `model` with every GEGLU site's scales folded in, and what was done."""
+    out = onnx.ModelProto()
+    out.CopyFrom(model)
+    sites = find_geglu_sites(out)
+    if not sites:
+        return out, []
+    inits = {i.name: i for i in out.graph.initializer}
+    nodes = {n.name or n.output[0]: n for n in out.graph.node}
+    uses: dict[str, int] = {}
+    for node in out.graph.node:
+        for name in node.input:
+            uses[name] = uses.get(name, 0) + 1
+    maxima = channel_maxima(model, [s.product for s in sites], feeds)
+    done = []
+    for site in sites:
+        w_in_name, w_out_name = nodes[site.proj_in].input[1], nodes[site.proj_out].input[1]
+        bias_name = None
+        if site.proj_in_bias:
+            add = nodes[site.proj_in_bias]
+            bias_name = add.input[1] if add.input[1] in inits else add.input[0]
+        if any(uses.get(n, 0) != 1 for n in (w_in_name, w_out_name, bias_name) if n):
+            continue  # a shared weight would change another node too
+        w_in, w_out = numpy_helper.to_array(inits[w_in_name]), numpy_helper.to_array(inits[w_out_name])
+        start, end = site.value_columns
+        act = maxima[site.product].astype(np.float64)
+        wmax = np.abs(w_out).max(axis=1).astype(np.float64)
+        if act.shape[0] != end - start or wmax.shape[0] != act.shape[0]:
+            continue
+        scale = np.where((act > 0) & (wmax > 0), act**alpha / np.maximum(wmax, 1e-12) ** (1 - alpha), 1.0)
+        w_in = w_in.astype(np.float64)
+        w_in[:, start:end] /= scale
+        inits[w_in_name].CopyFrom(numpy_helper.from_array(w_in.astype(np.float32), w_in_name))
+        inits[w_out_name].CopyFrom(numpy_helper.from_array((w_out * scale[:, None]).astype(np.float32), w_out_name))
+        if bias_name:
+            bias = numpy_helper.to_array(inits[bias_name]).astype(np.float64)
+            bias[start:end] /= scale
+            inits[bias_name].CopyFrom(numpy_helper.from_array(bias.astype(np.float32), bias_name))
+        done.append({"proj_in": site.proj_in, "proj_out": site.proj_out, "channels": int(scale.size),
+                     "activation_range_before": float(act.max()), "activation_range_after": float((act / scale).max()),
+                     "scale_min": float(scale.min()), "scale_max": float(scale.max())})
+    return out, done
