@@ -110,13 +110,12 @@ def choose_range(hist: Histogram, levels: int = 256) -> RangeChoice:
     MIN_GAIN: a range is narrowed only where that measurably pays, not on histogram noise."""
     (kind, param, low, high), *others = candidate_ranges(hist)
     minmax = expected_squared_error(hist, low, high, levels)
-    best = RangeChoice(kind, float(param), *with_zero(low, high), minmax, minmax)
+    keep = best = RangeChoice(kind, float(param), *with_zero(low, high), minmax, minmax)
     for kind, param, low, high in others:
         err = expected_squared_error(hist, low, high, levels)
         if err < best.mse:
             best = RangeChoice(kind, float(param), *with_zero(low, high), err, minmax)
-    keep_minmax = best.mse > (1.0 - MIN_GAIN) * minmax
-    return RangeChoice("minmax", 1.0, *with_zero(hist.low, hist.high), minmax, minmax) if keep_minmax else best
+    return keep if best.mse > (1.0 - MIN_GAIN) * minmax else best
 
 
 def collect_histograms(model_path: str | os.PathLike, ranges: Mapping[str, tuple[float, float]],

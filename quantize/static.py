@@ -18,6 +18,7 @@ import onnx
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.calibration import CalibrationSet, FeedListReader
+from e3dpsm.utils.isa import ISA_KINDS
 
 if TYPE_CHECKING:
     from e3dpsm.quantize.ranges import RangeChoice
@@ -34,9 +35,9 @@ CALIBRATION_METHODS: tuple[str, ...] = ("minmax", "entropy", "percentile", "mse"
 # (10.4% -> 11.3% of MPJPE with only the recurrence in float), so it stays opt-in.
 ELEMENTWISE_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm", "Add", "Mul", "Sigmoid")
 DEFAULT_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm")
-# CPU kinds an INT8 graph can be quantised for (utils/isa.py: CpuIsa.kind; "unknown" hosts
-# are quantised as for int8 dot-product units, ONNX Runtime's default).
-TARGET_ISAS: tuple[str, ...] = ("vnni", "dotprod", "avx2", "other", "unknown")
+# CPU kinds an INT8 graph can be quantised for ("unknown" hosts as for int8 dot-product
+# units, ONNX Runtime's default).
+TARGET_ISAS: tuple[str, ...] = ISA_KINDS
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,8 @@ def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: Calibra
     if config.calibration != "mse":
         save_tensors_data(ranges, cache)
         return {}
+    # A second pass over the feeds: the histograms need each tensor's range before they are
+    # made, and ORT's min-max pass gives the ranges and the very tensors it will quantise.
     minmax = {name: tuple(float(np.ravel(v)[0]) for v in ranges[name].range_value) for name in ranges}
     chosen = select_ranges(src, minmax, calibration.feeds)
     write_minmax_cache(cache, chosen)

@@ -55,3 +55,15 @@ def test_golden_check_compares_the_host_with_the_graphs_isa(monkeypatch) -> None
     assert isa_comparison({"mode": "int8", "checked_on_isa": vnni})["same_kind"] is False
     assert isa_comparison({"mode": "int8", "checked_on_isa": parse_cpuinfo(EPYC_AVX2).to_dict()})["same_kind"] is True
     assert isa_comparison(None)["same_kind"] is None  # an fp32 graph has no budget to compare
+
+
+def test_every_kind_is_a_target_quantize_accepts() -> None:
+    """`quantize --target-isa` takes exactly the kinds reports name (one list, ISA_KINDS)."""
+    from e3dpsm.cli import build_parser
+    from e3dpsm.utils.isa import ISA_KINDS
+
+    kinds = {parse_cpuinfo(t).kind for t in (EPYC_AVX2, EPYC_ZEN4, XEON_AMX, NEOVERSE, "flags\t: fpu\n", "")}
+    assert kinds == set(ISA_KINDS)
+    for kind in ISA_KINDS:
+        assert build_parser().parse_args(["quantize", "--model", "m", "--data", "d", "--out", "o",
+                                          "--target-isa", kind]).target_isa == kind

@@ -5,6 +5,7 @@ import argparse
 import json
 
 from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.utils.isa import ISA_KINDS
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -41,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "search's own choice, the fewest nodes or groups in float (accuracy)")
     p.add_argument("--timing-steps", type=positive_int, default=30,
                    help="--exclude auto: timed steps per candidate graph (default 30)")
-    p.add_argument("--target-isa", choices=("vnni", "dotprod", "avx2", "other", "unknown"), default=None,
+    p.add_argument("--target-isa", choices=ISA_KINDS, default=None,
                    help="int8: the CPU kind the graph is for (default: this host's; see machine.isa in any report); "
                    "avx2 and other targets without int8 dot-product units get 7-bit weights, as ONNX Runtime "
                    "recommends for non-VNNI CPUs")

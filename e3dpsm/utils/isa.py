@@ -23,6 +23,8 @@ INT8_DOT_PRODUCT_FLAGS: tuple[str, ...] = ("avx512_vnni", "avx_vnni", "amx_int8"
 # bf16 units OpenVINO's CPU plugin computes with (INFERENCE_PRECISION_HINT=bf16). Its ARM
 # plugin runs f32 / f16, so aarch64's `bf16` flag is reported but does not count here.
 BF16_FLAGS: tuple[str, ...] = ("avx512_bf16", "amx_bf16")
+# What CpuIsa.kind says: the CPU kinds reports name and INT8 graphs are quantised for.
+ISA_KINDS: tuple[str, ...] = ("vnni", "dotprod", "avx2", "other", "unknown")
 
 
 @dataclass(frozen=True)
