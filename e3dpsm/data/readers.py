@@ -1,9 +1,11 @@
-"""Reading and writing raw event streams (HDF5 in the EE3D layout, or .npz).
+"""Reading and writing raw event streams: HDF5 (EE3D layout), .npz and camera recordings.
 
 HDF5 files hold either one dataset `event` of shape (N, >=4) with columns
 x, y, t (microseconds), p[, frame_index, ...] — the EE3D layout — or separate datasets
-`x`, `y`, `t`, `p`. `.npz` files hold arrays `x`, `y`, `t`, `p`. Every stream passes
-through `validate_events`, so readers return canonical dtypes or raise.
+`x`, `y`, `t`, `p`. `.npz` files hold arrays `x`, `y`, `t`, `p`. Camera recordings
+(AEDAT4, Prophesee RAW EVT 2.0 / 3.0, DAT) are decoded by `e3dpsm.data.formats`; `READERS`
+maps a suffix to its reader. Every stream passes through `validate_events`, so readers
+return canonical dtypes or raise.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import json
 import os
 import zipfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -26,10 +29,12 @@ NO_FRAME = -1  # frame_index written when a stream carries no pose frames
 
 
 def read_events(path: str | os.PathLike, sensor_hw: tuple[int, int] | None = None) -> EventStream:
-    """Read and validate an event stream from `.h5`/`.hdf5` or `.npz`.
+    """Read and validate an event stream from any suffix in `READERS`.
 
-    `sensor_hw` (height, width) defaults to the file's `sensor_height`/`sensor_width`
-    attributes, else an `event_meta.json` beside the file, else the EE3D sensor 480 x 640.
+    `sensor_hw` (height, width) defaults to the size the file states (HDF5
+    `sensor_height`/`sensor_width` attributes, AEDAT4 stream resolution, RAW `% format` or
+    `% geometry`, DAT `% Width`/`% Height`), else an `event_meta.json` beside the file, else
+    the EE3D sensor 480 x 640.
     """
     return read_events_with_frames(path, sensor_hw)[0]
 
@@ -41,13 +46,13 @@ def read_events_with_frames(
     path = Path(path)
     if not path.is_file():
         raise DataError(f"event file {path} does not exist")
-    suffix = path.suffix.lower()
-    if suffix in HDF5_SUFFIXES:
-        columns, file_hw = _read_h5(path)
-    elif suffix == ".npz":
-        columns, file_hw = _read_npz(path), None
-    else:
-        raise DataError(f"{path}: unsupported event file type {suffix!r}; expected .h5, .hdf5 or .npz")
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        raise DataError(f"{path}: unsupported event file type {path.suffix!r}; expected one of {', '.join(READERS)}")
+    try:
+        columns, file_hw = reader(path)
+    except MemoryError as exc:
+        raise DataError(f"{path}: too large to read into memory") from exc
     hw = sensor_hw or file_hw or _meta_json_hw(path.parent / "event_meta.json") or SENSOR_HW
     try:
         x, y, t, p = validate_events(columns["x"], columns["y"], columns["t"], columns["p"], hw)
@@ -100,6 +105,37 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
         raise
     except (OSError, EOFError, ValueError, zipfile.BadZipFile, KeyError) as exc:
         raise DataError(f"{path}: cannot read .npz file (truncated or corrupted?): {exc}") from exc
+
+
+def _read_npz_no_size(path: Path) -> tuple[dict[str, np.ndarray], None]:
+    return _read_npz(path), None
+
+
+def _read_aedat4(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
+    from e3dpsm.data.formats.inivation import read_aedat4  # imports dv-processing only when used
+
+    return read_aedat4(path)
+
+
+def _read_raw(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
+    from e3dpsm.data.formats.prophesee import read_raw
+
+    return read_raw(path)
+
+
+def _read_dat(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
+    from e3dpsm.data.formats.prophesee import read_dat
+
+    return read_dat(path)
+
+
+Reader = Callable[[Path], "tuple[dict[str, np.ndarray], tuple[int, int] | None]"]
+# suffix -> reader returning (raw columns x, y, t, p[, frame_index], sensor (h, w) the file states)
+READERS: dict[str, Reader] = {
+    ".h5": _read_h5, ".hdf5": _read_h5, ".npz": _read_npz_no_size,
+    ".aedat4": _read_aedat4, ".raw": _read_raw, ".dat": _read_dat,
+}
+EVENT_SUFFIXES = tuple(READERS)
 
 
 def _meta_json_hw(path: Path) -> tuple[int, int] | None:
