@@ -32,15 +32,17 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "run",
         help="stream an event file through an exported step graph and write timestamped poses (CSV)",
-        description="Read an event file (.h5/.hdf5/.npz), feed it in chunks to the streaming runtime "
+        description="Read an event file (.h5/.hdf5/.npz, or a camera recording .aedat4/.raw/.dat; docs/cameras.md) "
+        "or a live dv://HOST:PORT stream, feed it in chunks to the streaming runtime "
         "(T-ms windows, LNES frames, recurrent states carried; numpy + onnxruntime only) and write one "
         "pose per window, timestamped at the window end, in millimetres. Empty windows are stepped with "
         "an all-zero frame. A JSON report is written next to the CSV.",
     )
     parser.add_argument("--model", required=True, help="step graph written by `e3dpsm export` (or quantize)")
     parser.add_argument("--events", required=True, nargs="+",
-                        help="event file: .h5/.hdf5 (EE3D layout) or .npz (x, y, t, p); several files are run as "
-                        "independent streams batched through one session")
+                        help="event file: .h5/.hdf5 (EE3D layout), .npz (x, y, t, p), .aedat4, Prophesee .raw "
+                        "(EVT 2.0/3.0) or .dat; several files are run as independent streams batched through one "
+                        "session; or one live dv-processing stream dv://HOST:PORT (docs/cameras.md)")
     parser.add_argument("--out", required=True,
                         help="CSV of poses to write (report: <stem>.report.json); with several --events files a "
                         "folder getting one CSV per file and one run.report.json. Each CSV is named by the "
@@ -62,6 +64,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "folder has it (gt.npz or the EE3D pickle)")
     parser.add_argument("--render-max-frames", type=int, default=None, metavar="N",
                         help="render only the first N poses (the CSV still holds every pose)")
+    parser.add_argument("--max-seconds", type=float, default=None,
+                        help="dv:// source: stop after this many seconds of wall time (default: until the publisher stops)")
+    parser.add_argument("--live-timeout-s", type=float, default=5.0,
+                        help="dv:// source: connect timeout, and how long a silent stream counts as stopped (default 5)")
     parser.set_defaults(func=run)
     return parser
 
@@ -80,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
     if len(args.events) > 1 and (args.render is not None or args.render_max_frames is not None):
         raise ConfigError("--render draws one stream: pass a single --events file")
     check_stream_options(args)
+    from e3dpsm.data.live import is_live_url
+
+    if len(args.events) > 1 and any(is_live_url(e) for e in args.events):
+        raise ConfigError("a live dv:// source runs alone: pass it as the only --events")
     if len(args.events) > 1:  # several streams, one session: e3dpsm/cli/_run_many.py
         from e3dpsm.cli._run_many import run_many
 
@@ -91,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise OutputExistsError(f"{out} exists; pass --force to replace it")
     check_writable_folder(out.parent)  # fail before minutes of inference, not after
+    if is_live_url(args.events):
+        from e3dpsm.cli._run_live import run_live
+
+        return run_live(args, out, report_path(out))
     if args.render is None and args.render_max_frames is not None:
         raise ConfigError("--render-max-frames needs --render PATH")
     if args.render is not None:  # a missing .mp4 encoder is reported before the stream runs
