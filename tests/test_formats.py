@@ -130,6 +130,16 @@ def test_truncated_prophesee_file_names_the_byte_of_the_cut_record(camera_events
         read_events(tmp_path / name)
 
 
+def test_evt3_events_before_the_first_time_high_or_row_are_dropped(tmp_path):
+    """The specification starts decoding at the first time-high; an event needs a row too."""
+    words = [(0x0 << 12) | 7, (0x2 << 12) | 1, (0x8 << 12) | 3, (0x6 << 12) | 5, (0x2 << 12) | (1 << 11) | 2,
+             (0x0 << 12) | 9, (0x3 << 12) | 4, (0x5 << 12) | 0b101]
+    (tmp_path / "x.raw").write_bytes(b"% evt 3.0\n" + np.array(words, "<u2").tobytes())
+    got = read_events(tmp_path / "x.raw")
+    assert got.x.tolist() == [2, 4, 6] and got.y.tolist() == [7, 9, 9] and got.p.tolist() == [1, 0, 0]
+    assert got.t_us.tolist() == [3 * 4096 + 5] * 3
+
+
 def test_corrupted_evt3_time_high_names_the_byte(tmp_path):
     words = [(0x8 << 12) | 100, (0x6 << 12) | 5, (0x0 << 12) | 7, (0x2 << 12) | 9, (0x8 << 12) | 99, (0x2 << 12) | 9]
     (tmp_path / "x.raw").write_bytes(b"% evt 3.0\n" + np.array(words, "<u2").tobytes())
