@@ -198,3 +198,28 @@ def test_prepare_reads_the_ee3d_layout_and_interpolates_its_pose_clock(tmp_path)
     np.testing.assert_allclose(seq.j3d_mm[0], rotated[0], rtol=1e-5)
     np.testing.assert_allclose(seq.j3d_mm[1], 0.75 * rotated[1] + 0.25 * rotated[3], rtol=1e-5, atol=1e-3)
     assert (seq.action == -1).all()
+
+
+def test_prepare_reads_camera_recordings_in_place_of_events_h5(dataset, prepared_20ms, tmp_path):
+    """A sequence folder with events.raw (Prophesee EVT 2.0) instead of events.h5 prepares the
+    same LNES frames and poses; two event files in one folder are refused."""
+    import shutil
+
+    from _camera_formats import encode_evt2
+
+    root = tmp_path / "camera"
+    shutil.copytree(dataset[0], root)
+    for name, seq in dataset[1].items():
+        (root / name / "events.h5").unlink()
+        (root / name / "events.raw").write_bytes(encode_evt2(seq.events, ["evt 2.0", "geometry 640x480"]))
+    prepare_dataset(root, tmp_path / "prep", 20, progress=False)
+    want = {s.name: s for s in PreparedData.open(prepared_20ms[0]).sequences}
+    got = {s.name: s for s in PreparedData.open(tmp_path / "prep").sequences}
+    assert sorted(got) == sorted(dataset[1])
+    for name, seq in got.items():
+        np.testing.assert_array_equal(seq.lnes, want[name].lnes)
+        np.testing.assert_array_equal(seq.j3d_mm, want[name].j3d_mm)
+        assert seq.lnes.any()
+    shutil.copy(dataset[0] / "walk_01" / "events.h5", root / "walk_01")
+    with pytest.raises(DataError, match=r"walk_01: holds events.h5, events.raw; keep one event file"):
+        read_synthetic_sequence(root / "walk_01")

@@ -6,6 +6,8 @@ Synthetic data set root::
     dataset.json            {"format": "e3dpsm-synthetic/1", "seed": ..., ...}
     train.txt val.txt test.txt   sequence folder names, one per line
     <sequence>/events.h5    EE3D `event` dataset int64 (N, 5): x, y, t_us, p, frame_index
+                            (or a camera recording events.aedat4 / .raw / .dat on the clock of
+                            gt.npz's t_us: docs/cameras.md)
     <sequence>/event_meta.json   {"height": 480, "width": 640}
     <sequence>/gt.npz       j3d_m float32 [F,16,3], j2d_px float32 [F,16,2] (sensor pixels),
                             visible uint8 [F,16], t_us int64 [F], action int16 [F],
@@ -36,6 +38,8 @@ SYNTHETIC_FORMAT = "e3dpsm-synthetic/1"
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 UNASSIGNED_SPLIT = "none"  # sequences present on disk but named by no split list
 EVENTS_FILE = "events.h5"
+# what a synthetic-layout sequence folder may hold its events in (one of them)
+EVENT_FILES: tuple[str, ...] = (EVENTS_FILE, "events.aedat4", "events.raw", "events.dat")
 EVENT_META_FILE = "event_meta.json"
 GT_FILE = "gt.npz"
 CAMERA_FILE = "camera.json"
@@ -98,7 +102,7 @@ def write_synthetic_sequence(
 def read_synthetic_sequence(folder: str | os.PathLike) -> Sequence:
     """Read one synthetic-layout sequence folder; any damage is a `DataError` naming the file."""
     folder = Path(folder)
-    events, _ = read_events_with_frames(folder / EVENTS_FILE)
+    events, _ = read_events_with_frames(events_file(folder))
     gt_path = folder / GT_FILE
     try:
         with np.load(gt_path, allow_pickle=False) as gt:
@@ -144,6 +148,15 @@ def _read_json(path: Path) -> Any:
         raise DataError(f"{path}: cannot read JSON: {exc}") from exc
 
 
+def events_file(folder: Path) -> Path:
+    """The sequence folder's one event file among EVENT_FILES (events.h5 when none is there,
+    so the error names the usual file)."""
+    present = [folder / name for name in EVENT_FILES if (folder / name).is_file()]
+    if len(present) > 1:
+        raise DataError(f"{folder}: holds {', '.join(p.name for p in present)}; keep one event file per sequence")
+    return present[0] if present else folder / EVENTS_FILE
+
+
 def list_sequences(root: str | os.PathLike) -> list[tuple[str, str]]:
     """(name, split) of every sequence in a data set root, in split-list order.
 
@@ -168,7 +181,7 @@ def list_sequences(root: str | os.PathLike) -> list[tuple[str, str]]:
                 raise DataError(f"{path}: lists sequence {name!r}, but {root / name} is not a folder")
             found[name] = split
     for child in sorted(root.iterdir()):
-        if child.is_dir() and child.name not in found and (child / EVENTS_FILE).is_file():
+        if child.is_dir() and child.name not in found and any((child / n).is_file() for n in EVENT_FILES):
             found[child.name] = UNASSIGNED_SPLIT
     if not found:
         raise DataError(f"{root} holds no sequences (no split lists, no folders with {EVENTS_FILE})")
