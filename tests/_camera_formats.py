@@ -54,7 +54,8 @@ def encode_evt3(stream: EventStream, header: list[str]) -> bytes:
     (p in 11, x in 10..0), VECT_BASE_X 0x3 (p, base x), VECT_12 0x4 / VECT_8 0x5 (valid
     mask, bit i = base + i; base += 12 / 8), TIME_LOW 0x6 and TIME_HIGH 0x8 (the low and
     high 12 bits of a 24-bit time that wraps every 2^24 us). Events of one (t, y, p) with
-    neighbouring x go out as vectors, the rest as single events."""
+    neighbouring x go out as vectors, the rest as single events. The stream must be sorted
+    by (t, y, p, x) without repeats (what `camera_stream` makes), the order vectors keep."""
     words: list[int] = []
     high = low = row = None
     events = list(zip(stream.t_us.tolist(), stream.y.tolist(), stream.p.tolist(), stream.x.tolist()))
