@@ -112,8 +112,10 @@ def run(args: argparse.Namespace) -> int:
         duration_s=args.duration_s, loop=args.loop, wait_clients=args.wait_clients,
         client_backlog=args.client_backlog, frame_hz=args.frame_hz,
     )
-    session = StepSession(args.model, threads=args.threads)  # a bad graph fails before the source opens
-    compare = StepSession(args.compare, threads=args.threads) if args.compare else None
+    # No spinning: between two steps (a window apart) idle ORT workers would busy-wait on the
+    # cores the event loop and the browsers need. A bad graph fails before the source opens.
+    session = StepSession(args.model, threads=args.threads, spin=False)
+    compare = StepSession(args.compare, threads=args.threads, spin=False) if args.compare else None
     window_ms = float(args.window_ms if args.window_ms is not None else session.meta.train_window_ms)
     from e3dpsm.events import window_us_from_ms
 

@@ -147,7 +147,7 @@ async def _wait_for_clients(hub: ClientHub, count: int, stop: asyncio.Event) -> 
 
 async def _replay(config: ServeConfig, source: Any, engine: ServeEngine, hub: ClientHub, stop: asyncio.Event) -> str:
     kind = "live source" if source.live else "recording"
-    hub.set_status(protocol.status("running", f"{kind} {config.source} at {config.speed:g}x"
+    hub.set_status(protocol.status("running", f"{kind} {Path(config.source).name} at {config.speed:g}x"
                                    if not source.live else f"{kind} {config.source}"))
     engine_task = asyncio.create_task(engine.run())
     stop_task = asyncio.create_task(stop.wait())
