@@ -17,7 +17,7 @@
   window.e3dpsm = state;
 
   // ---- 3D view: orbit (drag), zoom (wheel), reset (double-click) ----
-  const view = { yaw: 0.6, pitch: -0.35, distance: 3500, center: null };
+  const view = { yaw: 0.6, pitch: -0.35, distance: 2500, center: null };
   const canvas = $("skeleton");
   const ctx = canvas.getContext("2d");
   let drag = null;
@@ -35,7 +35,7 @@
     view.distance = Math.max(500, Math.min(20000, view.distance * Math.exp(e.deltaY * 0.001)));
     draw();
   }, { passive: false });
-  canvas.addEventListener("dblclick", () => { view.yaw = 0.6; view.pitch = -0.35; view.distance = 3500; draw(); });
+  canvas.addEventListener("dblclick", () => { view.yaw = 0.6; view.pitch = -0.35; view.distance = 2500; draw(); });
 
   // Camera frame (x right, y down, z forward, mm) -> screen, orbiting around the pose's centre.
   function project(p) {
