@@ -295,3 +295,58 @@ def test_token_guards_page_and_socket_and_ctrl_c_writes_the_report(graph, record
     assert report["stop_reason"] == "interrupted" and report["passes"] >= 2 and report["poses"] >= 45
     assert secret not in text and report["config"]["token"] == "(set)"
     assert not [p for p in out.iterdir() if p.name != "serve.report.json"]  # no temporary left behind
+
+
+class _FakeLive:
+    """The live-source interface (e3dpsm.data.live): sensor_hw, EventStream chunks, close; it
+    raises DataError "... stopped ..." after its chunks, as a publisher that goes away."""
+
+    def __init__(self, stream, chunk: int) -> None:
+        self.sensor_hw, self.stream, self.chunk, self.closed = stream.sensor_hw, stream, chunk, 0
+
+    def __iter__(self):
+        from e3dpsm.data.sequence import EventStream
+        from e3dpsm.errors import DataError
+
+        s = self.stream
+        for lo in range(0, len(s), self.chunk):
+            hi = lo + self.chunk
+            yield EventStream(x=s.x[lo:hi], y=s.y[lo:hi], t_us=s.t_us[lo:hi], p=s.p[lo:hi], sensor_hw=s.sensor_hw)
+        raise DataError("dv://fake: the publisher stopped")
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_a_live_source_streams_every_pose_and_the_page_hears_it_stopped(graph, recording, tmp_path):
+    from e3dpsm.data.readers import read_events
+    from e3dpsm.runtime import StepSession
+    from e3dpsm.serve.clients import ClientHub
+    from e3dpsm.serve.estimator import ServeEngine
+    from e3dpsm.serve.server import ServeConfig, serve
+    from e3dpsm.serve.source import LiveFeed
+
+    t_ref, pose_ref = _run_csv(graph, recording, tmp_path / "run.csv")
+    fake = _FakeLive(read_events(recording), chunk=777)
+    feed = LiveFeed(fake)
+    config = ServeConfig(model=str(graph), source="dv://fake", out=str(tmp_path / "report"), port=0, wait_clients=1)
+
+    async def scenario():
+        hub = ClientHub(config.client_backlog)
+        engine = ServeEngine(feed, hub, StepSession(graph, threads=1), window_ms=20.0)
+        hello = {"joints": [], "bones": [], "models": ["m"], "window_ms": 20.0, "sensor_hw": fake.sensor_hw,
+                 "frame_hw": (192, 256), "source": "dv://fake", "live": True, "ground_truth": False, "speed": 1.0}
+        lines: list[str] = []
+        server = asyncio.create_task(serve(config, feed, engine, hub, hello, {}, announce=lines.append))
+        while not lines:
+            await asyncio.sleep(0.01)
+        got = await _collect(lines[0].split()[1].replace("http", "ws") + "ws")
+        return await server, got
+
+    report, (messages, code) = asyncio.run(scenario())
+    poses = [m for m in messages if m["type"] == "pose"]
+    np.testing.assert_array_equal([m["t_us"] for m in poses], t_ref)
+    np.testing.assert_allclose(np.array([m["pose"] for m in poses]), pose_ref, rtol=0, atol=1.1e-3)
+    status = [m for m in messages if m["type"] == "status"][-1]
+    assert status["state"] == "source stopped" and "publisher stopped" in status["message"]
+    assert code == protocol.CLOSE_GOING_AWAY and report["stop_reason"] == "source stopped" and fake.closed == 1
