@@ -326,8 +326,16 @@ def test_a_live_source_streams_every_pose_and_the_page_hears_it_stopped(graph, r
     from e3dpsm.serve.server import ServeConfig, serve
     from e3dpsm.serve.source import LiveFeed
 
-    t_ref, pose_ref = _run_csv(graph, recording, tmp_path / "run.csv")
-    fake = _FakeLive(read_events(recording), chunk=777)
+    # The last event on the last microsecond of a window: only the end-of-stream close emits it.
+    s = read_events(recording)
+    end = int(s.t_us[0]) + 20 * WINDOW_US
+    keep = s.t_us < end - 1
+    edge = tmp_path / "edge.npz"
+    np.savez(edge, x=np.append(s.x[keep], 5), y=np.append(s.y[keep], 5), t=np.append(s.t_us[keep], end - 1),
+             p=np.append(s.p[keep], 1))
+    t_ref, pose_ref = _run_csv(graph, edge, tmp_path / "run.csv")
+    assert t_ref[-1] == end
+    fake = _FakeLive(read_events(edge), chunk=777)
     feed = LiveFeed(fake)
     config = ServeConfig(model=str(graph), source="dv://fake", out=str(tmp_path / "report"), port=0, wait_clients=1)
 
