@@ -191,7 +191,7 @@ def test_poses_match_run_and_the_report_says_what_happened(graph, recording, tmp
     t_ref, pose_ref = _run_csv(graph, recording, tmp_path / "run.csv")
     out = tmp_path / "report"
     with ServerProcess(["--model", str(graph), "--source", str(recording), "--speed", "3", "--wait-clients", "1",
-                        "--threads", "1", "--out", str(out)]) as server:
+                        "--threads", "1", "--compare", str(graph), "--out", str(out)]) as server:
         messages, code = asyncio.run(_collect(f"{server.base}/ws"))
         rc, stdout, stderr = server.wait()
     assert rc == 0, stderr
@@ -207,6 +207,9 @@ def test_poses_match_run_and_the_report_says_what_happened(graph, recording, tmp
     assert np.all(np.diff(t) == WINDOW_US)
     # 3 decimals on the wire, 4 in the CSV: equal within 1e-3 mm
     np.testing.assert_allclose(np.array([m["pose"] for m in poses]), pose_ref, rtol=0, atol=1.1e-3)
+    # --compare: the same graph on the same events, stepped on its own thread and state
+    np.testing.assert_array_equal(np.array([m["compare"] for m in poses]), np.array([m["pose"] for m in poses]))
+    assert hello["models"] == [graph.name, graph.name] and all(m["compare_step_ms"] > 0 for m in poses)
     gt = np.load(recording.parent / "gt.npz")
     for m in poses:  # the ground truth of the pose's own window end, in mm
         k = int(np.flatnonzero(gt["t_us"] == m["t_us"])[0])
