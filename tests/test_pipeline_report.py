@@ -27,3 +27,24 @@ def test_gap_between_the_search_and_the_golden_checks(tmp_path) -> None:
 def test_no_golden_check_no_line(tmp_path) -> None:
     assert budget_gap(tmp_path, {"holdout": {"bound_pct": 0.5, "split": "val", "frames": 100}}) is None
     assert budget_gap(tmp_path, {}) is None
+
+
+def test_index_gives_the_serve_command_for_the_held_out_sequence(tmp_path) -> None:
+    import shlex
+
+    from e3dpsm.pipeline.report import serve_command, write_index
+
+    out = tmp_path / "my run"  # a space: the command must stay one pasteable line
+    assert serve_command(out) is None  # nothing exported yet: no line
+    (out / "export").mkdir(parents=True)
+    (out / "export/step.onnx").write_bytes(b"graph")
+    (out / "data/seq_0002").mkdir(parents=True)
+    (out / "data/seq_0002/events.h5").write_bytes(b"events")
+    (out / "data/test.txt").write_text("seq_0002\nseq_0005\n")
+    write_index(out, {"variant": "tiny", "seed": 1, "window_ms": 20, "threads": 2}, [])
+    text = (out / "report/index.md").read_text()
+    line = next(line for line in text.splitlines() if "e3dpsm serve" in line and "--model" in line)
+    argv = shlex.split(line.strip("`"))
+    assert argv == ["e3dpsm", "serve", "--model", str((out / "export/step.onnx").resolve()), "--source",
+                    str((out / "data/seq_0002/events.h5").resolve()), "--threads", "2"]
+    assert "e3dpsm serve" in (out / "report/index.html").read_text()

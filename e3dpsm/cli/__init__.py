@@ -19,7 +19,7 @@ from e3dpsm.errors import E3DPSMError
 # Order shown in --help: the order of the flow.
 COMMANDS: tuple[str, ...] = (
     "pipeline", "synth", "prepare", "model_info", "train", "import_weights", "evaluate", "ablation", "export",
-    "parity", "quantize", "validate", "convert", "golden", "diagnose", "profile", "compare", "run",
+    "parity", "quantize", "validate", "convert", "golden", "diagnose", "profile", "compare", "run", "serve",
 )
 
 # The guide page of each command (relative to the repository root), shown at the end of its
@@ -43,6 +43,7 @@ DOCS: dict[str, str] = {
     "profile": "docs/validate-and-profile.md",
     "compare": "docs/validate-and-profile.md",
     "run": "docs/runtimes.md",
+    "serve": "docs/serve.md",
 }
 
 

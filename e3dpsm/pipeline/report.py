@@ -3,10 +3,11 @@ from __future__ import annotations
 
 import html
 import json
+import shlex
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.pipeline.stages import INT8, STAGES
+from e3dpsm.pipeline.stages import GRAPH, INT8, STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -74,6 +75,21 @@ def budget_gap(out: Path, int8_report: dict[str, Any]) -> str | None:
             f"{', '.join(checks)}; budget {budget:g}%.")
 
 
+def serve_command(out: Path, threads: int | None = None) -> str | None:
+    """The `e3dpsm serve` command that shows the held-out sequence live through the pipeline's
+    own step graph (absolute paths, ready to paste); None until both exist."""
+    graph = (out / GRAPH).resolve()
+    split = out / "data" / "test.txt"
+    names = split.read_text().split() if split.is_file() else []
+    events = (out / "data" / names[0] / "events.h5").resolve() if names else None
+    if not graph.is_file() or events is None or not events.is_file():
+        return None
+    argv = ["e3dpsm", "serve", "--model", str(graph), "--source", str(events)]
+    if threads:
+        argv += ["--threads", str(threads)]
+    return shlex.join(argv)
+
+
 def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]]) -> Path:
     out = Path(out)
     report_dir = out / "report"
@@ -116,11 +132,17 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
                   "([golden/checks/summary.json](../golden/checks/summary.json)).", ""]
         summary_md = out / "golden/checks/summary.md"
         lines += [summary_md.read_text().rstrip() if summary_md.is_file() else "(no summary table)", ""]
+    serve = serve_command(out, config.get("threads"))
+    if (out / "clip/poses.gif").is_file() or serve:
+        lines += ["## Poses you can watch", ""]
     if (out / "clip/poses.gif").is_file():
-        lines += ["## Poses you can watch", "",
-                  "The first two seconds of the held-out sequence through the exported graph: LNES events "
+        lines += ["The first two seconds of the held-out sequence through the exported graph: LNES events "
                   "(red positive, blue negative), predicted skeleton in gold, ground truth in green.", "",
                   "![held-out clip](../clip/poses.gif)", ""]
+    if serve:
+        lines += ["Live in a browser, the whole held-out sequence at its own pace "
+                  "(`e3dpsm serve`, docs/serve.md in the repository):", "",
+                  f"`{serve}`", ""]
     lines += ["## Stages", "", "| stage | status | seconds | report |", "|---|---|---:|---|"]
     by_name = {stage.name: stage for stage in STAGES}
     for s in stages:

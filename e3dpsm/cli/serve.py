@@ -1,0 +1,168 @@
+"""`e3dpsm serve`: watch a step graph's poses live in a browser (page `/`, WebSocket `/ws`).
+
+Thin: option checks here, the server in e3dpsm/serve/. Torch-free (numpy, onnxruntime, aiohttp).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import ipaddress
+import math
+from pathlib import Path
+
+DEFAULT_OUT_ROOT = "serve-reports"
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "serve",
+        help="serve a live pose viewer (browser page + WebSocket) over a replayed recording or a live source",
+        description="Replay an event file at its own pace (or read a live dv:// source), step the graph "
+        "window by window, and push every pose to the browsers connected to http://HOST:PORT/ (3D skeleton, "
+        "event frame, ground truth when the recording has it, Hz and latency readouts). Stops at the end of "
+        "the recording, after --duration-s or on Ctrl-C, and writes serve.report.json into --out.",
+    )
+    parser.add_argument("--model", required=True, help="step graph written by `e3dpsm export` (or quantize)")
+    parser.add_argument("--source", required=True,
+                        help="event file (.h5/.hdf5/.npz, and what e3dpsm.data.readers reads) or a live dv://HOST:PORT")
+    parser.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0 picks a free one)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to bind (default 127.0.0.1); any other than loopback needs --token")
+    parser.add_argument("--token", default=None,
+                        help="secret the page and socket need as ?token=... (required off loopback)")
+    parser.add_argument("--speed", type=float, default=1.0, help="replay speed factor of a recording (default 1)")
+    parser.add_argument("--compare", default=None, metavar="GRAPH",
+                        help="a second step graph run on the same events; its skeleton is overlaid")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads per graph")
+    parser.add_argument("--window-ms", type=float, default=None,
+                        help="window length T in ms (default: the graph's training window)")
+    parser.add_argument("--out", default=None,
+                        help=f"folder for serve.report.json (default: {DEFAULT_OUT_ROOT}/<UTC time>/ here)")
+    parser.add_argument("--duration-s", type=float, default=None, help="stop after this many seconds of replay")
+    parser.add_argument("--loop", action="store_true",
+                        help="restart the recording at its end, with a fresh state (t_us keeps increasing)")
+    parser.add_argument("--wait-clients", type=int, default=0, metavar="N",
+                        help="start the replay only once N clients have connected (default 0: at once)")
+    parser.add_argument("--client-backlog", type=int, default=250, metavar="POSES",
+                        help="poses queued per client before its oldest are dropped (default 250, 5 s at 50 Hz)")
+    parser.add_argument("--frame-hz", type=float, default=10.0,
+                        help="most event-frame images per second sent to each client (default 10)")
+    parser.set_defaults(func=run)
+    return parser
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: only "localhost" is known to stay on this machine
+        return False
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Refuse bad values before anything is loaded or bound."""
+    from e3dpsm.errors import ConfigError
+
+    if not is_loopback(args.host) and not args.token:
+        raise ConfigError(f"--host {args.host} is reachable from other machines: pass --token SECRET "
+                          "(or bind 127.0.0.1)")
+    if args.token is not None and not args.token.strip():
+        raise ConfigError("--token must not be empty")
+    if not 0 <= args.port <= 65535:
+        raise ConfigError(f"--port must be in 0..65535, got {args.port}")
+    for name in ("speed", "frame_hz"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+    for name in ("window_ms", "duration_s"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+    if args.threads is not None and args.threads <= 0:
+        raise ConfigError(f"--threads must be positive, got {args.threads}")
+    if args.wait_clients < 0:
+        raise ConfigError(f"--wait-clients must be 0 or more, got {args.wait_clients}")
+    if args.client_backlog < 1:
+        raise ConfigError(f"--client-backlog must be at least 1, got {args.client_backlog}")
+
+
+def default_out() -> str:
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return str(Path(DEFAULT_OUT_ROOT) / stamp)
+
+
+def run(args: argparse.Namespace) -> int:
+    check_options(args)
+    import asyncio
+
+    from e3dpsm.cli._run_common import check_writable_folder
+    from e3dpsm.joints import JOINT_NAMES, PARENTS
+    from e3dpsm.runtime import StepSession
+    from e3dpsm.serve.clients import ClientHub
+    from e3dpsm.serve.estimator import ServeEngine
+    from e3dpsm.serve.server import ServeConfig, serve
+    from e3dpsm.serve.source import is_live
+
+    out = args.out or default_out()
+    check_writable_folder(Path(out))
+    config = ServeConfig(
+        model=args.model, source=args.source, out=out, host=args.host, port=args.port, token=args.token,
+        speed=args.speed, compare=args.compare, threads=args.threads, window_ms=args.window_ms,
+        duration_s=args.duration_s, loop=args.loop, wait_clients=args.wait_clients,
+        client_backlog=args.client_backlog, frame_hz=args.frame_hz,
+    )
+    # No spinning: between two steps (a window apart) idle ORT workers would busy-wait on the
+    # cores the event loop and the browsers need. A bad graph fails before the source opens.
+    session = StepSession(args.model, threads=args.threads, spin=False)
+    compare = StepSession(args.compare, threads=args.threads, spin=False) if args.compare else None
+    window_ms = float(args.window_ms if args.window_ms is not None else session.meta.train_window_ms)
+    from e3dpsm.events import window_us_from_ms
+
+    source, ground_truth = _open_source(args, window_us_from_ms(window_ms))
+    hub = ClientHub(args.client_backlog)
+    engine = ServeEngine(source, hub, session, window_ms=window_ms, compare=compare, ground_truth=ground_truth,
+                         frame_hz=args.frame_hz)
+    joints = list(session.meta.joints)
+    index = {name: i for i, name in enumerate(joints)}
+    bones = [(index[JOINT_NAMES[child]], index[JOINT_NAMES[parent]]) for child, parent in enumerate(PARENTS)
+             if child != parent and JOINT_NAMES[child] in index and JOINT_NAMES[parent] in index]
+    hello_fields = {
+        "joints": joints, "bones": bones, "models": [Path(args.model).name] + ([Path(args.compare).name] if compare else []),
+        "window_ms": window_ms, "sensor_hw": tuple(source.sensor_hw), "frame_hw": tuple(session.meta.frame_hw),
+        "source": args.source if is_live(args.source) else Path(args.source).name, "live": source.live,
+        "ground_truth": ground_truth is not None, "speed": args.speed,
+    }
+    graphs = {"model": _graph_info(session), "compare": _graph_info(compare) if compare else None}
+    try:
+        report = asyncio.run(serve(config, source, engine, hub, hello_fields, graphs,
+                                   announce=lambda line: print(line, flush=True)))
+    finally:
+        source.close()
+    page = report["latency_ms"]["page"]
+    print(f"{report['poses']} poses to {report['clients_seen']} client(s), stopped: {report['stop_reason']}; "
+          f"step p50 {report['step_ms']['p50']} ms, page latency p50 {page['p50']} ms -> "
+          f"{Path(out) / 'serve.report.json'}", flush=True)
+    return 0
+
+
+def _open_source(args: argparse.Namespace, window_us: int):
+    from e3dpsm.serve.source import LiveFeed, RecordingReplay, is_live, open_live
+
+    if is_live(args.source):
+        if args.loop:
+            from e3dpsm.errors import ConfigError
+
+            raise ConfigError("--loop replays a recording; a live source cannot restart")
+        return LiveFeed(open_live(args.source)), None
+    from e3dpsm.data.readers import read_events
+    from e3dpsm.runtime.render_stream import ground_truth_beside
+
+    stream = read_events(args.source)
+    return RecordingReplay(stream, window_us, speed=args.speed, loop=args.loop), ground_truth_beside(args.source)
+
+
+def _graph_info(session) -> dict:
+    meta = session.meta
+    return {"path": str(session.path), "variant": meta.config.get("variant"), "quantization": meta.quantization,
+            "frame_hw": list(meta.frame_hw), "train_window_ms": meta.train_window_ms}

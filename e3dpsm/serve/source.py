@@ -1,0 +1,165 @@
+"""Where events come from: a recording replayed at its own pace, or a live `dv://` source.
+
+Both yield `Tick`s to the estimation loop: events to push, and for a recording the stream time
+up to which every window is complete (the wall clock has reached it, so no earlier event is
+still to come). A recording is released in `TICKS_PER_WINDOW` slices per window: the events of
+each slice when the wall clock reaches the slice's end, scaled by --speed; a window's pose is
+made at the tick of its end, whose scheduled wall time is the pose's `window_end_wall_ms`.
+"""
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, AsyncIterator
+
+import numpy as np
+
+from e3dpsm.errors import ConfigError, DataError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from e3dpsm.data.sequence import EventStream
+    from e3dpsm.runtime.stream import EventChunk
+
+TICKS_PER_WINDOW = 4
+LIVE_SCHEMES = ("dv://",)
+
+
+@dataclass(frozen=True)
+class Tick:
+    chunk: EventChunk | None  # events released now (None or empty: none)
+    flush_until_us: int | None  # every window ending at or before it is complete (recordings)
+    finish: bool  # end of the recording's pass: close the remaining complete windows
+    wall_ms: float  # when these events arrived (scheduled replay time, or a live chunk's arrival)
+    pass_index: int  # 0, then 1, 2, ... with --loop (a fresh state each pass)
+
+
+def is_live(source: str) -> bool:
+    return source.startswith(LIVE_SCHEMES)
+
+
+def open_live(url: str, timeout_s: float = 5.0) -> Any:
+    """The live source of `url`, or one clear error when this install has no live reader."""
+    import importlib
+    import importlib.util
+
+    if importlib.util.find_spec("e3dpsm.data.live") is None:
+        raise ConfigError(f"--source {url}: this install has no live event reader (e3dpsm.data.live); "
+                          "pass an event file instead")
+    return importlib.import_module("e3dpsm.data.live").open_live_source(url, timeout_s=timeout_s)
+
+
+class RecordingReplay:
+    """A recording released at its own pace (x `speed`), optionally looped with a fresh state."""
+
+    live = False
+
+    def __init__(self, stream: EventStream, window_us: int, *, speed: float = 1.0, loop: bool = False) -> None:
+        if len(stream) == 0:
+            raise DataError("the recording holds no events; nothing to replay")
+        if not (speed > 0 and math.isfinite(speed)):
+            raise ConfigError(f"--speed must be a positive number, got {speed}")
+        self.stream = stream
+        self.sensor_hw = stream.sensor_hw
+        self.window_us = int(window_us)
+        self.speed = float(speed)
+        self.loop = loop
+        self.t0_us = int(stream.t_us[0])
+        last = int(stream.t_us[-1])
+        # One pass spans whole windows, so that later passes' t_us stay on one increasing grid.
+        self.pass_span_us = (last - self.t0_us) // self.window_us * self.window_us + self.window_us
+        self.tick_us = max(1, self.window_us // TICKS_PER_WINDOW)
+
+    def pass_offset_us(self, pass_index: int) -> int:
+        return pass_index * self.pass_span_us
+
+    async def ticks(self) -> AsyncIterator[Tick]:
+        s = self.stream
+        last = int(s.t_us[-1])
+        pass_index = 0
+        while True:
+            epoch_ms, start = time.time() * 1e3, time.perf_counter()
+            lo = 0
+            k = 1
+            while True:
+                until = self.t0_us + k * self.tick_us
+                due = (until - self.t0_us) / 1e6 / self.speed
+                delay = due - (time.perf_counter() - start)
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                end_reached = until > last
+                hi = len(s) if end_reached else int(np.searchsorted(s.t_us, until, side="left"))
+                chunk = (s.x[lo:hi], s.y[lo:hi], s.t_us[lo:hi], s.p[lo:hi]) if hi > lo else None
+                lo = hi
+                on_window_end = (until - self.t0_us) % self.window_us == 0
+                yield Tick(chunk, until if on_window_end and not end_reached else None, end_reached,
+                           epoch_ms + due * 1e3, pass_index)
+                if end_reached:
+                    break
+                k += 1
+            if not self.loop:
+                return
+            pass_index += 1
+
+    def close(self) -> None:
+        pass
+
+
+class LiveFeed:
+    """A live source's chunks, read on a thread (its iteration blocks) and handed to the loop."""
+
+    live = True
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+        self.sensor_hw = tuple(source.sensor_hw)
+        self.stop_message: str | None = None  # why the source ended, for the status line
+        self._stopping = threading.Event()
+
+    def pass_offset_us(self, pass_index: int) -> int:
+        return 0
+
+    async def ticks(self) -> AsyncIterator[Tick]:
+        loop = asyncio.get_running_loop()
+        queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=256)
+        done = object()
+
+        def put(item: Any) -> None:
+            # Blocks the reader thread when the estimator falls behind: back-pressure, bounded memory.
+            future = asyncio.run_coroutine_threadsafe(queue.put(item), loop)
+            while not self._stopping.is_set():
+                try:
+                    future.result(timeout=0.5)
+                    return
+                except TimeoutError:
+                    continue
+            future.cancel()
+
+        def read() -> None:
+            try:
+                for chunk in self.source:
+                    if self._stopping.is_set():
+                        break
+                    put((chunk, time.time() * 1e3))
+                self.stop_message = "the live source stopped"
+            except DataError as exc:
+                self.stop_message = f"the live source stopped: {exc}"
+            except Exception as exc:  # a reader bug must reach the page, not kill the thread silently
+                self.stop_message = f"the live source failed: {type(exc).__name__}: {exc}"
+            put(done)
+
+        thread = threading.Thread(target=read, name="e3dpsm-serve-live", daemon=True)
+        thread.start()
+        while True:
+            item = await queue.get()
+            if item is done:
+                return
+            stream, arrived_ms = item
+            yield Tick((stream.x, stream.y, stream.t_us, stream.p), None, False, arrived_ms, 0)
+
+    def close(self) -> None:
+        if not self._stopping.is_set():
+            self._stopping.set()
+            self.source.close()
