@@ -361,3 +361,26 @@ def test_a_live_source_streams_every_pose_and_the_page_hears_it_stopped(graph, r
     status = [m for m in messages if m["type"] == "status"][-1]
     assert status["state"] == "source stopped" and "publisher stopped" in status["message"]
     assert code == protocol.CLOSE_GOING_AWAY and report["stop_reason"] == "source stopped" and fake.closed == 1
+
+
+def test_serve_on_a_real_dv_stream_gives_the_recordings_poses(graph, recording, tmp_path):
+    """dv-processing's own NetworkWriter (publish_recording) feeds `serve --source dv://...`:
+    the page gets the poses `e3dpsm run` writes for the recording, every one, in order."""
+    pytest.importorskip("dv_processing", reason="dv-processing (pip extra cameras) is not installed")
+    from e3dpsm.data.live import publish_recording
+    from test_live import free_port
+
+    t_ref, pose_ref = _run_csv(graph, recording, tmp_path / "run.csv")
+    port = free_port()
+    with publish_recording(recording, port, speed=1.0):
+        with ServerProcess(["--model", str(graph), "--source", f"dv://127.0.0.1:{port}", "--wait-clients", "1",
+                            "--threads", "1", "--out", str(tmp_path / "report")]) as server:
+            messages, code = asyncio.run(_collect(f"{server.base}/ws"))
+            rc, _, stderr = server.wait()
+    assert rc == 0, stderr
+    assert messages[0]["type"] == "hello" and messages[0]["live"] is True
+    poses = [m for m in messages if m["type"] == "pose"]
+    assert [m["seq"] for m in poses] == list(range(len(poses)))
+    np.testing.assert_array_equal([m["t_us"] for m in poses], t_ref)
+    np.testing.assert_allclose(np.array([m["pose"] for m in poses]), pose_ref, rtol=0, atol=1.1e-3)
+    assert [m for m in messages if m["type"] == "status"][-1]["state"] == "source stopped"
