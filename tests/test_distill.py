@@ -183,3 +183,77 @@ def test_refusals_are_one_line(prepared_small: Path) -> None:
         DistillConfig(labels="yes")
     with pytest.raises(ConfigError, match="seq_len"):
         DistillConfig(seq_len=1)
+
+
+@pytest.fixture(scope="module")
+def teacher_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from e3dpsm.checkpoint import save_checkpoint
+
+    path = tmp_path_factory.mktemp("teacher") / "teacher.pt"
+    save_checkpoint(path, make_teacher(), step=7, window_ms=20.0)
+    return path
+
+
+def cli_args(teacher: Path, student: str, data: Path, out: Path, *extra: str) -> list[str]:
+    return ["distill", "--teacher", str(teacher), "--student", student, "--data", str(data), "--out", str(out),
+            "--steps", "2", "--seq-len", "3", "--batch-size", "2", "--warmup-steps", "1", "--threads", "1",
+            "--no-progress", *extra]
+
+
+def test_cli_writes_a_checkpoint_that_rebuilds_and_exports(teacher_checkpoint: Path, prepared_small: Path,
+                                                            tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import hashlib
+    import json
+
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.cli import main
+
+    out = tmp_path / "tiny_distilled"
+    assert main(cli_args(teacher_checkpoint, "tiny", prepared_small, out)) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "report.json", "report.md"]
+    student, payload = load_checkpoint(out / "checkpoint.pt")
+    assert (student.config.variant, student.config.height, student.config.width) == ("tiny", 96, 128)
+    assert payload["teacher"]["sha256"] == hashlib.sha256(teacher_checkpoint.read_bytes()).hexdigest()
+    assert payload["distill_config"]["prior"] == "data" and payload["distill_config"]["steps"] == 2
+    assert payload["train_args"]["seq_len"] == 3 and payload["window_ms"] == 20.0
+    assert student.pose_prior_mm.abs().sum() > 0  # the fresh variant got the teacher's mean pose
+    report = json.loads((out / "report.json").read_text())
+    assert report["command"] == "distill" and "isa" in report["machine"]
+    assert report["steps"] == 2 and report["teacher"]["variant"] == "tiny" and report["student"]["source"] == "variant"
+    assert report["final"]["fused"] == pytest.approx(report["log"][-1]["fused"])
+    assert "| step |" in (out / "report.md").read_text()
+
+    assert main(["export", "--checkpoint", str(out / "checkpoint.pt"), "--out", str(tmp_path / "graph"),
+                 "--no-simplify", "--threads", "1"]) == 0
+    assert (tmp_path / "graph" / "step.onnx").is_file()
+
+    # A checkpoint student keeps its prior by default; an occupied --out is refused in one line.
+    again = tmp_path / "again"
+    assert main(cli_args(teacher_checkpoint, str(out / "checkpoint.pt"), prepared_small, again)) == 0
+    assert json.loads((again / "report.json").read_text())["prior"] == "keep"
+    capsys.readouterr()
+    assert main(cli_args(teacher_checkpoint, "tiny", prepared_small, out)) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "holds a run" in err and "--force" in err
+    assert main(cli_args(teacher_checkpoint, "tiny", prepared_small, out, "--force")) == 0
+
+
+def test_cli_bad_input_is_one_line(teacher_checkpoint: Path, prepared_small: Path, tmp_path: Path,
+                                   capsys: pytest.CaptureFixture) -> None:
+    from e3dpsm.checkpoint import save_checkpoint
+    from e3dpsm.cli import main
+
+    big = tmp_path / "big.pt"
+    save_checkpoint(big, create_model("tiny"))  # 192 x 256
+    cases = [
+        (cli_args(teacher_checkpoint, "huge", prepared_small, tmp_path / "a"), "neither a variant"),
+        (cli_args(teacher_checkpoint, str(big), prepared_small, tmp_path / "b"), "height 96 vs 192"),
+        (cli_args(big, "tiny", prepared_small, tmp_path / "c"), "re-run prepare with --height 192"),
+        (cli_args(teacher_checkpoint, "tiny", prepared_small, tmp_path / "d", "--steps", "0"), "at least 1"),
+    ]
+    for argv, expected in cases:
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and expected in err, err
+        assert not (tmp_path / argv[argv.index("--out") + 1]).joinpath("checkpoint.pt").exists()
