@@ -171,6 +171,14 @@ def test_labels_gt_adds_the_pose_loss(prepared_small: Path) -> None:
                                           rel=1e-5)
 
 
+def test_any_architecture_with_the_same_input(prepared_small: Path) -> None:
+    """Widths, depths, attention layout and input normalisation may all differ."""
+    teacher = create_model("small", attn_layout="1d", input_norm="minmax", **HW).eval()
+    student = create_model("tiny", seed=0, **HW)
+    summary = distill(teacher, student, prepared_small, DistillConfig(steps=2, prior="data", **FAST), progress=False)
+    assert np.isfinite(summary["final"]["loss"]) and summary["student"]["parameters"] < summary["teacher"]["parameters"]
+
+
 def test_refusals_are_one_line(prepared_small: Path) -> None:
     teacher = make_teacher()
     with pytest.raises(ConfigError) as info:
