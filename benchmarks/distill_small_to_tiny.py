@@ -4,7 +4,9 @@ made with the CLI (commands in that file), so the figures come from the commands
 
     python benchmarks/distill_small_to_tiny.py --teacher-eval EVAL_SMALL \\
         --distilled RUN_DISTILLED EVAL_DISTILLED --labelled RUN_LABELLED EVAL_LABELLED \\
-        [--commands commands.txt]
+        [--distilled RUN EVAL --labelled RUN EVAL ...] [--commands commands.txt]
+
+--distilled and --labelled repeat (one per seed of the window order); each kind gets a mean row.
 
 Each EVAL_* is an `e3dpsm evaluate --causal` folder on the same split of the same held-out
 data; the distance of a student to the teacher is the MPJPE between their causal poses,
@@ -40,7 +42,10 @@ def _row(name: str, run: Path | None, eval_dir: Path, teacher_pred: np.ndarray) 
            "direct_head_mpjpe": metrics.get("direct_head", {}).get("mpjpe")}
     if run is not None:
         report = json.loads((run / "report.json").read_text())
-        row.update({"run": str(run), "steps": report.get("steps", report.get("step")), "train_seconds": report["seconds"],
+        config = report["config"]
+        seed = config["distill"]["seed"] if "distill" in config else config["args"]["seed"]
+        row.update({"run": str(run), "seed": seed, "steps": report.get("steps", report.get("step")),
+                    "train_seconds": report["seconds"],
                     "parameters": report.get("parameters") or report["student"]["parameters"]})
     return row
 
@@ -48,15 +53,21 @@ def _row(name: str, run: Path | None, eval_dir: Path, teacher_pred: np.ndarray) 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--teacher-eval", type=Path, required=True)
-    parser.add_argument("--distilled", type=Path, nargs=2, required=True, metavar=("RUN", "EVAL"))
-    parser.add_argument("--labelled", type=Path, nargs=2, required=True, metavar=("RUN", "EVAL"))
+    parser.add_argument("--distilled", type=Path, nargs=2, required=True, action="append", metavar=("RUN", "EVAL"))
+    parser.add_argument("--labelled", type=Path, nargs=2, required=True, action="append", metavar=("RUN", "EVAL"))
     parser.add_argument("--commands", type=Path, help="text file of the commands that made the runs")
     args = parser.parse_args()
 
     _, teacher_pred, gt = _eval(args.teacher_eval)
-    rows = [_row("small (teacher, trained on labels, 2,600 steps)", None, args.teacher_eval, teacher_pred),
-            _row("tiny distilled from small, no labels", *args.distilled, teacher_pred),
-            _row("tiny trained on labels", *args.labelled, teacher_pred)]
+    rows = [_row("small (teacher, trained on labels)", None, args.teacher_eval, teacher_pred)]
+    means = []
+    for name, runs in (("tiny distilled from small, no labels", args.distilled), ("tiny trained on labels", args.labelled)):
+        kind = [_row(name, run, eval_dir, teacher_pred) for run, eval_dir in runs]
+        rows += kind
+        if len(kind) > 1:
+            means.append({"model": f"{name}: mean of {len(kind)} seeds", "steps": kind[0]["steps"],
+                          **{k: float(np.mean([r[k] for r in kind]))
+                             for k in ("mpjpe", "pa_mpjpe", "e_smooth", "to_teacher_mm", "train_seconds")}})
     for row in rows[1:]:
         _, _, row_gt = _eval(Path(row["eval"]))
         if not np.array_equal(row_gt, gt):
@@ -65,15 +76,15 @@ def main() -> None:
     header = report_header("bench_distill_small_to_tiny", {"teacher_eval": str(args.teacher_eval),
                                                            "distilled": [str(p) for p in args.distilled],
                                                            "labelled": [str(p) for p in args.labelled]})
-    write_json_atomic(RESULTS / f"{NAME}.json", {**header, "frames": int(gt.shape[0]), "rows": rows,
+    write_json_atomic(RESULTS / f"{NAME}.json", {**header, "frames": int(gt.shape[0]), "rows": rows, "means": means,
                                                  "commands": commands.splitlines()})
     isa = header["machine"]["isa"]
-    lines = ["| model | steps | train time | MPJPE | PA-MPJPE | e_smooth | MPJPE to the teacher |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
-    for row in rows:
+    lines = ["| model | seed | steps | train time | MPJPE | PA-MPJPE | e_smooth | MPJPE to the teacher |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows + means:
         steps = f"{row['steps']:,}" if "steps" in row else "2,600"
         secs = f"{row['train_seconds'] / 60:.1f} min" if "train_seconds" in row else "(recipe)"
-        lines.append(f"| {row['model']} | {steps} | {secs} | {row['mpjpe']:.2f} mm | {row['pa_mpjpe']:.2f} mm | "
+        lines.append(f"| {row['model']} | {row.get('seed', '')} | {steps} | {secs} | {row['mpjpe']:.2f} mm | {row['pa_mpjpe']:.2f} mm | "
                      f"{row['e_smooth']:.2f} mm | {row['to_teacher_mm']:.2f} mm |")
     text = "\n".join([f"# Label-free distillation: trained `small` into `tiny` ({gt.shape[0]:,} held-out frames)", "",
                       f"CPU: {header['machine'].get('cpu_model', '?')}, ISA `{isa['kind']}` "
