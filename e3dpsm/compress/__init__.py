@@ -1,0 +1,1 @@
+"""Model compression: label-free distillation and structured pruning of trained variants."""
