@@ -29,7 +29,7 @@ from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.precision import demote_to_int16
-from e3dpsm.quantize.qat_ranges import learned_overrides, quantised_activations
+from e3dpsm.quantize.qat_ranges import learned_overrides, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
                                    quantize_int8, quantised_node_count)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
@@ -161,6 +161,10 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
     side-by-side timer on the held-out frames at `options.threads` (tests inject timings)."""
     started = time.perf_counter()
     source, meta = load_source(model_path)
+    if options.ranges_from_checkpoint:  # fail before calibrating, not after
+        from e3dpsm.checkpoint import read_checkpoint
+
+        read_ranges(read_checkpoint(options.ranges_from_checkpoint), options.ranges_from_checkpoint)
     data = PreparedData.open(data_dir)
     height, width = meta.frame_hw
     data.check_compatible(window_ms=meta.train_window_ms, height=height, width=width)

@@ -151,3 +151,15 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
         assert int(zero) == want_zero, node.input[0]
         checked += 1
     assert checked >= block["learned_tensors"] * 0.9 and checked > 50
+
+
+def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: Path, quant_data: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture) -> None:
+    from e3dpsm.cli import main
+
+    out = tmp_path / "q"
+    rc = main(["quantize", "--model", str(trained_graph), "--data", str(quant_data), "--out", str(out),
+               "--exclude", "none", "--ranges-from-checkpoint", str(TRAINED_TINY)])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "carries no learned QAT ranges" in err and len(err.splitlines()) == 1
+    assert not out.exists()
