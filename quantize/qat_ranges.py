@@ -17,7 +17,6 @@ matched by value to PyTorch sites on one step with the same inputs.
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import tempfile

@@ -4,7 +4,6 @@ int8 -> int16 -> float on injected errors; the default search reports where node
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
