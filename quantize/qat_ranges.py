@@ -164,9 +164,11 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
     return overrides, report
 
 
-def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = ()) -> dict[str, list[dict]]:
-    """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations. A
-    tensor both learned and 16-bit keeps 16 bits (calibrated): a U8 range has no 16-bit form."""
+def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),
+                  int16_ranges: Mapping[str, tuple[float, float]] | None = None) -> dict[str, list[dict]]:
+    """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations
+    (with `int16_ranges` (rmin, rmax) where given). A tensor both learned and 16-bit keeps
+    16 bits (calibrated): a U8 range has no 16-bit form."""
     from onnxruntime.quantization import QuantType
 
     out: dict[str, list[dict]] = {}
@@ -174,7 +176,9 @@ def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str]
         if name not in int16:
             out[name] = [{"scale": np.array(q["scale"], np.float32), "zero_point": np.array(q["zero_point"], np.uint8)}]
     for name in int16:
-        out[name] = [{"quant_type": QuantType.QUInt16}]
+        rng = (int16_ranges or {}).get(name)
+        extra = {"rmin": np.array(rng[0], np.float32), "rmax": np.array(rng[1], np.float32)} if rng else {}
+        out[name] = [{"quant_type": QuantType.QUInt16, **extra}]
     return out
 
 

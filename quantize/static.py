@@ -130,9 +130,30 @@ def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: Calibra
     # A second pass over the feeds: the histograms need each tensor's range before they are
     # made, and ORT's min-max pass gives the ranges and the very tensors it will quantise.
     minmax = {name: tuple(float(np.ravel(v)[0]) for v in ranges[name].range_value) for name in ranges}
+    save_tensors_data(ranges, minmax_cache_path(cache))  # for 16-bit tensors (quantize_int8)
     chosen = select_ranges(src, minmax, calibration.feeds)
     write_minmax_cache(cache, chosen)
     return chosen
+
+
+def minmax_cache_path(cache: str | os.PathLike) -> Path:
+    """Where `calibrate` keeps the plain min-max ranges when the cache holds narrower ones."""
+    cache = Path(cache)
+    return cache.with_name(cache.stem + "_minmax" + cache.suffix)
+
+
+def int16_ranges(cache: str | os.PathLike, tensors: Iterable[str]) -> dict[str, tuple[float, float]]:
+    """Min-max ranges for 16-bit tensors. The "mse" ranges are chosen for 256 levels, where
+    clipping outliers buys a finer step; at 65,536 levels the rounding error is negligible
+    and clipping would be all that is left of the error, so 16-bit tensors take the full
+    min-max range (None for the other calibrations: their own ranges are used)."""
+    import json
+
+    path = minmax_cache_path(cache)
+    if not path.is_file():
+        return {}
+    data = json.loads(path.read_text())["data"]
+    return {t: (float(data[t]["lowest"]["data"][0]), float(data[t]["highest"]["data"][0])) for t in tensors if t in data}
 
 
 def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.PathLike) -> list[str]:
@@ -194,7 +215,7 @@ def quantize_int8(
         if graph_opset(model) < INT16_OPSET:
             raise ValueError(f"{src} is below opset {INT16_OPSET}: convert it with ensure_opset before calibrating")
         int16 = int16_tensors(model, int16_nodes, cache)
-    overrides = ort_overrides(learned or {}, int16)
+    overrides = ort_overrides(learned or {}, int16, int16_ranges(cache, int16))
     quantize_static(
         str(src), str(dst),
         calibration_data_reader=None,  # the ranges come from the cache written above
