@@ -147,3 +147,33 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
     assert (opset >= 21) == bool(plan["int16_nodes"])  # only graphs with 16-bit nodes leave the export's opset
     if out_of_int8:  # the artifact is the graph the last decision measured
         assert report["holdout"]["bound_pct"] == pytest.approx(plan["error_pct"], rel=1e-6)
+
+
+def test_int16_tensors_take_the_min_max_range_under_mse_calibration(int16_setup, trained_graph: Path,
+                                                                     quant_data: Path) -> None:
+    """The mse ranges are chosen for 256 levels (clipping buys a finer step); at 65,536 levels
+    clipping is all the error left, so 16-bit tensors get the calibration's full min-max range."""
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.quantize.calibration import record_calibration_set
+    from e3dpsm.quantize.static import StaticConfig, calibrate, minmax_cache_path, quantize_int8
+
+    work = int16_setup["work"]
+    calib = record_calibration_set(trained_graph, PreparedData.open(quant_data).split("train"), 16, 20.0, threads=1)
+    cache = work / "cache_mse.json"
+    chosen = calibrate(int16_setup["pre"], StaticConfig(calibration="mse"), calib, cache)
+    minmax = json.loads(minmax_cache_path(cache).read_text())["data"]
+    pre = onnx.load(str(int16_setup["pre"]))
+    # A conv whose input range the mse rule narrowed: there the two rules differ.
+    node, tensor = next((n.name, n.input[0]) for n in pre.graph.node
+                        if n.name in int16_setup["compute"] and n.input[0] in chosen and chosen[n.input[0]].kind != "minmax")
+    out = work / "mse16.onnx"
+    quantize_int8(int16_setup["pre"], out, StaticConfig(calibration="mse"), exclude=int16_setup["keep"], cache=cache,
+                  int16_nodes=[node])
+    model = onnx.load(str(out))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    q = next(n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == tensor)
+    low, high = min(minmax[tensor]["lowest"]["data"][0], 0.0), max(minmax[tensor]["highest"]["data"][0], 0.0)
+    assert inits[q.input[2]].dtype == np.uint16
+    assert float(inits[q.input[1]]) == pytest.approx((high - low) / 65535, rel=1e-5)
+    narrowed = (chosen[tensor].high - chosen[tensor].low) / 65535
+    assert abs(float(inits[q.input[1]]) - narrowed) > 1e-3 * narrowed
