@@ -12,6 +12,12 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
   `mse` after `--equalize` (GEGLU scales folded into the weights);
 - the default `--exclude auto` graph with `--calibration mse`;
 - the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units).
+- with `--qat-checkpoint CKPT` (a `train --qat` fine-tune of --checkpoint): its export full
+  integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
+  calibrated min-max ranges; distances are to that checkpoint's own fp32 graph, and
+  `mpjpe_vs_base_pct` compares its INT8 poses' MPJPE with --checkpoint's fp32 one.
+`--rows` keeps only the rows whose label contains one of the given words, and `--append`
+adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
 how far a budget chosen on one split carries). Latency: all graphs stepped side by side in
 rounds (`profiles.latency.measure_side_by_side`), states carried, on real frames.
@@ -84,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=200, help="timed steps per graph")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-search", action="store_true", help="skip the default --exclude auto row")
+    parser.add_argument("--qat-checkpoint", default=None, help="a `train --qat` fine-tune of --checkpoint")
+    parser.add_argument("--rows", nargs="*", default=None, help="only rows whose label contains one of these")
+    parser.add_argument("--append", action="store_true", help="add the rows to the existing results")
     args = parser.parse_args(argv)
 
     from e3dpsm.checkpoint import load_checkpoint
@@ -105,20 +114,46 @@ def main(argv: list[str] | None = None) -> int:
         runs.append(("full int8, mse, equalized", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
                                                                    equalize=True)))
         if not args.no_search:
-            runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse")))
+            runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse", int16=False)))
+            runs.append(("default search, mse, int16", QuantizeOptions(mode="int8", calibration="mse")))
+        sources = {label: fp32 for label, _ in runs}
+        base_mpjpe = check.fp32_mpjpe
+        if args.qat_checkpoint:
+            qat_model, qat_payload = load_checkpoint(args.qat_checkpoint)
+            qat_fp32 = export_step(qat_model, work / "qat_step.onnx")
+            steps = qat_payload.get("step", "?")
+            for label, options in (
+                    (f"QAT {steps} steps, full int8, QAT ranges", QuantizeOptions(
+                        mode="int8", exclude="none", ranges_from_checkpoint=args.qat_checkpoint)),
+                    (f"QAT {steps} steps, full int8, minmax", QuantizeOptions(mode="int8", exclude="none")),
+                    (f"QAT {steps} steps, default search, QAT ranges, int16", QuantizeOptions(
+                        mode="int8", ranges_from_checkpoint=args.qat_checkpoint))):
+                runs.append((label, options))
+                sources[label] = qat_fp32
+        if args.rows:
+            runs = [(label, o) for label, o in runs if any(word in label for word in args.rows)]
+        checks = {fp32: check}
         for label, options in runs:
             options = QuantizeOptions(**{**options.__dict__, "frames": args.frames, "holdout_frames": args.holdout_frames,
                                          "split": args.split, "holdout_split": args.holdout_split,
                                          "threads": args.threads})
-            q = quantize_graph(fp32, args.data, work / label.replace(" ", "_").replace(",", ""), options)
+            source = sources[label]
+            if source not in checks:
+                checks[source] = make_holdout(source, data.split(args.check_split), window_ms, args.holdout_frames,
+                                              args.threads)
+            q = quantize_graph(source, args.data, work / label.replace(" ", "_").replace(",", ""), options)
             path = work / label.replace(" ", "_").replace(",", "") / q["artifact"]
             graphs[label] = path
-            independent = accuracy_of(path, check, args.threads)["bound_pct"]
+            measured = accuracy_of(path, checks[source], args.threads)
+            independent = measured["bound_pct"]
             ranked = q.get("exclusion_search") or {}
             kept = [n for n in q["excluded_nodes"] if n in {r["node"] for r in ranked.get("sensitivity", [])}]
             rows.append({"label": label, "distance_pct": q["holdout"]["bound_pct"], "check_distance_pct": independent,
                          "mpjpe_loss_pct": q["holdout"]["loss_pct"], "bytes": path.stat().st_size,
                          "compute_nodes_in_float": len(kept) if ranked else 0,
+                         "compute_nodes_int16": len(q["quantization"].get("int16_nodes") or []),
+                         "mpjpe_vs_base_pct": 100.0 * (measured["mpjpe_mm"] / base_mpjpe - 1.0),
+                         "qat_ranges": {k: v for k, v in (q.get("qat_ranges") or {}).items() if k != "uncovered"},
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
             print(f"{label}: {rows[-1]['distance_pct']:.3f}% ({args.holdout_split}), {independent:.3f}% "
                   f"({args.check_split}), {rows[-1]['bytes'] / 1e6:.2f} MB", flush=True)
@@ -129,9 +164,20 @@ def main(argv: list[str] | None = None) -> int:
         times = measure_side_by_side(runners, lnes, args.steps, warmup=10)
         p50 = {name: 1e3 * float(np.median(t)) for name, t in times.items()}
         fp32_bytes = fp32.stat().st_size
+    for r in rows:  # each row keeps the fp32 timed beside it (rows appended later come from another run)
+        r.update(ort_ms=p50[f"ort {r['label']}"], openvino_ms=p50[f"openvino {r['label']}"],
+                 ort_fp32_ms=p50["ort fp32"], openvino_fp32_ms=p50["openvino fp32"], isa=detect_isa().kind)
     report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows,
                   bf16_distance_pct=bf16, p50_ms=p50, fp32_mpjpe_mm=holdout.fp32_mpjpe)
     name = f"int8_{variant}_ladder"
+    if args.append and (RESULTS / f"{name}.json").is_file():
+        import json
+
+        old = json.loads((RESULTS / f"{name}.json").read_text())
+        old.setdefault("appended", []).append({k: report[k] for k in ("created", "config", "machine", "isa")})
+        labels = {r["label"] for r in rows}
+        old["rows"] = [r for r in old["rows"] if r["label"] not in labels] + rows
+        report = old
     write_json_atomic(RESULTS / f"{name}.json", report)
     write_text_atomic(RESULTS / f"{name}.md", markdown(report))
     print(markdown(report))
@@ -147,7 +193,7 @@ def markdown(report: dict) -> str:
              f"and delta poses relative to the fp32 MPJPE ({report['fp32_mpjpe_mm']:.1f} mm), on "
              f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched). "
              f"Step p50 side by side, {cfg['steps']} steps each.", "",
-             "| graph | distance % | independent % | compute nodes in float | MB | ORT p50 ms (x fp32) "
+             "| graph | distance % | independent % | compute nodes in float (+ int16) | MB | ORT p50 ms (x fp32) "
              "| OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|"]
     ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
     lines.append(f"| fp32 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} | {ort32:.2f} | {ov32:.2f} |")
@@ -155,10 +201,18 @@ def markdown(report: dict) -> str:
         lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | "
                      f"{report['fp32_bytes'] / 1e6:.2f} | | {p50['openvino bf16']:.2f} ({ov32 / p50['openvino bf16']:.2f}x) |")
     for r in report["rows"]:
-        ort, ov = p50[f"ort {r['label']}"], p50[f"openvino {r['label']}"]
+        ort, ov = r.get("ort_ms", p50.get(f"ort {r['label']}")), r.get("openvino_ms", p50.get(f"openvino {r['label']}"))
+        o32, v32 = r.get("ort_fp32_ms", ort32), r.get("openvino_fp32_ms", ov32)
+        out8 = str(r["compute_nodes_in_float"]) + (f" (+{r['compute_nodes_int16']} int16)" if r.get("compute_nodes_int16") else "")
         lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {r['check_distance_pct']:.3f} | "
-                     f"{r['compute_nodes_in_float']} | {r['bytes'] / 1e6:.2f} | {ort:.2f} ({ort32 / ort:.2f}x) | "
-                     f"{ov:.2f} ({ov32 / ov:.2f}x) |")
+                     f"{out8} | {r['bytes'] / 1e6:.2f} | {ort:.2f} ({o32 / ort:.2f}x) | {ov:.2f} ({v32 / ov:.2f}x) |")
+    if any("mpjpe_vs_base_pct" in r for r in report["rows"]):
+        lines += ["", "MPJPE on the independent split against the base checkpoint's fp32 graph "
+                  "(the QAT bar: within +1%):", ""]
+        lines += [f"- {r['label']}: {r['mpjpe_vs_base_pct']:+.2f}%" for r in report["rows"] if "mpjpe_vs_base_pct" in r]
+    for extra in report.get("appended", []):
+        lines.append(f"\nRows appended {extra['created']} (ISA {extra['isa']['kind']}); each row's speed is against "
+                     "the fp32 graph timed beside it in its own run.")
     return "\n".join(lines) + "\n"
 
 

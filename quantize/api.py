@@ -28,8 +28,10 @@ from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
-from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, preprocess, quantize_int8,
-                                   quantised_node_count)
+from e3dpsm.quantize.precision import demote_to_int16
+from e3dpsm.quantize.qat_ranges import learned_overrides, quantised_activations, read_ranges
+from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
+                                   quantize_int8, quantised_node_count)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.isa import detect_isa
@@ -79,6 +81,12 @@ class QuantizeOptions:
     # int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating
     # (equalize.py; the fp32 function is unchanged).
     equalize: bool = False
+    # int8: a QAT checkpoint whose learned ranges (`qat_ranges`) the graph takes as they are
+    # (qat_ranges.py); the graph must be that checkpoint's export.
+    ranges_from_checkpoint: str | None = None
+    # int8 `--search nodes`: nodes that must leave 8 bits try 16-bit activations before float
+    # (precision.py); the graph goes to opset 21 for it.
+    int16: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -95,6 +103,8 @@ class QuantizeOptions:
             raise ConfigError(f"unknown search {self.search!r}; choose from {list(SEARCHES)}")
         if self.search is not None and self.exclude != "auto":
             raise ConfigError(f"--search picks how --exclude auto searches; drop it with --exclude {self.exclude}")
+        if self.ranges_from_checkpoint is not None and self.mode != "int8":
+            raise ConfigError(f"--ranges-from-checkpoint gives INT8 ranges; drop it with --mode {self.mode}")
         if self.search == "nodes" and self.mode != "int8":
             raise ConfigError(f"--search nodes ranks INT8 nodes; {self.mode} searches groups (drop --search)")
 
@@ -151,6 +161,10 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
     side-by-side timer on the held-out frames at `options.threads` (tests inject timings)."""
     started = time.perf_counter()
     source, meta = load_source(model_path)
+    if options.ranges_from_checkpoint:  # fail before calibrating, not after
+        from e3dpsm.checkpoint import read_checkpoint
+
+        read_ranges(read_checkpoint(options.ranges_from_checkpoint), options.ranges_from_checkpoint)
     data = PreparedData.open(data_dir)
     height, width = meta.frame_hw
     data.check_compatible(window_ms=meta.train_window_ms, height=height, width=width)
@@ -238,15 +252,24 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     started = time.perf_counter()
     ranges = calibrate(pre, config, calib, cache)
     calib_seconds = time.perf_counter() - started
-    search = latency = None
-    if fixed is None:
-        def build(excluded: list[str]) -> onnx.ModelProto:
-            path = scratch_model_path(work, "int8")
-            quantize_int8(pre, path, config, exclude=excluded, cache=cache)  # the cache: no re-calibration
-            model = onnx.load(str(path))
-            path.unlink()
-            return model
+    learned, qat_report = {}, None
+    if options.ranges_from_checkpoint:
+        quantised = quantised_activations(pre, keep, config.op_types)
+        learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised, calib.feeds[0])
+    search = latency = precision = None
+    int16_nodes: list[str] = []
+    pre16 = _opset21_copy(pre, work) if options.int16 and fixed is None and options.strategy == "nodes" else None
 
+    def build(excluded: list[str], int16: Sequence[str] = ()) -> onnx.ModelProto:
+        path = scratch_model_path(work, "int8")
+        # The cache: no re-calibration per trial. 16-bit nodes need the opset-21 copy.
+        quantize_int8(pre16 if int16 else pre, path, config, exclude=excluded, cache=cache, learned=learned,
+                      int16_nodes=int16)
+        model = onnx.load(str(path))
+        path.unlink()
+        return model
+
+    if fixed is None:
         ranked = None
         if options.strategy == "nodes":
             every = [n.name for n in pre_model.graph.node]
@@ -258,14 +281,23 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                 lambda subset: _evaluator(pre_meta, subset, options, work, build))
         search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
         fixed = search.excluded_nodes
-    quantize_int8(pre, out, config, exclude=fixed, cache=cache)
+        if pre16 is not None:
+            kept = set(keep)
+            precision = demote_to_int16(
+                [n for n in fixed if n not in kept], search.error_pct, options.budget,
+                lambda int16, floats, label: _evaluator(pre_meta, holdout, options, work,
+                                                        lambda excl: build(excl, int16))(keep + floats, label))
+            fixed, int16_nodes = list(dict.fromkeys(keep + precision.float_nodes)), precision.int16
+    quantize_int8(pre16 if int16_nodes else pre, out, config, exclude=fixed, cache=cache, learned=learned,
+                  int16_nodes=int16_nodes)
     model = onnx.load(str(out))
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),
         "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
         "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
-        "excluded_nodes": fixed, **quantised_node_count(model),
+        "excluded_nodes": fixed, "int16_nodes": int16_nodes, **quantised_node_count(model),
+        "ranges_from_checkpoint": options.ranges_from_checkpoint,
     }
     extra = {
         "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
@@ -274,8 +306,30 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                             "range_per_tensor": {n: asdict(c) for n, c in ranges.items()}} if ranges else {})},
         **_search_report(search, [*recurrent, *groups], latency),
         **({"equalization": equalized} if options.equalize else {}),
+        **({"precision_search": precision.to_dict()} if precision else {}),
+        **({"qat_ranges": qat_report} if qat_report else {}),
     }
     return model, info, extra
+
+
+def _opset21_copy(pre: Path, work: Path) -> Path | None:
+    """`pre` converted to opset 21 (16-bit QuantizeLinear in the default domain), or None
+    where the conversion renamed a node or tensor: trials share one calibration cache and
+    name nodes to keep in float, so both graphs must use the same names. Graphs without
+    16-bit nodes stay at the export's opset."""
+    import shutil
+
+    pre16 = work / "pre_opset21.onnx"
+    shutil.copyfile(pre, pre16)
+    ensure_opset(pre16)
+
+    def names(m: onnx.ModelProto) -> tuple[set[str], set[str]]:
+        return {n.name for n in m.graph.node}, {t for n in m.graph.node for t in (*n.input, *n.output)}
+
+    if names(onnx.load(str(pre))) != names(onnx.load(str(pre16))):
+        log.warning("converting the graph to opset 21 renamed nodes or tensors; the search skips int16")
+        return None
+    return pre16
 
 
 def _fp16(source, meta, holdout, options: QuantizeOptions, work: Path, timing: _Timing):

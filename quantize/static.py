@@ -11,10 +11,11 @@ import os
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 import numpy as np
 import onnx
+import onnx.version_converter
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.calibration import CalibrationSet, FeedListReader
@@ -38,6 +39,8 @@ DEFAULT_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm")
 # CPU kinds an INT8 graph can be quantised for ("unknown" hosts as for int8 dot-product
 # units, ONNX Runtime's default).
 TARGET_ISAS: tuple[str, ...] = ISA_KINDS
+# ONNX's QuantizeLinear / DequantizeLinear take 16-bit integers from opset 21.
+INT16_OPSET = 21
 
 
 @dataclass(frozen=True)
@@ -127,24 +130,92 @@ def calibrate(src: str | os.PathLike, config: StaticConfig, calibration: Calibra
     # A second pass over the feeds: the histograms need each tensor's range before they are
     # made, and ORT's min-max pass gives the ranges and the very tensors it will quantise.
     minmax = {name: tuple(float(np.ravel(v)[0]) for v in ranges[name].range_value) for name in ranges}
+    save_tensors_data(ranges, minmax_cache_path(cache))  # for 16-bit tensors (quantize_int8)
     chosen = select_ranges(src, minmax, calibration.feeds)
     write_minmax_cache(cache, chosen)
     return chosen
 
 
+def minmax_cache_path(cache: str | os.PathLike) -> Path:
+    """Where `calibrate` keeps the plain min-max ranges when the cache holds narrower ones."""
+    cache = Path(cache)
+    return cache.with_name(cache.stem + "_minmax" + cache.suffix)
+
+
+def int16_ranges(cache: str | os.PathLike, tensors: Iterable[str]) -> dict[str, tuple[float, float]]:
+    """Min-max ranges for 16-bit tensors. The "mse" ranges are chosen for 256 levels, where
+    clipping outliers buys a finer step; at 65,536 levels the rounding error is negligible
+    and clipping would be all that is left of the error, so 16-bit tensors take the full
+    min-max range (None for the other calibrations: their own ranges are used)."""
+    import json
+
+    path = minmax_cache_path(cache)
+    if not path.is_file():
+        return {}
+    data = json.loads(path.read_text())["data"]
+    return {t: (float(data[t]["lowest"]["data"][0]), float(data[t]["highest"]["data"][0])) for t in tensors if t in data}
+
+
+def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.PathLike) -> list[str]:
+    """The activation tensors 16-bit nodes read or write: those of the calibration cache
+    (the tensors the quantiser can give a Q/DQ pair). A tensor shared with an 8-bit node
+    goes 16-bit too (the 8-bit node then reads it through a 16-bit DequantizeLinear)."""
+    import json
+
+    calibrated = set(json.loads(Path(cache).read_text())["data"])
+    wanted = set(nodes)
+    found = [t for n in model.graph.node if n.name in wanted for t in (*n.input, *n.output) if t in calibrated]
+    return sorted(set(found))
+
+
+def graph_opset(model: onnx.ModelProto) -> int:
+    return next((o.version for o in model.opset_import if o.domain in ("", "ai.onnx")), 0)
+
+
+def ensure_opset(path: str | os.PathLike, opset: int = INT16_OPSET) -> bool:
+    """Convert the graph at `path` to `opset` in place (16-bit QuantizeLinear needs 21 in the
+    default domain; ONNX Runtime would otherwise switch to com.microsoft ops, which DESIGN
+    forbids). Returns whether it converted. Done before calibrating, so every trial graph
+    and the calibration cache name the same tensors and nodes."""
+    model = onnx.load(str(path))
+    if graph_opset(model) >= opset:
+        return False
+    converted = onnx.version_converter.convert_version(model, opset)
+    for index, node in enumerate(converted.graph.node):  # the converter may add unnamed nodes
+        if not node.name:
+            node.name = f"opset{opset}_{node.op_type}_{index}"
+    onnx.save(converted, str(path))
+    return True
+
+
 def quantize_int8(
     src: str | os.PathLike, dst: str | os.PathLike, config: StaticConfig, *,
     exclude: Iterable[str] = (), calibration: CalibrationSet | None = None, cache: str | os.PathLike,
+    learned: Mapping[str, Mapping[str, Any]] | None = None, int16_nodes: Iterable[str] = (),
 ) -> None:
     """Quantise the pre-processed graph `src` to `dst` with the ranges of `cache`, calibrating
-    first (`calibrate`) if there is no cache yet: `calibration` is needed then only."""
+    first (`calibrate`) if there is no cache yet: `calibration` is needed then only.
+
+    `learned`: {tensor: {"scale", "zero_point"}} written as they are (QAT ranges,
+    qat_ranges.py); `int16_nodes`: nodes whose activations are quantised to 16 bits (QUInt16;
+    the graph must be at opset 21 already, `ensure_opset`). Both go through ONNX Runtime's
+    TensorQuantOverrides."""
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+
+    from e3dpsm.quantize.qat_ranges import ort_overrides
 
     cache = Path(cache)
     if not cache.is_file():
         if calibration is None:
             raise ValueError("no calibration cache yet: pass the calibration set")
         calibrate(src, config, calibration, cache)
+    int16: list[str] = []
+    if int16_nodes:
+        model = onnx.load(str(src))
+        if graph_opset(model) < INT16_OPSET:
+            raise ValueError(f"{src} is below opset {INT16_OPSET}: convert it with ensure_opset before calibrating")
+        int16 = int16_tensors(model, int16_nodes, cache)
+    overrides = ort_overrides(learned or {}, int16, int16_ranges(cache, int16))
     quantize_static(
         str(src), str(dst),
         calibration_data_reader=None,  # the ranges come from the cache written above
@@ -157,7 +228,8 @@ def quantize_int8(
         nodes_to_exclude=sorted(set(exclude)),
         calibrate_method=_method(config.calibration),
         # Weights symmetric around 0 (per channel); activations asymmetric U8.
-        extra_options={"WeightSymmetric": True, "ActivationSymmetric": False},
+        extra_options={"WeightSymmetric": True, "ActivationSymmetric": False,
+                       **({"TensorQuantOverrides": overrides} if overrides else {})},
         calibration_cache_path=str(cache),
     )
     log.debug("quantised %s -> %s (%d nodes kept float)", src, dst, len(set(exclude)))

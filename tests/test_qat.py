@@ -15,8 +15,8 @@ import e3dpsm
 from e3dpsm.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.training.trainer import PARAM_DUMP_ENV, _param_digest
-from e3dpsm.training.qat import (FLOAT_MODULE_PREFIXES, QATConfig, RangeObserver, attach_fake_quant,
-                                 fake_quantize_weight, quantised_modules)
+from e3dpsm.training.qat import (FLOAT_MODULE_PREFIXES, QATConfig, attach_fake_quant, fake_quantize_weight,
+                                 quantised_modules)
 
 from _training_helpers import FAST_TRAIN
 
@@ -27,14 +27,6 @@ def numpy_weight_s8(weight: np.ndarray) -> np.ndarray:
     scale = np.abs(flat).max(axis=1, keepdims=True).astype(np.float32) / np.float32(127)
     q = np.clip(np.round(flat / scale), -127, 127)
     return (q * scale).reshape(weight.shape).astype(np.float32)
-
-
-def numpy_activation_u8(x: np.ndarray, low: float, high: float) -> np.ndarray:
-    """Asymmetric uint8 over [low, high] (0 inside it), as ONNX Runtime's QDQ pair computes it."""
-    scale = (high - low) / 255.0
-    zero = int(np.clip(round(-low / scale), 0, 255))
-    q = np.clip(np.round(x.astype(np.float32) * np.float32(1.0 / scale)) + zero, 0, 255)
-    return ((q - zero) * np.float32(scale)).astype(np.float32)
 
 
 def test_weight_fake_quant_matches_numpy_per_channel() -> None:
@@ -53,27 +45,6 @@ def test_weight_fake_quant_matches_numpy_per_channel() -> None:
     assert torch.equal(weight.grad, torch.ones_like(weight))
 
 
-def test_activation_range_follows_batches_and_rounds_like_the_graph() -> None:
-    observer = RangeObserver(momentum=0.25)
-    first = torch.linspace(0.5, 4.0, 101)       # all positive: the range must still hold 0
-    second = torch.linspace(-2.0, 1.0, 77)
-    observer.update(first)
-    assert (observer.low, observer.high) == (0.0, pytest.approx(4.0))
-    observer.update(second)
-    assert observer.low == pytest.approx(0.0 + 0.25 * (-2.0 - 0.0))
-    assert observer.high == pytest.approx(4.0 + 0.25 * (1.0 - 4.0))
-    x = torch.randn(1000, generator=torch.Generator().manual_seed(1)) * 2
-    got = observer.fake_quantize(x, observe=False).numpy()
-    want = numpy_activation_u8(x.numpy(), observer.low, observer.high)
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
-    scale, zero = observer.scale_zero_point()
-    codes = got / scale + zero
-    assert np.allclose(codes, np.round(codes), atol=1e-3) and codes.min() >= -1e-3 and codes.max() <= 255 + 1e-3
-    # Values beyond the range clip to its ends.
-    assert got.min() == pytest.approx(-zero * scale, abs=1e-6)
-    assert got.max() == pytest.approx((255 - zero) * scale, abs=1e-6)
-
-
 def test_fake_quant_covers_the_quantised_modules_and_leaves_no_trace() -> None:
     torch.manual_seed(0)
     model = e3dpsm.create_model("tiny", height=96, width=128).eval()
@@ -90,8 +61,9 @@ def test_fake_quant_covers_the_quantised_modules_and_leaves_no_trace() -> None:
     with torch.no_grad():
         simulated = model(frames)["pose"]
     assert (simulated - plain).abs().max() > 1e-3  # the rounding reaches the poses
-    # The stem's output, as the later hook sees it, is on its uint8 grid.
-    scale, zero = handle.observers["stem.0"][1].scale_zero_point()
+    # The stem's output, as the later hook sees it, is on its learned uint8 grid.
+    index = next(i for i, g in enumerate(handle.groups) if "stem.0:out" in g.sites)
+    scale, zero = handle.quantizers[index].qparams()
     codes = seen[0] / scale + zero
     assert torch.allclose(codes, codes.round(), atol=1e-3) and len(torch.unique(codes.round())) <= 256
     assert parametrize.is_parametrized(model.stem[0], "weight")
@@ -127,6 +99,8 @@ def test_qat_finetune_writes_a_plain_checkpoint(training_runs: dict[str, Path], 
                  "--init-from", str(start), "--qat", *FAST_TRAIN]) == 0
     model, payload = load_checkpoint(out / "checkpoint.pt", variant="tiny")  # strict: no fake-quant keys
     assert payload["train_args"]["qat"] is True and payload["train_args"]["init_from"] == str(start)
+    ranges = payload["qat_ranges"]["quantizers"]  # the learned ranges travel beside the plain weights
+    assert len(ranges) > 50 and all(r["scale"] > 0 and 0 <= r["zero_point"] <= 255 for r in ranges)
     init = read_checkpoint(start)["model"]
     assert set(payload["model"]) == set(init)
     moved = [k for k, v in payload["model"].items() if v.is_floating_point() and not torch.equal(v, init[k])]

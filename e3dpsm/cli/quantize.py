@@ -49,6 +49,13 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--equalize", action="store_true",
                    help="int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating "
                    "(the fp32 function is unchanged; only the INT8 graph moves)")
+    p.add_argument("--ranges-from-checkpoint", default=None, metavar="CKPT",
+                   help="int8: write the learned activation ranges of a QAT checkpoint (`train --qat`) into the "
+                   "graph as they are (the graph must be that checkpoint's export); tensors it has no range for "
+                   "are calibrated")
+    p.add_argument("--no-int16", dest="int16", action="store_false",
+                   help="int8 --search nodes: give nodes that must leave 8 bits straight to float instead of "
+                   "trying 16-bit activations first (int16 converts the graph to opset 21)")
     p.add_argument("--int8-elementwise", action="store_true",
                    help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
                    "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")
@@ -74,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         holdout_frames=args.holdout_frames, rank_frames=args.rank_frames, threads=args.threads,
         objective=args.objective,
         timing_steps=args.timing_steps, search=args.search, target_isa=args.target_isa,
-        equalize=args.equalize,
+        equalize=args.equalize, ranges_from_checkpoint=args.ranges_from_checkpoint, int16=args.int16,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]

@@ -9,38 +9,44 @@ of a per-tensor U8 range is several percent of a typical value and the held-out 
 by several percent of the MPJPE (benchmarks/results/quantize_small_trained_int8.md).
 
 Fine-tuning with that rounding in the forward pass (straight-through gradients, Jacob et
-al., CVPR 2018, "Quantization and Training of Neural Networks for Efficient
-Integer-Arithmetic-Only Inference") lets the weights adapt to it. The ranges here follow the
-batches (an exponential moving average of each batch's min/max); the exported graph is
-calibrated afresh by `quantize`, so nothing of this module reaches a checkpoint or a graph:
-`attach_fake_quant` hooks the model, `FakeQuantHandle.remove` leaves it as it was.
+al., CVPR 2018) lets the weights adapt to it. The activation ranges are learned (LSQ / LSQ+,
+qat_lsq.py) at exactly the tensors the INT8 graph quantises: `attach_fake_quant` exports
+the model once, finds the tensors that get a QuantizeLinear (recurrent groups in float) and
+the PyTorch sites holding the same numbers (qat_sites.py, quantize/qat_ranges.py), and hooks
+one learned quantiser per such group. The checkpoint carries the learned ranges
+(`qat_ranges`, `FakeQuantHandle.ranges_payload`) beside the plain weights, and
+`quantize --ranges-from-checkpoint` writes them into the graph unchanged.
+`FakeQuantHandle.remove` leaves the model as it was.
 """
 from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
+from e3dpsm.training.qat_lsq import LearnedQuantizer
+from e3dpsm.training.qat_sites import QuantGroup, QuantSite
+
 # Modules the INT8 graph keeps in float whatever the search decides: the Kalman fusion's
 # pose embedding and the delta head feeding it (graph_groups' `fusion` recurrent group:
 # `inject` stops at the first projection). The S5 recurrence has no nn.Linear of its own.
 FLOAT_MODULE_PREFIXES: tuple[str, ...] = ("fusion", "pose_embed", "delta_head")
-ACTIVATION_QMIN, ACTIVATION_QMAX = 0, 255      # U8 (StaticConfig.activation_type)
 WEIGHT_QMAX = 127                              # S8 symmetric, per output channel
 
 
 @dataclass(frozen=True)
 class QATConfig:
-    """How the rounding is simulated. `momentum`: weight of each new batch in the running
-    activation range (the range settles within ~1/momentum steps)."""
+    """What is fake-quantised. `range_lr_scale`: the learned ranges' learning rate over the
+    weights' (their log-scales and zero points move by about lr per Adam step, and a zero
+    point needs steps of order 1 to move one level)."""
 
-    momentum: float = 0.01
     weights: bool = True
     activations: bool = True
+    range_lr_scale: float = 10.0
 
 
 def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:
@@ -50,37 +56,6 @@ def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:
     scale = (absmax / WEIGHT_QMAX).to(torch.float32)
     zero = torch.zeros_like(scale, dtype=torch.int32)
     return torch.fake_quantize_per_channel_affine(weight, scale, zero, 0, -WEIGHT_QMAX, WEIGHT_QMAX)
-
-
-class RangeObserver:
-    """Running [min, max] of one activation, widened to include 0 (so 0 is exact, as ONNX
-    Runtime's calibrator makes it)."""
-
-    def __init__(self, momentum: float) -> None:
-        self.momentum = momentum
-        self.low: float | None = None
-        self.high: float | None = None
-
-    def update(self, x: torch.Tensor) -> None:
-        low, high = torch.aminmax(x.detach())
-        low, high = min(float(low), 0.0), max(float(high), 0.0)
-        if self.low is None:
-            self.low, self.high = low, high
-        else:
-            self.low += self.momentum * (low - self.low)
-            self.high += self.momentum * (high - self.high)
-
-    def scale_zero_point(self) -> tuple[float, int]:
-        span = max(self.high - self.low, 1e-8)
-        scale = span / (ACTIVATION_QMAX - ACTIVATION_QMIN)
-        zero = int(round(ACTIVATION_QMIN - self.low / scale))
-        return scale, min(max(zero, ACTIVATION_QMIN), ACTIVATION_QMAX)
-
-    def fake_quantize(self, x: torch.Tensor, observe: bool) -> torch.Tensor:
-        if observe or self.low is None:
-            self.update(x)
-        scale, zero = self.scale_zero_point()
-        return torch.fake_quantize_per_tensor_affine(x, scale, zero, ACTIVATION_QMIN, ACTIVATION_QMAX)
 
 
 class _WeightFakeQuant(nn.Module):
@@ -96,14 +71,20 @@ def quantised_modules(model: nn.Module) -> list[tuple[str, nn.Module]]:
 
 
 class FakeQuantHandle:
-    """The hooks and weight parametrisations one `attach_fake_quant` call added."""
+    """The hooks, weight parametrisations and learned quantisers one `attach_fake_quant`
+    call added. `groups`: the graph's quantised tensors matched to sites (qat_sites)."""
 
-    def __init__(self, model: nn.Module, config: QATConfig) -> None:
+    def __init__(self, model: nn.Module, config: QATConfig, groups: Sequence[QuantGroup] = ()) -> None:
         self.model, self.config = model, config
         self.modules = quantised_modules(model)
-        self.observers: dict[str, tuple[RangeObserver, RangeObserver]] = {}
+        self.groups = list(groups)
+        self.quantizers = nn.ModuleList(LearnedQuantizer() for _ in self.groups)
         self._hooks: list[torch.utils.hooks.RemovableHandle] = []
         self._weights_attached = False
+
+    def parameters(self) -> list[nn.Parameter]:
+        """The learned ranges (an optimizer trains them beside the model's parameters)."""
+        return list(self.quantizers.parameters())
 
     def _attach_weights(self) -> None:
         if self.config.weights and not self._weights_attached:
@@ -122,18 +103,23 @@ class FakeQuantHandle:
     def _attach_hooks(self) -> None:
         if not self.config.activations:
             return
-        for name, module in self.modules:
-            inp, out = self.observers.setdefault(
-                name, (RangeObserver(self.config.momentum), RangeObserver(self.config.momentum)))
-
-            def before(mod: nn.Module, args: tuple, inp: RangeObserver = inp) -> tuple:
-                return (inp.fake_quantize(args[0], observe=mod.training), *args[1:])
-
-            def after(mod: nn.Module, args: tuple, output: torch.Tensor, out: RangeObserver = out) -> torch.Tensor:
-                return out.fake_quantize(output, observe=mod.training)
-
-            self._hooks.append(module.register_forward_pre_hook(before))
-            self._hooks.append(module.register_forward_hook(after))
+        modules = dict(self.model.named_modules())
+        for group, quantizer in zip(self.groups, self.quantizers):
+            for key in group.sites:
+                site = QuantSite.parse(key)
+                module = modules[site.module]
+                if site.kind == "in":
+                    def before(mod: nn.Module, args: tuple, q: LearnedQuantizer = quantizer) -> tuple:
+                        return (q(args[0]), *args[1:])
+                    self._hooks.append(module.register_forward_pre_hook(before))
+                elif site.kind == "out":
+                    def after(mod: nn.Module, args: tuple, out: torch.Tensor, q: LearnedQuantizer = quantizer):
+                        return q(out)
+                    self._hooks.append(module.register_forward_hook(after))
+                else:  # "prebias": the graph's MatMul output, before the Add of the bias
+                    def prebias(mod: nn.Module, args: tuple, out: torch.Tensor, q: LearnedQuantizer = quantizer):
+                        return q(out - mod.bias) + mod.bias
+                    self._hooks.append(module.register_forward_hook(prebias))
 
     def attach(self) -> "FakeQuantHandle":
         self._attach_weights()
@@ -162,8 +148,41 @@ class FakeQuantHandle:
             if was_attached:
                 self.attach()
 
+    def ranges_payload(self) -> dict:
+        """The checkpoint's `qat_ranges`: per learned quantiser its sites, the graph tensors
+        it matched and its (scale, zero point) as the forward pass applies them."""
+        from e3dpsm.quantize.qat_ranges import ranges_payload
 
-def attach_fake_quant(model: nn.Module, config: QATConfig | None = None) -> FakeQuantHandle:
-    """Fake-quantise `model` in place as the default INT8 graph quantises it; returns the
-    handle that removes it again."""
-    return FakeQuantHandle(model, config or QATConfig()).attach()
+        done = [(g, q) for g, q in zip(self.groups, self.quantizers) if bool(q.initialised)]
+        payload = ranges_payload([(g, *q.qparams()) for g, q in done])
+        for entry, (_, q) in zip(payload["quantizers"], done):
+            entry["log_scale"] = float(q.log_scale.detach())  # for an exact resume
+        return payload
+
+    def load_ranges(self, payload: dict) -> int:
+        """Restore learned quantisers from a checkpoint's `qat_ranges` (matched by site);
+        returns how many were restored."""
+        by_site = {s: q for q in payload.get("quantizers", []) for s in q["sites"]}
+        restored = 0
+        for group, quantizer in zip(self.groups, self.quantizers):
+            hit = next((by_site[s] for s in group.sites if s in by_site), None)
+            if hit is not None:
+                quantizer.set_qparams(float(hit["scale"]), int(hit["zero_point"]))
+                if "log_scale" in hit:
+                    with torch.no_grad():
+                        quantizer.log_scale.fill_(float(hit["log_scale"]))
+                restored += 1
+        return restored
+
+
+def attach_fake_quant(model: nn.Module, config: QATConfig | None = None,
+                      groups: Sequence[QuantGroup] | None = None) -> FakeQuantHandle:
+    """Fake-quantise `model` in place as its INT8 graph quantises it; returns the handle
+    that removes it again. `groups` (None: found by exporting the model, qat_ranges.qat_plan)
+    name the graph's quantised tensors and their torch sites."""
+    config = config or QATConfig()
+    if groups is None and config.activations:
+        from e3dpsm.quantize.qat_ranges import qat_plan
+
+        groups = qat_plan(model)
+    return FakeQuantHandle(model, config, groups or ()).attach()

@@ -185,20 +185,29 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     dataset = WindowDataset(sequences, args.seq_len)
     if payload is None and not args.init_from:
         model.set_pose_prior(torch.from_numpy(mean_pose_mm(sequences)))
+    # QAT: the graph's quantised tensors are found on the CPU model (it is exported once);
+    # a resumed run takes its learned ranges back from the checkpoint.
+    fake_quant = attach_fake_quant(model.train()) if args.qat else None
+    if fake_quant and payload is not None and payload.get("qat_ranges"):
+        fake_quant.load_ranges(payload["qat_ranges"])
     model.to(ctx.device).train()
-    fake_quant = attach_fake_quant(model) if args.qat else None
+    if fake_quant:
+        fake_quant.quantizers.to(ctx.device)
     trained = wrap_model(model, ctx)
 
     epoch_steps, _ = steps_per_epoch(dataset, args, ctx.world_size)
     total_steps = _total_steps(args, epoch_steps)
-    optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
+    param_groups = [{"params": list(model.parameters())}]
+    if fake_quant:
+        param_groups.append({"params": fake_quant.parameters(), "lr": args.lr * fake_quant.config.range_lr_scale})
+    optimizer = torch.optim.Adam(param_groups, lr=args.lr)
     schedule = WarmupCosine(total_steps, min(args.warmup_steps, max(1, total_steps // 10)), args.min_lr_ratio)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
     start_step = 0
     if payload is not None:
         optimizer.load_state_dict(payload["optimizer"])
         scheduler.load_state_dict(payload["scheduler"])
-        scheduler.lr_lambdas = [schedule]  # a changed --steps stretches the schedule
+        scheduler.lr_lambdas = [schedule] * len(optimizer.param_groups)  # a changed --steps stretches the schedule
         start_step = int(payload["step"])
         if ctx.is_main:
             torch.set_rng_state(payload["rng_torch"])
@@ -211,8 +220,9 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
 
     def checkpoint(step: int) -> None:
         if ctx.is_main:
+            qat = {"qat_ranges": fake_quant.ranges_payload()} if fake_quant else {}
             with fake_quant.removed() if fake_quant else contextlib.nullcontext():
-                save_checkpoint(out / CHECKPOINT_NAME, model, optimizer=optimizer.state_dict(),
+                save_checkpoint(out / CHECKPOINT_NAME, model, **qat, optimizer=optimizer.state_dict(),
                                 scheduler=scheduler.state_dict(), step=step, rng_torch=torch.get_rng_state(),
                                 train_args=args.to_dict(), window_ms=data.window_ms, data=str(data_dir))
 

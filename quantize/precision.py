@@ -1,0 +1,132 @@
+"""Per-node precision, int8 -> int16 -> float (`quantize --exclude auto --search nodes`).
+
+The ranked search (exclusions.py) finds the fewest top-ranked Conv/MatMul/Gemm nodes that
+must leave 8 bits for the held-out error to meet the budget. Leaving 8 bits need not mean
+float: with 16-bit activations (ONNX QuantizeLinear in UINT16, opset 21) and the same 8-bit
+weights, a node keeps its integer weights (the graph stays small and integer-only targets
+such as NPUs with a16w8 support can run it) and its activation rounding error drops by
+256x. So each such node is tried at int16 before it is given up to float: the lowest
+precision whose measured graph error meets the budget wins (`choose_precision`, a pure
+function the tests drive with injected errors).
+
+`demote_to_int16` walks the nodes the ranked search took out of 8 bits: first all of them
+at int16 at once (one trial; enough when 16 bits are all they needed), otherwise one node at
+a time, from the least sensitive to the most, each kept at int16 when the graph still meets
+its target with it there. Every decision is recorded with the errors it rests on.
+
+The target is not the budget itself: the demotion may spend only `INT16_SLACK_SHARE` of the
+slack the all-float choice left (target = float error + share x (budget - float error)). On
+the committed trained `small`, demoting up to the budget's edge took the search's own error
+from 0.854% to 0.996% of MPJPE (18 of 32 nodes at int16) and the split the search never saw
+from 0.943% to 1.135%, over the budget (benchmarks/results/int8_small_ladder.md): a choice
+fitted to the last hundredth of a percent on one split does not carry to another.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Mapping, Sequence
+
+log = logging.getLogger(__name__)
+
+# Cheapest first: fewer bits, smaller graph, integer kernels.
+PRECISIONS: tuple[str, ...] = ("int8", "int16", "float")
+# Share of the all-float choice's slack under the budget that 16-bit nodes may spend (module doc).
+INT16_SLACK_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class PrecisionChoice:
+    node: str
+    precision: str
+    reason: str
+    errors: dict[str, float] = field(default_factory=dict)  # graph error (% of MPJPE) per precision tried
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def choose_precision(node: str, errors: Mapping[str, float], budget_pct: float) -> PrecisionChoice:
+    """The lowest precision (int8, then int16, then float) whose measured graph error is
+    within `budget_pct`; precisions not measured are skipped. When none meets the budget,
+    the most accurate one measured (float if it was)."""
+    unknown = set(errors) - set(PRECISIONS)
+    if unknown:
+        raise ValueError(f"unknown precision(s) {sorted(unknown)}; choose from {list(PRECISIONS)}")
+    if not errors:
+        raise ValueError(f"no measured error for node {node!r}")
+    tried = {p: float(errors[p]) for p in PRECISIONS if p in errors}
+    over = []
+    for precision, err in tried.items():
+        if err <= budget_pct:
+            why = f"{precision} meets the {budget_pct:g}% budget ({err:.3f}%)"
+            if over:
+                why += "; " + ", ".join(over) + " over it"
+            return PrecisionChoice(node, precision, why, tried)
+        over.append(f"{precision} {err:.3f}%")
+    best = min(tried, key=lambda p: (tried[p], -PRECISIONS.index(p)))
+    return PrecisionChoice(node, best, f"no precision meets the {budget_pct:g}% budget ({', '.join(over)}); "
+                                       f"{best} is the most accurate", tried)
+
+
+@dataclass
+class PrecisionPlan:
+    """Which nodes ended where, and why."""
+
+    int16: list[str]
+    float_nodes: list[str]
+    error_pct: float
+    choices: list[PrecisionChoice]
+    trials: list[dict]
+
+    target_pct: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"target_pct": self.target_pct, "int16_nodes": self.int16, "float_nodes": self.float_nodes, "error_pct": self.error_pct,
+                "choices": [c.to_dict() for c in self.choices], "trials": self.trials}
+
+
+def int16_target(float_error_pct: float, budget_pct: float, share: float = INT16_SLACK_SHARE) -> float:
+    """The error the 16-bit demotion may reach (module doc); the budget when the float choice
+    is already over it."""
+    if float_error_pct >= budget_pct:
+        return budget_pct
+    return float_error_pct + share * (budget_pct - float_error_pct)
+
+
+def demote_to_int16(out_of_int8: Sequence[str], float_error_pct: float, budget_pct: float,
+                    evaluate: Callable[[list[str], list[str], str], float],
+                    slack_share: float = INT16_SLACK_SHARE) -> PrecisionPlan:
+    """`out_of_int8`: the nodes the ranked search took out of 8 bits, most sensitive first;
+    `float_error_pct`: the graph's error with all of them in float. `evaluate(int16_nodes,
+    float_nodes, label) -> error %` builds and measures one graph (the rest as before). Each
+    node's choice is `choose_precision` against `int16_target` (a share of the slack)."""
+    budget_pct = int16_target(float_error_pct, budget_pct, slack_share)
+    nodes = list(out_of_int8)
+    trials: list[dict] = []
+
+    def measure(int16: list[str], floats: list[str], label: str) -> float:
+        err = float(evaluate(int16, floats, label))
+        trials.append({"label": label, "int16_nodes": len(int16), "float_nodes": len(floats), "error_pct": err})
+        log.info("%s: %d node(s) int16, %d float: %.3f%%", label, len(int16), len(floats), err)
+        return err
+
+    if not nodes:
+        return PrecisionPlan([], [], float_error_pct, [], trials, budget_pct)
+    all16 = measure(nodes, [], "int16_all")
+    if all16 <= budget_pct:
+        choices = [choose_precision(n, {"int16": all16, "float": float_error_pct}, budget_pct) for n in nodes]
+        return PrecisionPlan(nodes, [], all16, choices, trials, budget_pct)
+    int16: list[str] = []
+    floats = list(nodes)
+    current = float_error_pct
+    decided: dict[str, PrecisionChoice] = {}
+    for node in reversed(nodes):  # least sensitive first: the likeliest to take 16 bits
+        trial_floats = [n for n in floats if n != node]
+        err = measure(int16 + [node], trial_floats, f"int16_{node}")
+        choice = choose_precision(node, {"int16": err, "float": current}, budget_pct)
+        decided[node] = choice
+        if choice.precision == "int16":
+            int16.append(node)
+            floats, current = trial_floats, err
+    return PrecisionPlan(int16, floats, current, [decided[n] for n in nodes], trials, budget_pct)

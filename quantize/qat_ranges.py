@@ -1,0 +1,184 @@
+"""QAT ranges that reach the graph: the learned (scale, zero point) of a QAT checkpoint
+written into the INT8 graph as they are (`quantize --ranges-from-checkpoint CKPT`).
+
+Both directions use one matching (e3dpsm/training/qat_sites.py): the tensors that get a
+QuantizeLinear in the INT8 graph (recurrent groups in float, as `--exclude recurrent`) are
+matched by value to PyTorch sites on one step with the same inputs.
+- Training (`train --qat`): `qat_plan` exports the model, finds the quantised tensors and
+  their sites; each group gets one learned quantiser (training/qat_lsq.py). The checkpoint
+  stores them as `qat_ranges` (`QAT_RANGES_FORMAT`): per quantiser its torch sites, the ONNX
+  tensors it matched at training time, and the learned float32 scale and U8 zero point.
+- Quantising: the graph to quantise is matched again against the checkpoint's model on a
+  calibration frame (names of an export need not survive another export), and each matched
+  tensor gets its quantiser's scale and zero point through ONNX Runtime's
+  TensorQuantOverrides (scale and zero point given: ORT computes nothing). Tensors no
+  learned quantiser covers (functional ops with no module: attention scores, softmax) keep
+  their calibrated ranges; the report counts both.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
+
+import numpy as np
+import onnx
+
+from e3dpsm.errors import CheckpointError, ConfigError
+from e3dpsm.onnx_graph import with_outputs
+
+if TYPE_CHECKING:
+    from e3dpsm.training.qat_sites import QuantGroup
+
+log = logging.getLogger(__name__)
+
+QAT_RANGES_FORMAT = "e3dpsm-qat-ranges/1"
+
+
+def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> list[str]:
+    """Activation tensors that get a QuantizeLinear when `pre_path` is quantised with the
+    nodes `exclude` in float (read back from a QDQ graph built with placeholder ranges)."""
+    from onnxruntime.quantization.calibrate import CalibrationMethod, TensorsData, create_calibrator, save_tensors_data
+
+    from e3dpsm.quantize.static import StaticConfig, quantize_int8
+
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-qsites-") as work:
+        calibrator = create_calibrator(Path(pre_path), list(op_types), augmented_model_path=str(Path(work) / "aug.onnx"))
+        names = calibrator.select_tensors_to_calibrate(onnx.load(str(pre_path)))[0]
+        del calibrator
+        cache = Path(work) / "cache.json"
+        save_tensors_data(TensorsData(CalibrationMethod.MinMax, {n: (np.float32(-1), np.float32(1)) for n in names}), cache)
+        out = Path(work) / "q.onnx"
+        quantize_int8(pre_path, out, StaticConfig(op_types=tuple(op_types)), exclude=exclude, cache=cache)
+        qdq = onnx.load(str(out))
+    inits = {i.name for i in qdq.graph.initializer}
+    return sorted({n.input[0] for n in qdq.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits})
+
+
+def tensor_values(model_path: str | os.PathLike, names: Sequence[str], feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    import onnxruntime as ort
+
+    model = with_outputs(onnx.load(str(model_path)), names)
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    return dict(zip(names, session.run(list(names), dict(feed))))
+
+
+def match_graph(model, pre_path: str | os.PathLike, quantised: Sequence[str],
+                feed: Mapping[str, np.ndarray]) -> list["QuantGroup"]:
+    """Groups of the graph's quantised tensors and the torch model's sites (qat_sites)."""
+    from e3dpsm.training.qat_sites import capture_sites, match_groups
+
+    return match_groups(tensor_values(pre_path, quantised, feed), capture_sites(model, feed))
+
+
+def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
+    """An ONNX-style feed for matching: sparse random LNES frames, states carried `steps`
+    steps from the initial ones (so no state is trivially zero)."""
+    import torch
+
+    cfg = model.config
+    rng = np.random.default_rng(seed)
+    window = float(cfg.train_window_ms)
+    state = model.init_state(1)
+
+    def frame() -> np.ndarray:
+        shape = (1, cfg.in_channels, cfg.height, cfg.width)
+        return ((rng.random(shape) < 0.05) * rng.random(shape)).astype(np.float32)
+
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        for _ in range(steps):
+            _, state = model.step(torch.from_numpy(frame()), state, torch.tensor([window]))
+    model.train(was_training)
+    return {"lnes": frame(), "window_ms": np.array([window], np.float32),
+            **{s.input_name: state[s.name].numpy() for s in model.state_spec()}}
+
+
+def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None) -> list["QuantGroup"]:
+    """The quantisers a QAT run trains: the model exported and pre-processed as `quantize`
+    does, its INT8 graph's quantised tensors (recurrent groups in float), matched to sites."""
+    from e3dpsm.export import export_step
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.quantize.graph_groups import recurrent_groups
+    from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
+
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-qat-plan-") as work:
+        raw, pre = Path(work) / "step.onnx", Path(work) / "pre.onnx"
+        export_step(model, raw)
+        preprocess(raw, pre)
+        pre_model = onnx.load(str(pre))
+        keep = [n for g in recurrent_groups(pre_model, GraphMetadata.from_onnx(pre_model)) for n in g.nodes]
+        quantised = quantised_activations(pre, keep, DEFAULT_OP_TYPES)
+        groups = match_graph(model, pre, quantised, feed or probe_feed(model))
+    covered = sum(len(g.tensors) for g in groups)
+    log.info("QAT: %d learned quantisers cover %d of the %d tensors the INT8 graph quantises",
+             len(groups), covered, len(quantised))
+    return groups
+
+
+def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]]) -> dict[str, Any]:
+    """The checkpoint's `qat_ranges` entry."""
+    return {"format": QAT_RANGES_FORMAT, "activation_type": "QUInt8",
+            "quantizers": [{"sites": list(g.sites), "tensors": list(g.tensors), "scale": float(s), "zero_point": int(z)}
+                           for g, s, z in quantizers]}
+
+
+def read_ranges(payload: Mapping[str, Any], source: str) -> list[dict[str, Any]]:
+    ranges = payload.get("qat_ranges")
+    if not ranges:
+        raise CheckpointError(f"{source} carries no learned QAT ranges (qat_ranges); fine-tune it with "
+                              "`e3dpsm train --init-from CKPT --qat`, or quantise without --ranges-from-checkpoint")
+    if ranges.get("format") != QAT_RANGES_FORMAT:
+        raise CheckpointError(f"{source}: qat_ranges format {ranges.get('format')!r} is not {QAT_RANGES_FORMAT!r}")
+    return list(ranges["quantizers"])
+
+
+def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike, quantised: Sequence[str],
+                      feed: Mapping[str, np.ndarray]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
+    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors)."""
+    from e3dpsm.checkpoint import load_checkpoint
+
+    model, payload = load_checkpoint(checkpoint)
+    learned = read_ranges(payload, str(checkpoint))
+    by_site = {site: q for q in learned for site in q["sites"]}
+    groups = match_graph(model, pre_path, quantised, feed)
+    if not groups:
+        raise ConfigError(f"no tensor of the graph matches {checkpoint}'s model: quantise the graph exported "
+                          "from that checkpoint")
+    overrides: dict[str, dict[str, Any]] = {}
+    for group in groups:
+        hit = next((by_site[s] for s in group.sites if s in by_site), None)
+        if hit is not None:
+            for tensor in group.tensors:
+                overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
+    uncovered = sorted(set(quantised) - set(overrides))
+    report = {"checkpoint": str(checkpoint), "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
+              "uncovered": uncovered}
+    log.info("QAT ranges: %d tensors take the learned ranges, %d keep calibrated ones", len(overrides), len(uncovered))
+    return overrides, report
+
+
+def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),
+                  int16_ranges: Mapping[str, tuple[float, float]] | None = None) -> dict[str, list[dict]]:
+    """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations
+    (with `int16_ranges` (rmin, rmax) where given). A tensor both learned and 16-bit keeps
+    16 bits (calibrated): a U8 range has no 16-bit form."""
+    from onnxruntime.quantization import QuantType
+
+    out: dict[str, list[dict]] = {}
+    for name, q in learned.items():
+        if name not in int16:
+            out[name] = [{"scale": np.array(q["scale"], np.float32), "zero_point": np.array(q["zero_point"], np.uint8)}]
+    for name in int16:
+        rng = (int16_ranges or {}).get(name)
+        extra = {"rmin": np.array(rng[0], np.float32), "rmax": np.array(rng[1], np.float32)} if rng else {}
+        out[name] = [{"quant_type": QuantType.QUInt16, **extra}]
+    return out
+
+

@@ -1,0 +1,165 @@
+"""QAT ranges that reach the graph: the learned fake-quant against ONNX Runtime's QDQ and a
+numpy re-statement, the site matching, and a QAT graph whose QuantizeLinear parameters are
+exactly the learned ones."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from onnx import TensorProto, helper, numpy_helper
+
+from e3dpsm.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from e3dpsm.training.qat import QATConfig, attach_fake_quant
+from e3dpsm.training.qat_lsq import LearnedQuantizer
+from e3dpsm.training.qat_sites import match_groups
+
+from _quantize_helpers import TRAINED_TINY
+
+
+def numpy_qdq_u8(x: np.ndarray, scale: np.float32, zero: int) -> np.ndarray:
+    """QuantizeLinear (divide, round half to even, add the zero point, saturate to [0, 255])
+    then DequantizeLinear ((q - zero) * scale), in float32 as the ONNX spec states them."""
+    q = np.clip(np.round(x.astype(np.float32) / np.float32(scale)) + zero, 0, 255)
+    return ((q - zero).astype(np.float32) * np.float32(scale)).astype(np.float32)
+
+
+def ort_qdq_u8(x: np.ndarray, scale: np.float32, zero: int) -> np.ndarray:
+    import onnxruntime as ort
+
+    graph = helper.make_graph(
+        [helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]), helper.make_node("DequantizeLinear", ["q", "s", "z"], ["y"])],
+        "qdq", [helper.make_tensor_value_info("x", TensorProto.FLOAT, list(x.shape))],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, list(x.shape))],
+        [numpy_helper.from_array(np.array(scale, np.float32), "s"), numpy_helper.from_array(np.array(zero, np.uint8), "z")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL  # no Q/DQ folding
+    session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    return session.run(["y"], {"x": x})[0]
+
+
+def test_learned_fake_quant_is_ort_qdq_and_learns_by_lsq_gradients() -> None:
+    gen = torch.Generator().manual_seed(0)
+    # Heavy tails and exact ties (k + 0.5 steps) so rounding mode and saturation both matter.
+    x = torch.cat([torch.randn(4000, generator=gen) * 3, torch.tensor([0.5, 1.5, 2.5, -0.5, -1.5]) * 0.0625, torch.tensor([40.0, -40.0])])
+    quantizer = LearnedQuantizer()
+    quantizer.set_qparams(0.0625, 100)
+    scale, zero = quantizer.qparams()
+    assert zero == 100 and scale == pytest.approx(0.0625, rel=1e-6)
+    got = quantizer(x).detach().numpy()
+    want = numpy_qdq_u8(x.numpy(), np.float32(scale), zero)
+    np.testing.assert_array_equal(got, want)                                  # exactly the spec's arithmetic
+    np.testing.assert_array_equal(got, ort_qdq_u8(x.numpy(), np.float32(scale), zero))  # and ONNX Runtime's
+
+    # Gradients, against the LSQ / LSQ+ formulas in numpy.
+    xg = x.clone().requires_grad_(True)
+    quantizer(xg).sum().backward()
+    s = np.float32(scale)
+    v = x.numpy() / s
+    inside = (np.round(v) + zero >= 0) & (np.round(v) + zero <= 255)
+    np.testing.assert_array_equal(xg.grad.numpy(), inside.astype(np.float32))
+    low_sat = np.round(v) + zero < 0
+    d_scale = np.where(inside, np.round(v) - v, np.where(low_sat, 0 - zero, 255 - zero)).sum()
+    # The parameter is log(scale): d/dlog s = s * d/ds.
+    assert float(quantizer.log_scale.grad) == pytest.approx(float(d_scale) * float(s), rel=1e-4)
+    assert float(quantizer.zero_point.grad) == pytest.approx(-float(s) * float((~inside).sum()), rel=1e-5)
+
+
+def test_match_groups_by_value_up_to_layout() -> None:
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 8, 4, 4)).astype(np.float32), rng.normal(size=(2, 32)).astype(np.float32)
+    tensors = {"conv_out": a, "reshaped": a.reshape(2, 128).T.copy(), "other": b, "zeros": np.zeros(64, np.float32)}
+    sites = {"m1:out": a + 1e-7, "m2:in": a.copy(), "lin:in": b, "z:out": np.zeros((8, 8), np.float32),
+             "unrelated:out": rng.normal(size=(2, 8, 4, 4)).astype(np.float32)}
+    groups = {g.tensors: g.sites for g in match_groups(tensors, sites)}
+    assert groups == {("conv_out", "reshaped"): ("m1:out", "m2:in"), ("other",): ("lin:in",)}
+
+
+@pytest.fixture(scope="module")
+def qat_tiny(tmp_path_factory) -> dict:
+    """The trained tiny after a few QAT steps (learned ranges moved from their start), saved
+    as a checkpoint with its `qat_ranges`, and its fp32 export."""
+    from e3dpsm.export import export_step
+
+    torch.manual_seed(0)
+    model, payload = load_checkpoint(TRAINED_TINY, variant="tiny")
+    model.train()
+    handle = attach_fake_quant(model, QATConfig())
+    cfg = model.config
+    frames = (torch.rand(1, 4, cfg.in_channels, cfg.height, cfg.width, generator=torch.Generator().manual_seed(1)) < 0.05).float()
+    frames = frames * torch.rand(frames.shape, generator=torch.Generator().manual_seed(2))
+    optimizer = torch.optim.Adam([{"params": model.parameters(), "lr": 1e-4},
+                                  {"params": handle.parameters(), "lr": 1e-2}])
+    start = None
+    for step in range(3):
+        loss = model.forward_sequence(frames, causal=False)["pose"].pow(2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        if start is None:  # initialised by the first forward pass
+            start = {i: q.qparams() for i, q in enumerate(handle.quantizers)}
+        optimizer.step()
+    learned = {i: q.qparams() for i, q in enumerate(handle.quantizers)}
+    root = tmp_path_factory.mktemp("qat_tiny")
+    ranges = handle.ranges_payload()
+    with handle.removed():
+        ckpt = save_checkpoint(root / "checkpoint.pt", model, qat_ranges=ranges)
+        graph = export_step(model.eval(), root / "step.onnx")
+    return {"checkpoint": ckpt, "graph": graph, "start": start, "learned": learned, "handle": handle}
+
+
+def test_qat_checkpoint_carries_learned_ranges_that_moved(qat_tiny) -> None:
+    payload = read_checkpoint(qat_tiny["checkpoint"])
+    quantizers = payload["qat_ranges"]["quantizers"]
+    assert len(quantizers) == len(qat_tiny["handle"].groups) > 50
+    moved = [i for i in qat_tiny["learned"] if qat_tiny["learned"][i][0] != qat_tiny["start"][i][0]]
+    assert len(moved) > len(quantizers) // 2  # the scales trained
+    load_checkpoint(qat_tiny["checkpoint"], variant="tiny")  # strict load: no fake-quant keys in the weights
+
+
+def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quant_data: Path, tmp_path: Path) -> None:
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    out = tmp_path / "q"
+    report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
+        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"])))
+    block = report["qat_ranges"]
+    assert block["learned_tensors"] >= 0.8 * (block["learned_tensors"] + block["calibrated_tensors"])
+    learned = {}
+    for q in read_checkpoint(qat_tiny["checkpoint"])["qat_ranges"]["quantizers"]:
+        for site in q["sites"]:
+            learned[site] = (np.float32(q["scale"]), q["zero_point"])
+    handle = qat_tiny["handle"]
+    by_tensor = {}  # tensor of the training-time export -> the live quantiser's (scale, zp)
+    for group, quantizer in zip(handle.groups, handle.quantizers):
+        for tensor in group.tensors:
+            by_tensor[tensor] = quantizer.qparams()
+
+    model = onnx.load(str(out / report["artifact"]))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    checked = 0
+    for node in model.graph.node:
+        if node.op_type != "QuantizeLinear" or node.input[0] not in by_tensor or node.input[0] in inits:
+            continue
+        scale, zero = inits[node.input[1]], inits[node.input[2]]
+        want_scale, want_zero = by_tensor[node.input[0]]
+        assert scale.dtype == np.float32 and zero.dtype == np.uint8
+        assert scale == np.float32(want_scale), node.input[0]   # exactly: written, not recomputed
+        assert int(zero) == want_zero, node.input[0]
+        checked += 1
+    assert checked >= block["learned_tensors"] * 0.9 and checked > 50
+
+
+def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: Path, quant_data: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture) -> None:
+    from e3dpsm.cli import main
+
+    out = tmp_path / "q"
+    rc = main(["quantize", "--model", str(trained_graph), "--data", str(quant_data), "--out", str(out),
+               "--exclude", "none", "--ranges-from-checkpoint", str(TRAINED_TINY)])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "carries no learned QAT ranges" in err and len(err.splitlines()) == 1
+    assert not out.exists()
