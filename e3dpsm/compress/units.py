@@ -38,6 +38,12 @@ class Unit:
     width: int  # current width (for ATTN_BLOCK: 1 while present)
     removable: bool  # may go to width 0 (whole branch / block gone)
     scope: str  # the node-name scope of its work in the exported graph
+    # Further node-name scopes of its work (the decoder FFN's linear1/linear2 of every layer).
+    more_scopes: tuple[str, ...] = ()
+
+    @property
+    def scopes(self) -> tuple[str, ...]:
+        return (self.scope, *self.more_scopes)
 
 
 def prunable_units(cfg: E3DPSMConfig) -> list[Unit]:
@@ -55,7 +61,8 @@ def prunable_units(cfg: E3DPSMConfig) -> list[Unit]:
     for s in sorted(cfg.ssm_stages):
         units.append(Unit(f"ssm.{s}.ff", SSM_FF, s, None, cfg.ssm_ff_width(s), False, f"/ssm.{s}/ff/"))
         units.append(Unit(f"ssm.{s}.s5", SSM_MODES, s, None, cfg.ssm_state_dim(s), False, f"/ssm.{s}/s5/"))
-    units.append(Unit("decoder.ffn", DECODER_FFN, None, None, cfg.decoder_ffn, False, "/decoder/"))
+    ffn_scopes = tuple(f"/decoder/layers.{l}/{lin}/" for l in range(cfg.decoder_layers) for lin in ("linear1", "linear2"))
+    units.append(Unit("decoder.ffn", DECODER_FFN, None, None, cfg.decoder_ffn, False, ffn_scopes[0], ffn_scopes[1:]))
     return units
 
 
