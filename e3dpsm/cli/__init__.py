@@ -18,7 +18,7 @@ from e3dpsm.errors import E3DPSMError
 
 # Order shown in --help: the order of the flow.
 COMMANDS: tuple[str, ...] = (
-    "pipeline", "synth", "prepare", "model_info", "train", "import_weights", "evaluate", "ablation", "export",
+    "pipeline", "synth", "prepare", "model_info", "train", "import_weights", "evaluate", "distill", "ablation", "export",
     "parity", "quantize", "prune", "validate", "convert", "golden", "diagnose", "profile", "compare", "run",
 )
 
@@ -32,6 +32,7 @@ DOCS: dict[str, str] = {
     "train": "docs/training.md",
     "import_weights": "docs/model.md",
     "evaluate": "docs/training.md",
+    "distill": "docs/compress.md",
     "ablation": "docs/training.md",
     "export": "docs/export-and-parity.md",
     "parity": "docs/export-and-parity.md",

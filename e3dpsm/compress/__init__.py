@@ -1,1 +1,1 @@
-"""Model compression: structured pruning (prune, surgery, latency model) and distillation."""
+"""Model compression: label-free distillation and structured pruning of trained variants."""

@@ -10,7 +10,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from e3dpsm.data.prepared import PreparedSequence
 from e3dpsm.errors import DataError
@@ -79,6 +79,32 @@ class SeededWindowSampler(Sampler[int]):
 
     def __len__(self) -> int:
         return len(self._indices())
+
+
+def epoch_size(dataset: WindowDataset, batch_size: int, world_size: int = 1) -> tuple[int, int]:
+    """(optimizer steps per epoch, windows per epoch). An epoch covers every frame once in
+    expectation; rounded so every rank does the same number of steps."""
+    per_step = batch_size * world_size
+    steps = max(1, -(-(dataset.frames_total() // dataset.seq_len) // per_step))
+    return steps, steps * per_step
+
+
+def seeded_batches(dataset: WindowDataset, batch_size: int, seed: int, start_step: int = 0, *,
+                   rank: int = 0, world_size: int = 1, num_workers: int = 0) -> Iterator[tuple[int, dict[str, torch.Tensor]]]:
+    """Yield (step, batch) from `start_step` on, epoch after epoch, endlessly; the windows of
+    a step depend only on (seed, step, rank, world size), so a resumed run draws what an
+    uninterrupted one would have drawn."""
+    epoch_steps, epoch_windows = epoch_size(dataset, batch_size, world_size)
+    step = start_step
+    while True:
+        epoch, done = divmod(step, epoch_steps)
+        sampler = SeededWindowSampler(len(dataset), epoch_windows, seed, epoch, rank, world_size,
+                                      skip=done * batch_size)
+        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, drop_last=True,
+                            num_workers=num_workers)
+        for batch in loader:
+            yield step, batch
+            step += 1
 
 
 def mean_pose_mm(sequences: Sequence[PreparedSequence]) -> np.ndarray:

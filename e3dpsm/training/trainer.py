@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from e3dpsm.camera import ee3d_default, sensor_to_frame_scale
@@ -27,7 +26,7 @@ from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import CheckpointError, ConfigError, OutputExistsError
 from e3dpsm.models import create_model
-from e3dpsm.training.data import SeededWindowSampler, WindowDataset, mean_pose_mm
+from e3dpsm.training.data import WindowDataset, epoch_size, mean_pose_mm, seeded_batches
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
@@ -93,11 +92,8 @@ class RunOptions:
 
 
 def steps_per_epoch(dataset: WindowDataset, args: TrainArgs, world_size: int) -> tuple[int, int]:
-    """(optimizer steps per epoch, windows per epoch). An epoch covers every training frame
-    once in expectation; rounded so every rank does the same number of steps."""
-    per_step = args.batch_size * world_size
-    steps = max(1, -(-(dataset.frames_total() // args.seq_len) // per_step))
-    return steps, steps * per_step
+    """(optimizer steps per epoch, windows per epoch): `epoch_size` at the run's batch size."""
+    return epoch_size(dataset, args.batch_size, world_size)
 
 
 def _total_steps(args: TrainArgs, epoch_steps: int) -> int:
@@ -146,19 +142,13 @@ def _param_digest(model: torch.nn.Module) -> dict[str, Any]:
     return {"sha256": digest.hexdigest(), "sum": total}
 
 
-def _batches(dataset: WindowDataset, args: TrainArgs, opts: RunOptions, ctx: DistContext,
-             epoch_steps: int, epoch_windows: int, start_step: int):
-    """Yield (step, batch) from `start_step` on, epoch after epoch."""
-    step = start_step
-    while True:
-        epoch, done = divmod(step, epoch_steps)
-        sampler = SeededWindowSampler(len(dataset), epoch_windows, args.seed, epoch, ctx.rank, ctx.world_size,
-                                      skip=done * args.batch_size)
-        loader = DataLoader(dataset, batch_size=args.batch_size, sampler=sampler, drop_last=True,
-                            num_workers=opts.num_workers)
-        for batch in loader:
-            yield step, batch
-            step += 1
+def pose_criterion(data: PreparedData, weights: LossWeights = LossWeights(), *, supervise_direct: bool = True,
+                   mask_invisible: bool = False) -> PoseLoss:
+    """The paper's loss for a prepared folder: its 2D term projects through the EE3D fisheye
+    scaled from the sensor to the folder's frame size."""
+    frame_scale = sensor_to_frame_scale(tuple(data.meta.get("sensor_hw", (480, 640))), (data.height, data.width))
+    return PoseLoss(FisheyeProjection(ee3d_default(), frame_scale), weights,
+                    supervise_direct=supervise_direct, mask_invisible=mask_invisible)
 
 
 def train(args: TrainArgs, data_dir: str | os.PathLike, out: str | os.PathLike, opts: RunOptions) -> dict[str, Any]:
@@ -199,7 +189,7 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     fake_quant = attach_fake_quant(model) if args.qat else None
     trained = wrap_model(model, ctx)
 
-    epoch_steps, epoch_windows = steps_per_epoch(dataset, args, ctx.world_size)
+    epoch_steps, _ = steps_per_epoch(dataset, args, ctx.world_size)
     total_steps = _total_steps(args, epoch_steps)
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     schedule = WarmupCosine(total_steps, min(args.warmup_steps, max(1, total_steps // 10)), args.min_lr_ratio)
@@ -216,9 +206,8 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     if payload is None or not ctx.is_main:
         torch.manual_seed(args.seed * 1000 + ctx.rank + 7919 * start_step)
 
-    frame_scale = sensor_to_frame_scale(tuple(data.meta.get("sensor_hw", (480, 640))), (data.height, data.width))
-    criterion = PoseLoss(FisheyeProjection(ee3d_default(), frame_scale), LossWeights(**args.weights),
-                         supervise_direct=args.supervise_direct, mask_invisible=args.mask_invisible).to(ctx.device)
+    criterion = pose_criterion(data, LossWeights(**args.weights), supervise_direct=args.supervise_direct,
+                               mask_invisible=args.mask_invisible).to(ctx.device)
 
     def checkpoint(step: int) -> None:
         if ctx.is_main:
@@ -233,7 +222,8 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     started, last_terms, step = time.perf_counter(), {}, start_step
     window_start, window_steps = time.perf_counter(), 0
     if start_step < end_step:
-        for step, batch in _batches(dataset, args, opts, ctx, epoch_steps, epoch_windows, start_step):
+        for step, batch in seeded_batches(dataset, args.batch_size, args.seed, start_step, rank=ctx.rank,
+                                          world_size=ctx.world_size, num_workers=opts.num_workers):
             batch = {k: v.to(ctx.device, non_blocking=True) for k, v in batch.items()}
             outputs = trained(batch["lnes"], causal=False)
             loss, terms = criterion(outputs, batch["j3d_mm"], batch["j2d_px"], batch["visible"])

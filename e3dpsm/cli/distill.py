@@ -1,0 +1,64 @@
+"""`e3dpsm distill`: train a variant (fresh or a checkpoint, e.g. a pruned model) to reproduce a
+trained teacher on prepared recordings, without labels."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "distill", help="distil a trained checkpoint into any variant, label-free",
+        description="Train --student to reproduce --teacher's fused, direct and delta poses (mm) on "
+        "windows of prepared LNES frames; the teacher is frozen, no labels are read unless --labels gt. "
+        "Writes OUT/checkpoint.pt (rebuilds alone; teacher path and sha256 inside), OUT/report.json "
+        "and OUT/report.md.",
+    )
+    p.add_argument("--teacher", required=True, metavar="CKPT", help="trained checkpoint to imitate")
+    p.add_argument("--student", required=True, metavar="VARIANT|CKPT",
+                   help="a registered variant (built fresh at the teacher's input size) or a checkpoint "
+                        "(e.g. a pruned model) with the teacher's input size")
+    p.add_argument("--data", required=True, help="prepared folder (e3dpsm prepare) at the teacher's frame size")
+    p.add_argument("--out", required=True, help="run folder (refused if it holds a run, unless --force)")
+    p.add_argument("--steps", type=int, default=500, help="optimizer steps (default 500)")
+    p.add_argument("--labels", choices=("none", "gt"), default="none",
+                   help="none: teacher targets only (default); gt: also the paper's loss on the labels")
+    p.add_argument("--split", default="all", help="split to read, or 'all' (default all: no labels are read)")
+    p.add_argument("--seq-len", type=int, default=16, help="frames per window (default 16)")
+    p.add_argument("--batch-size", type=int, default=4, help="windows per step (default 4)")
+    p.add_argument("--lr", type=float, default=1e-3, help="peak Adam learning rate (default 1e-3)")
+    p.add_argument("--warmup-steps", type=int, default=20, help="linear warm-up steps before the cosine decay")
+    p.add_argument("--seed", type=int, default=0, help="window sampling seed (default 0)")
+    p.add_argument("--prior", choices=("keep", "teacher", "data"),
+                   help="student pose prior: data = mean teacher pose on the data (default for a variant), "
+                        "keep = the checkpoint's (default for a checkpoint), teacher = the teacher's")
+    p.add_argument("--causal", action="store_true", help="run teacher and student causally (default: "
+                   "bidirectional, as train does)")
+    p.add_argument("--freeze-norm-stats", action="store_true",
+                   help="keep the student's BatchNorm running statistics fixed (e.g. a pruned student)")
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--force", action="store_true", help="replace a run already in --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from e3dpsm.compress.distill import DistillConfig
+    from e3dpsm.compress.distill_run import run_distill
+    from e3dpsm.models import list_models
+
+    fresh = args.student in list_models()
+    config = DistillConfig(
+        steps=args.steps, seq_len=args.seq_len, batch_size=args.batch_size, lr=args.lr,
+        warmup_steps=args.warmup_steps, labels=args.labels, seed=args.seed, threads=args.threads,
+        causal=args.causal, freeze_norm_stats=args.freeze_norm_stats,
+        prior=args.prior or ("data" if fresh else "keep"),
+    )
+    report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,
+                         force=args.force, progress=not args.no_progress and sys.stderr.isatty())
+    first, last = report["initial"], report["final"]
+    print(f"distilled {report['teacher']['variant']} -> {report['student']['variant']} in {report['steps']} steps "
+          f"({report['seconds']:.0f} s): fused {first['fused']:.1f} -> {last['fused']:.1f} mm from the teacher "
+          f"-> {args.out}")
+    return 0

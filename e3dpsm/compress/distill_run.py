@@ -1,0 +1,117 @@
+"""The run behind `e3dpsm distill`: load the teacher, build or load the student, distil, write
+
+    OUT/checkpoint.pt  the student (config inside: rebuilds alone), with the teacher's path and
+                       sha256, the distillation config and the data in its extras
+    OUT/report.json    report header + config + the distillation summary (timing, loss log)
+    OUT/report.md      the same for a person
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
+from e3dpsm.compress.distill import DistillConfig, check_pair, distill
+from e3dpsm.errors import ConfigError, OutputExistsError
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+
+CHECKPOINT_NAME = "checkpoint.pt"
+REPORT_NAME = "report.json"
+MARKDOWN_NAME = "report.md"
+_ARTIFACTS = (CHECKPOINT_NAME, REPORT_NAME, MARKDOWN_NAME)
+
+
+def prepare_out_dir(out: Path, force: bool) -> None:
+    """As `train` treats its run folder: refuse one that holds a run unless `force` (then the
+    old artifacts go only when the new ones are written, each by an atomic rename)."""
+    held = [name for name in _ARTIFACTS if (out / name).exists()]
+    if held and not force:
+        raise OutputExistsError(f"{out} holds a run ({', '.join(held)}); pass --force to replace it or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def build_student(spec: str, teacher: Any) -> tuple[Any, str]:
+    """(model, "variant" | "checkpoint"): a registered variant name builds a fresh variant at
+    the teacher's input size and training window; anything else must be a checkpoint file."""
+    from e3dpsm.models import create_model, list_models
+
+    if spec in list_models():
+        cfg = teacher.config
+        return create_model(spec, height=cfg.height, width=cfg.width, in_channels=cfg.in_channels,
+                            num_joints=cfg.num_joints, train_window_ms=cfg.train_window_ms), "variant"
+    if not Path(spec).is_file():
+        raise ConfigError(f"--student {spec!r} is neither a variant ({', '.join(list_models())}) nor a checkpoint file")
+    model, _ = load_checkpoint(spec)
+    return model, "checkpoint"
+
+
+def run_distill(teacher_path: str | os.PathLike, student_spec: str, data_dir: str | os.PathLike,
+                out: str | os.PathLike, config: DistillConfig, *, split: str | None = None,
+                force: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Distil and write OUT; returns the report. `config.prior` applies as given (the CLI
+    defaults it to "data" for a fresh variant, "keep" for a checkpoint)."""
+    out = Path(out)
+    prepare_out_dir(out, force)  # refuse before the long run, not after
+    teacher, teacher_payload = load_checkpoint(teacher_path)
+    student, student_kind = build_student(student_spec, teacher)
+    check_pair(teacher, student)
+    summary = distill(teacher, student, data_dir, config, split=split, progress=progress)
+    teacher_info = {"path": str(teacher_path), "sha256": sha256_file(teacher_path),
+                    "variant": teacher.config.variant, "train_step": teacher_payload.get("step")}
+    student_info = {"source": student_kind, "spec": student_spec, "variant": student.config.variant}
+    # train_args: the fields evaluate and `train --init-from` read (window length of non-causal runs).
+    train_args = {"variant": student.config.variant, "steps": config.steps, "seq_len": config.seq_len,
+                  "batch_size": config.batch_size, "lr": config.lr, "warmup_steps": config.warmup_steps,
+                  "min_lr_ratio": config.min_lr_ratio, "clip_norm": config.clip_norm, "seed": config.seed,
+                  "split": summary["split"]}
+    header = report_header("distill", {"teacher": str(teacher_path), "student": student_spec, "data": str(data_dir),
+                                       "split": summary["split"], "distill": config.to_dict()})
+    report = {**header, **{k: v for k, v in summary.items() if k not in ("teacher", "student", "config")},
+              "teacher": {**teacher_info, **summary["teacher"]}, "student": {**student_info, **summary["student"]},
+              "checkpoint": str(out / CHECKPOINT_NAME)}
+    markdown = report_markdown(report)  # everything built before the first write
+    save_checkpoint(out / CHECKPOINT_NAME, student.eval(), step=config.steps, window_ms=summary["window_ms"],
+                    data=str(data_dir), train_args=train_args, teacher=teacher_info, student_source=student_info,
+                    distill_config=config.to_dict())
+    write_json_atomic(out / REPORT_NAME, report)
+    write_text_atomic(out / MARKDOWN_NAME, markdown)
+    return report
+
+
+def report_markdown(report: dict[str, Any]) -> str:
+    teacher, student, cfg = report["teacher"], report["student"], report["config"]["distill"]
+    terms = [k for k in ("loss", "fused", "direct", "delta", "labels") if k in report["final"]]
+    lines = [
+        f"# Distillation: {teacher['variant']} -> {student['variant']}", "",
+        f"- teacher: `{teacher['path']}` (sha256 `{teacher['sha256'][:16]}...`, "
+        f"{teacher['parameters']:,} parameters)",
+        f"- student: {student['source']} `{student['spec']}` ({student['parameters']:,} parameters), "
+        f"prior `{report['prior']}`",
+        f"- data: `{report['data']}` split `{report['split']}`, {report['windows']:,} windows of "
+        f"{cfg['seq_len']} frames, {report['window_ms']:g} ms; labels `{cfg['labels']}`, "
+        f"{'causal' if cfg['causal'] else 'non-causal'}",
+        f"- {report['steps']} steps x {cfg['batch_size']} windows in {report['seconds']:.1f} s "
+        f"({report['seconds_per_step']:.3f} s/step); CPU {report['machine'].get('cpu_model', '?')}, "
+        f"ISA `{report['machine'].get('isa', {}).get('kind', '?')}`",
+        "", "Loss terms (mm, Charbonnier distance per joint; `labels`: the paper's loss):", "",
+        "| step | lr | " + " | ".join(terms) + " |", "|---:|---:|" + "---:|" * len(terms),
+    ]
+    for record in _thin(report["log"], 12):
+        lines.append(f"| {record['step']} | {record['lr']:.2e} | " + " | ".join(f"{record[t]:.3f}" for t in terms) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _thin(records: list[dict[str, Any]], keep: int) -> list[dict[str, Any]]:
+    """About `keep` records, evenly spaced, first and last included."""
+    if len(records) <= keep:
+        return records
+    stride = -(-len(records) // (keep - 1))
+    return records[::stride] + ([records[-1]] if (len(records) - 1) % stride else [])
