@@ -83,3 +83,10 @@ def test_pruned_checkpoint_exports_keeps_parity_and_quantizes(pruned_tiny, quant
     q = json.loads((tmp_path / "q" / "report.json").read_text())
     # INT8 of a pruned model stays a usable pose model: its held-out error moves by little.
     assert np.isfinite(q["holdout"]["mpjpe_mm"]) and abs(q["holdout"]["loss_pct"]) < 25.0
+
+
+def test_latency_percentage_is_checked_in_one_line(tmp_path, capsys):
+    code = main(["prune", "--checkpoint", str(TRAINED_TINY), "--data", str(tmp_path), "--out",
+                 str(tmp_path / "out"), "--target-latency-ms", "120%"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "(0, 100)%" in err

@@ -7,6 +7,14 @@ import argparse
 from e3dpsm.cli._common import positive_float, positive_int
 
 
+def _latency(text: str) -> tuple[str, float]:
+    """'7.5' (ms) or '60%' (of the unpruned step); range checks are PruneConfig's (one line)."""
+    try:
+        return ("pct", float(text[:-1])) if text.endswith("%") else ("ms", float(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected milliseconds (7.5) or a percentage (60%), got {text!r}") from None
+
+
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "prune", help="structured pruning to a MACs or latency target, recovered by distillation",
@@ -22,8 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (must not exist unless --force)")
     p.add_argument("--target-macs", type=float, default=None,
                    help="fraction of the unpruned MACs to reach, in (0, 1), e.g. 0.5")
-    p.add_argument("--target-latency-ms", type=float, default=None,
-                   help="fp32 step (ms, batch 1, --threads) to reach, met as measured on --target-runtime")
+    p.add_argument("--target-latency-ms", type=_latency, default=None, metavar="MS|PCT%",
+                   help="fp32 step (ms, batch 1, --threads) to reach, met as measured on --target-runtime; "
+                   "'60%%' means 60%% of the unpruned step measured at the start")
     p.add_argument("--target-runtime", choices=("onnxruntime", "openvino"), default="onnxruntime")
     p.add_argument("--steps", type=int, default=300, help="distillation steps per round (default 300; 0: none)")
     p.add_argument("--rounds", type=positive_int, default=3, help="planned rounds (default 3)")
@@ -54,7 +63,9 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.utils.io import refuse_existing_output
 
     config = PruneConfig(
-        target_macs=args.target_macs, target_latency_ms=args.target_latency_ms, target_runtime=args.target_runtime,
+        target_macs=args.target_macs, target_runtime=args.target_runtime,
+        target_latency_ms=args.target_latency_ms[1] if args.target_latency_ms and args.target_latency_ms[0] == "ms" else None,
+        target_latency_pct=args.target_latency_ms[1] if args.target_latency_ms and args.target_latency_ms[0] == "pct" else None,
         rounds=args.rounds, extra_rounds=args.extra_rounds, shrink=args.shrink, steps=args.steps,
         labels=args.labels, budget_pct=args.budget_pct, threads=args.threads, seed=args.seed,
         timing_steps=args.timing_steps, eval_frames=args.eval_frames, lr=args.lr,
