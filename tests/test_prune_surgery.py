@@ -205,3 +205,21 @@ def test_unpruned_configs_read_back_unchanged():
         model = e3dpsm.E3DPSM(e3dpsm.E3DPSMConfig.from_dict(cfg))
         ref = e3dpsm.create_model(variant)
         assert {k: v.shape for k, v in model.state_dict().items()} == {k: v.shape for k, v in ref.state_dict().items()}
+
+
+def test_pruned_tiny_exports_with_parity(tmp_path):
+    """The pruned model's step graph (state layout from the pruned widths) follows its PyTorch
+    step to 0.01 mm at three window lengths."""
+    from e3dpsm.export import export_step
+    from e3dpsm.export.parity import Tolerances, run_parity
+    from e3dpsm.runtime.session import StepSession
+
+    model = _randomised("tiny")
+    pruned = prune_model(model, _keep_plan(model)).eval()
+    graph = export_step(pruned, tmp_path / "pruned.onnx")
+    session = StepSession(graph, threads=1)
+    assert session.init_state(1)["s5_stage1_re"].shape[-1] == pruned.config.ssm_state_dims[0]
+    frames = sparse_lnes((12, 2, SIZE["height"], SIZE["width"]), seed=6).numpy()
+    for window in (20.0, 25.0, 50.0):
+        report = run_parity(pruned, session, frames, window, Tolerances(pose_atol_mm=0.01))
+        assert report.passed, report.lines()
