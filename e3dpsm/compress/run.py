@@ -100,8 +100,11 @@ def run_prune(checkpoint: str | os.PathLike, data: str | os.PathLike, out: str |
             final_timing.update(time_graphs(group, frames, teacher.config.train_window_ms, config.threads,
                                             2 * config.timing_steps))
         chosen = result["models"][best]
-        save_checkpoint(tmp / "checkpoint.pt", chosen, prune={"round": best, "source": str(checkpoint),
-                                                              "config": config.to_dict()})
+        # `step`: the distillation steps the chosen model took since the source checkpoint.
+        steps = sum(int((r.get("recovery") or {}).get("steps", 0)) for r in rounds[1:best + 1])
+        save_checkpoint(tmp / "checkpoint.pt", chosen, step=steps, prune={
+            "round": best, "source": str(checkpoint), "config": config.to_dict(),
+            "cuts": [r["cuts"] for r in rounds[1:best + 1]]})
         summary = {
             **header, "config": config.to_dict(), "best": best, "met": target_met(result, config),
             "base_macs": result["base_macs"], "rounds": rounds, "final_timing_ms": final_timing,
