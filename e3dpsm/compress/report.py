@@ -69,6 +69,14 @@ def render_markdown(result: dict[str, Any], header: dict[str, Any]) -> str:
             + f"| {row['mpjpe_mm']:.2f} | {row['mpjpe_change_pct']:+.2f}% | {_ms(row['to_teacher_mm'])} "
             f"| {_ms(row['predicted_ms'])} | {_ms(row['measured_in_round_ms'])} | {_ms(row['speedup_in_round'])} "
             f"| {_ms(row['recovery_s'])} |")
+    int8 = [(r["round"], r["int8"]) for r in result["rounds"] if r.get("int8")]
+    if int8:
+        lines += ["", "## INT8 after pruning (static, recurrences in float, min-max ranges; the quantiser's "
+                  "held-out check)", "", "| round | split | frames | fp32 MPJPE | INT8 MPJPE | INT8 vs fp32 |",
+                  "|---:|---|---:|---:|---:|---:|"]
+        for k, q in int8:
+            lines.append(f"| {k} | {q['split']} | {q['frames']} | {q['fp32_mpjpe_mm']:.2f} | {q['mpjpe_mm']:.2f} "
+                         f"| {q['loss_pct']:+.2f}% |")
     lines += ["", "## Cuts per round (unit: new width; 0 removes)", ""]
     for r in result["rounds"][1:]:
         cuts = ", ".join(f"{u} {w}" for u, w in r["cuts"].items())

@@ -2,6 +2,7 @@
 side (fp32 and INT8, ONNX Runtime and OpenVINO), write the checkpoint and the report."""
 from __future__ import annotations
 
+import json
 import logging
 import os
 import tempfile
@@ -88,6 +89,9 @@ def run_prune(checkpoint: str | os.PathLike, data: str | os.PathLike, out: str |
             for k in sorted({0, best}):
                 q = _int8(tmp / rounds[k]["graph"], eval_data, graphs / f"round{k}_int8", config.threads)
                 if q is not None:
+                    held = json.loads((q.parent / "report.json").read_text(encoding="utf-8"))["holdout"]
+                    rounds[k]["int8"] = {key: held.get(key) for key in ("split", "frames", "mpjpe_mm", "fp32_mpjpe_mm",
+                                                                        "loss_pct")}
                     timed[f"r{k}_ort_int8"] = ("onnxruntime", q)
                     timed[f"r{k}_ov_int8"] = ("openvino", q)
                     int8_reports[k] = os.path.relpath(q, tmp)
