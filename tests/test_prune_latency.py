@@ -105,3 +105,30 @@ def test_macs_target_stops_on_the_counted_macs():
     widths, value = choose(cands, UNITS, "macs", current=100, target=45, profile=PROFILE)
     assert widths == {"stages.0.block1": 4, "decoder.ffn": 12}  # most ms per damage first
     assert value == 40
+
+
+def test_heldout_mpjpe_is_the_per_action_mean_as_evaluate_reports_it():
+    """`e3dpsm evaluate`'s MPJPE: the mean over actions of each action's mean joint error
+    (explicit numpy here), with the action names grouping the frames; and the distance to the
+    teacher is the mean joint distance."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from e3dpsm.compress.prune import heldout_figures
+
+    rng = np.random.default_rng(0)
+    seqs, poses = [], []
+    for frames in (30, 20):
+        gt = rng.normal(0, 300, (frames, 16, 3)).astype(np.float32)
+        action = np.repeat([0, 2], [frames // 3, frames - frames // 3])
+        seqs.append(SimpleNamespace(j3d_mm=gt, visible=np.ones((frames, 16)), action=action))
+        poses.append(gt + rng.normal(0, 40, gt.shape).astype(np.float32))
+    err = np.concatenate([np.linalg.norm(p - s.j3d_mm, axis=-1) for p, s in zip(poses, seqs)])  # [N, J]
+    action = np.concatenate([s.action for s in seqs])
+    expected = np.mean([err[action == a].mean() for a in (0, 2)])
+    teacher = [p + 1.0 for p in poses]  # 1 mm off along every axis: sqrt(3) mm per joint
+    got = heldout_figures(poses, seqs, teacher, ("walk", "run", "jump"))
+    assert got["mpjpe_mm"] == pytest.approx(expected, rel=1e-6)
+    assert got["mpjpe_frame_weighted_mm"] == pytest.approx(err.mean(), rel=1e-6)
+    assert got["to_teacher_mm"] == pytest.approx(np.sqrt(3.0), rel=1e-5)

@@ -115,7 +115,8 @@ def stream_poses(model: E3DPSM, sequences, window_ms: float, max_frames: int, ch
     return out
 
 
-def heldout_figures(poses: list[np.ndarray], sequences, teacher_poses: list[np.ndarray] | None) -> dict[str, float]:
+def heldout_figures(poses: list[np.ndarray], sequences, teacher_poses: list[np.ndarray] | None,
+                    action_names: tuple[str, ...] = ()) -> dict[str, float]:
     """MPJPE (mm; the evaluate command's frame-weighted and per-action-mean figures) and the
     mean joint distance to the teacher's poses."""
     from e3dpsm.evaluation.core import evaluate_predictions
@@ -126,7 +127,8 @@ def heldout_figures(poses: list[np.ndarray], sequences, teacher_poses: list[np.n
     visible = np.concatenate([np.asarray(s.visible[:k]) for s, k in zip(sequences, n)])
     action = np.concatenate([np.asarray(s.action[:k], np.int64) for s, k in zip(sequences, n)])
     ids = np.concatenate([np.full(k, i) for i, k in enumerate(n)])
-    figures = evaluate_predictions(pred, gt, visible, action, [], ids)
+    # The action names group the per-action means as `e3dpsm evaluate` does (its MPJPE).
+    figures = evaluate_predictions(pred, gt, visible, action, list(action_names), ids)
     out = {"mpjpe_mm": float(figures["totals"]["mpjpe"]), "mpjpe_frame_weighted_mm": float(figures["frame_weighted"]["mpjpe"]),
            "frames": int(len(pred))}
     if teacher_poses is not None:
@@ -196,7 +198,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
                           config.timing_steps)["unpruned"]
     base_profile = _profile(base_graph, teacher, timing_frames, window_ms, config, base_ms)
     base = {"round": 0, "measured_ms": base_ms, "macs": base_macs, "macs_fraction": 1.0, "params": _params(teacher),
-            "macs_per_stage": macs_per_stage(teacher), "heldout": heldout_figures(teacher_poses, eval_seqs, None),
+            "macs_per_stage": macs_per_stage(teacher), "heldout": heldout_figures(teacher_poses, eval_seqs, None, eval_data.action_names),
             "profile": base_profile.to_dict(), "graph": str(base_graph)}
     base["heldout"]["to_teacher_mm"] = 0.0
     rounds: list[dict[str, Any]] = [base]
@@ -238,7 +240,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
             "macs": total_macs(student), "params": _params(student), "macs_per_stage": macs_per_stage(student),
             "predicted_ms": predicted_ms,
             "measured_side_by_side_ms": measured, "profile": profile.to_dict(),
-            "heldout": heldout_figures(poses, eval_seqs, teacher_poses),
+            "heldout": heldout_figures(poses, eval_seqs, teacher_poses, eval_data.action_names),
             "recovery": recovery, "seconds_plan": round(t_plan, 2), "seconds": round(time.perf_counter() - t0, 2),
             "graph": str(graph),
         }
