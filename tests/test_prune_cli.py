@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from e3dpsm.cli import main
 from tests._quantize_helpers import TRAINED_TINY

@@ -11,7 +11,7 @@ import torch
 import e3dpsm
 from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
 from e3dpsm.compress.surgery import prune_model
-from e3dpsm.compress.units import ATTN_BLOCK, DECODER_FFN, RES, SSM_MODES, prunable_units
+from e3dpsm.compress.units import ATTN_BLOCK, DECODER_FFN, RES, prunable_units
 from tests.conftest import sparse_lnes
 
 VARIANTS = ("paper", "released", "small", "tiny")
