@@ -16,7 +16,7 @@ def test_stages_use_the_given_checkpoint_and_its_resolution(tmp_path) -> None:
     # train is skipped with a checkpoint; clip reads the test split synth writes, so it is built at run time
     argvs = {s.name: s.argv(cfg) for s in STAGES if s.name not in ("train", "clip")}
     using = {name: argv[argv.index("--checkpoint") + 1] for name, argv in argvs.items() if "--checkpoint" in argv}
-    assert set(using) == {"evaluate", "export", "parity", "validate", "golden-record", "profile"}
+    assert set(using) == {"evaluate", "export", "parity", "validate", "golden-record", "prune", "profile"}
     assert set(using.values()) == {str(TRAINED_TINY)}
     prepare = argvs["prepare"]
     assert prepare[prepare.index("--height") + 1] == "192" and prepare[prepare.index("--width") + 1] == "256"
@@ -60,3 +60,24 @@ def test_clip_stage_renders_the_held_out_sequence_into_the_report(tmp_path, synt
     with Image.open(run / "clip" / "poses.gif") as gif:
         assert gif.n_frames == min(100, report["windows"])
     assert "![held-out clip](../clip/poses.gif)" in (run / "report" / "index.md").read_text()
+
+
+def test_prune_stage_is_optional_and_off_by_default(tmp_path, monkeypatch) -> None:
+    import e3dpsm.pipeline.runner as runner
+
+    ran: list[list[str]] = []
+    monkeypatch.setattr(runner, "run_stage", lambda argv: ran.append(argv) or 0)
+    monkeypatch.setattr(runner, "write_index", lambda *a, **k: None)
+    run = tmp_path / "run"
+    for stage in STAGES:  # every stage done before, so that only the optional one is left
+        if not stage.optional:
+            (run / stage.marker).parent.mkdir(parents=True, exist_ok=True)
+            (run / stage.marker).touch()
+    done = run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY))
+    assert ran == [] and {d["stage"]: d["status"] for d in done}["prune"] == "skipped"
+    run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("prune",)))
+    assert [argv[0] for argv in ran] == ["prune"]
+    prune = ran[0]
+    assert prune[prune.index("--target-macs") + 1] == "0.5" and prune[prune.index("--checkpoint") + 1] == str(TRAINED_TINY)
+    with pytest.raises(Exception, match="unknown stages"):
+        run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("prunee",)))

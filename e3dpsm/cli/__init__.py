@@ -19,7 +19,7 @@ from e3dpsm.errors import E3DPSMError
 # Order shown in --help: the order of the flow.
 COMMANDS: tuple[str, ...] = (
     "pipeline", "synth", "prepare", "model_info", "train", "import_weights", "evaluate", "distill", "ablation", "export",
-    "parity", "quantize", "validate", "convert", "golden", "diagnose", "profile", "compare", "run", "serve",
+    "parity", "quantize", "prune", "validate", "convert", "golden", "diagnose", "profile", "compare", "run", "serve",
 )
 
 # The guide page of each command (relative to the repository root), shown at the end of its
@@ -37,6 +37,7 @@ DOCS: dict[str, str] = {
     "export": "docs/export-and-parity.md",
     "parity": "docs/export-and-parity.md",
     "quantize": "docs/quantize.md",
+    "prune": "docs/compress.md",
     "validate": "docs/validate-and-profile.md",
     "convert": "docs/runtimes.md",
     "golden": "docs/golden-and-diagnose.md",

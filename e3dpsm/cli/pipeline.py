@@ -22,6 +22,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--only", nargs="+", metavar="STAGE", help="rerun only these stages (others untouched)")
+    p.add_argument("--with", dest="with_stages", nargs="+", metavar="STAGE", default=[],
+                   help="also run these optional stages (off by default): prune")
     p.set_defaults(func=run)
     return p
 
@@ -31,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.pipeline.stages import PipelineConfig
 
     cfg = PipelineConfig(out=Path(args.out), variant=args.variant, minutes=args.minutes, seed=args.seed,
-                         threads=args.threads, checkpoint=args.checkpoint)
+                         threads=args.threads, checkpoint=args.checkpoint,
+                         with_stages=tuple(args.with_stages))
     run_pipeline(cfg, only=args.only)
     print(f"report: {cfg.out / 'report' / 'index.md'}")
     return 0

@@ -224,7 +224,7 @@ class DeformableTransformerBlock(nn.Module):
 
     def __init__(
         self, channels: int, heads: int, head_dim: int, points: int, height: int, width: int,
-        layout: str = "2d", groups: int = 8, ff_mult: int = 4,
+        layout: str = "2d", groups: int = 8, ff_mult: int = 4, ff_hidden: int | None = None,
     ) -> None:
         super().__init__()
         inner = heads * head_dim
@@ -236,7 +236,7 @@ class DeformableTransformerBlock(nn.Module):
         self.attn = DeformableAttention(inner, heads, points, height, width, layout)
         self.attn_output_proj = nn.Linear(inner, inner)
         self.ff_norm = nn.LayerNorm(inner)
-        self.ff = GEGLU(inner, ff_mult * inner)
+        self.ff = GEGLU(inner, ff_mult * inner if ff_hidden is None else ff_hidden)
         self.proj_out = nn.Conv2d(inner, channels, 1)
         self.fold_projections = False
 

@@ -223,7 +223,7 @@ class S5Block(nn.Module):
     i.e. the mean pose, with a per-frame std of 4e-4.
     """
 
-    def __init__(self, dim: int, state_dim: int, **s5_kwargs) -> None:
+    def __init__(self, dim: int, state_dim: int, ff_hidden: int | None = None, **s5_kwargs) -> None:
         super().__init__()
         from e3dpsm.layers.feedforward import GEGLU
 
@@ -231,7 +231,7 @@ class S5Block(nn.Module):
         self.s5 = S5(dim, state_dim, **s5_kwargs)
         self.act = nn.GELU()
         self.norm2 = nn.LayerNorm(dim)
-        self.ff = GEGLU(dim, dim, bias=False)
+        self.ff = GEGLU(dim, dim if ff_hidden is None else ff_hidden, bias=False)
 
     def _ff(self, h: torch.Tensor) -> torch.Tensor:
         normed = self.norm2(h)

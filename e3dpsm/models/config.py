@@ -62,6 +62,19 @@ class E3DPSMConfig:
     pose_unit_mm: float = 1000.0
     train_window_ms: float = 20.0
     seed: int = 0
+    # Pruned widths (`e3dpsm prune`, e3dpsm/compress): empty means unpruned, so every config
+    # written before pruning existed reads back unchanged.
+    # Hidden width of every residual block, stage-major (2 or 3 blocks per stage); 0 removes
+    # the block's residual branch, leaving its shortcut.
+    res_hidden: tuple[int, ...] = ()
+    # GEGLU hidden width of each stage's deformable block (default 4 x heads x head width).
+    attn_ff_hidden: tuple[int, ...] = ()
+    # Stages whose deformable block was pruned away (the block becomes the identity).
+    attn_removed: tuple[int, ...] = ()
+    # Per S5 block, in sorted `ssm_stages` order: GEGLU hidden width (default the stage
+    # width) and state size P (default width * ssm_state_ratio).
+    ssm_ff_hidden: tuple[int, ...] = ()
+    ssm_state_dims: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.widths)
@@ -72,6 +85,7 @@ class E3DPSMConfig:
                 raise ConfigError(f"stage {i} width {w} must be a multiple of 8 (GroupNorm(8))")
             if self.deformable and h * d <= 0:
                 raise ConfigError(f"stage {i}: attention heads x head width must be positive")
+        self._check_pruned_widths()
         if any(not 0 <= s < n for s in self.ssm_stages):
             raise ConfigError(f"ssm_stages {self.ssm_stages} must index stages 0..{n - 1}")
         if self.fusion not in FUSION_MODES:
@@ -97,12 +111,54 @@ class E3DPSMConfig:
             if not value > 0:
                 raise ConfigError(f"{field} must be positive, got {value}")
 
+    @property
+    def blocks_per_stage(self) -> int:
+        return 3 if self.extra_res_block else 2
+
+    def _check_pruned_widths(self) -> None:
+        n, n_ssm = len(self.widths), len(self.ssm_stages)
+        for field, value, count, low in (
+            ("res_hidden", self.res_hidden, n * self.blocks_per_stage, 0),
+            ("attn_ff_hidden", self.attn_ff_hidden, n, 1),
+            ("ssm_ff_hidden", self.ssm_ff_hidden, n_ssm, 1),
+            ("ssm_state_dims", self.ssm_state_dims, n_ssm, 1),
+        ):
+            if value and len(value) != count:
+                raise ConfigError(f"{field} needs {count} entries (or none for unpruned), got {len(value)}")
+            if any(not isinstance(v, int) or v < low for v in value):
+                raise ConfigError(f"{field} entries must be integers >= {low}, got {list(value)}")
+        if any(not 0 <= s < n for s in self.attn_removed):
+            raise ConfigError(f"attn_removed {self.attn_removed} must index stages 0..{n - 1}")
+
+    def res_hidden_width(self, stage: int, block: int) -> int:
+        """Hidden width of residual block `block` (0-based) of `stage`; 0: branch removed."""
+        if self.res_hidden:
+            return self.res_hidden[stage * self.blocks_per_stage + block]
+        return self.widths[stage]
+
+    def attn_inner(self, stage: int) -> int:
+        return self.attn_heads[stage] * self.attn_head_dim[stage]
+
+    def attn_ff_width(self, stage: int) -> int:
+        return self.attn_ff_hidden[stage] if self.attn_ff_hidden else 4 * self.attn_inner(stage)
+
+    def has_attention(self, stage: int) -> bool:
+        return self.deformable and stage not in self.attn_removed
+
+    def _ssm_index(self, stage: int) -> int:
+        return sorted(self.ssm_stages).index(stage)
+
+    def ssm_ff_width(self, stage: int) -> int:
+        return self.ssm_ff_hidden[self._ssm_index(stage)] if self.ssm_ff_hidden else self.widths[stage]
+
     def stage_hw(self, stage: int) -> tuple[int, int]:
         """Output map size of a stage: the stem halves the input, each stage halves again."""
         f = 2 ** (stage + 2)
         return self.height // f, self.width // f
 
     def ssm_state_dim(self, stage: int) -> int:
+        if self.ssm_state_dims:
+            return self.ssm_state_dims[self._ssm_index(stage)]
         return max(1, int(round(self.widths[stage] * self.ssm_state_ratio)))
 
     def to_dict(self) -> dict[str, Any]:

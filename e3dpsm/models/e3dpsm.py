@@ -35,18 +35,21 @@ class E3DPSM(nn.Module):
         self.stem = nn.Sequential(nn.Conv2d(cfg.in_channels, cfg.stem_width, 3, stride=2, padding=1), nn.ReLU())
         widths = (cfg.stem_width, *cfg.widths)
         self.stages = nn.ModuleList(
-            EncoderStage(widths[i], widths[i + 1], cfg.extra_res_block) for i in range(len(cfg.widths))
+            EncoderStage(widths[i], widths[i + 1], cfg.extra_res_block,
+                         tuple(cfg.res_hidden_width(i, b) for b in range(cfg.blocks_per_stage)))
+            for i in range(len(cfg.widths))
         )
         self.attention = nn.ModuleList(
             DeformableTransformerBlock(
-                w, cfg.attn_heads[i], cfg.attn_head_dim[i], cfg.attn_points, *cfg.stage_hw(i), layout=cfg.attn_layout
+                w, cfg.attn_heads[i], cfg.attn_head_dim[i], cfg.attn_points, *cfg.stage_hw(i), layout=cfg.attn_layout,
+                ff_hidden=cfg.attn_ff_width(i),
             )
-            if cfg.deformable else nn.Identity()
+            if cfg.has_attention(i) else nn.Identity()
             for i, w in enumerate(cfg.widths)
         )
         self.ssm = nn.ModuleDict({
             str(s): S5Block(
-                cfg.widths[s], cfg.ssm_state_dim(s), bidirectional=cfg.ssm_bidirectional,
+                cfg.widths[s], cfg.ssm_state_dim(s), ff_hidden=cfg.ssm_ff_width(s), bidirectional=cfg.ssm_bidirectional,
                 discretization=cfg.ssm_discretization, bandlimit=cfg.ssm_bandlimit,
                 backward_first_frame=cfg.ssm_backward_first_frame,
                 seed=cfg.seed + 101 * (s + 1) if cfg.seed is not None else None,

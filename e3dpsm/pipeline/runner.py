@@ -39,7 +39,7 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
     cfg.out.mkdir(parents=True, exist_ok=True)
     done: list[dict] = []
     names = [s.name for s in STAGES]
-    unknown = sorted(set(only or []) - set(names))
+    unknown = sorted((set(only or []) | set(cfg.with_stages)) - set(names))
     if unknown:
         raise ConfigError(f"unknown stages {unknown}; stages: {', '.join(names)}")
     for index, stage in enumerate(STAGES, 1):
@@ -47,6 +47,10 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
         header = f"[{index}/{len(STAGES)}] {stage.name}"
         if stage.name == "train" and cfg.checkpoint:
             log.info("%s: skipped, --checkpoint %s given", header, cfg.checkpoint)
+            done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
+            continue
+        if stage.optional and stage.name not in cfg.with_stages and stage.name not in (only or []):
+            log.info("%s: optional, not asked for (--with %s)", header, stage.name)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
         if (only and stage.name not in only) or (marker.exists() and not only):

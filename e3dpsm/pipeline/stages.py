@@ -31,6 +31,10 @@ class PipelineConfig:
     golden_steps: int = 200
     profile_steps: int = 300
     checkpoint: Path | None = None  # a trained or imported checkpoint: no training stage
+    # Optional stages to run (off by default, `--with`): e.g. ("prune",).
+    with_stages: tuple[str, ...] = ()
+    prune_target_macs: float = 0.5
+    prune_steps: int = 100
 
     @property
     def train_budget_s(self) -> float:
@@ -46,6 +50,7 @@ class Stage:
     human_report: str                            # what the index links for a reader
     machine_report: str                          # the JSON a tool reads (the same file for some stages)
     argv: Callable[[PipelineConfig], list[str]]  # the CLI command of the stage
+    optional: bool = False                       # runs only when named in --with (or --only)
 
 
 def _p(cfg: PipelineConfig, rel: str) -> str:
@@ -139,6 +144,13 @@ STAGES: tuple[Stage, ...] = (
         "run", "--model", _p(c, GRAPH), "--events", _held_out_events(c), "--out", _p(c, "clip/poses.csv"),
         "--render", _p(c, "clip/poses.gif"), "--render-max-frames", "100", "--threads", str(c.threads),
         "--no-progress", "--force"]),
+    # Off by default: structured pruning of the checkpoint to half its MACs, recovered by
+    # distillation on the training data, judged on the held-out split.
+    Stage("prune", "prune/report.json", "prune/report.md", "prune/report.json", lambda c: [
+        "prune", "--checkpoint", _ckpt(c), "--data", _p(c, "prepared"), "--eval-data", _p(c, "prepared"),
+        "--eval-split", "test", "--out", _p(c, "prune"), "--target-macs", str(c.prune_target_macs),
+        "--rounds", "1", "--steps", str(c.prune_steps), "--threads", str(c.threads), "--force", "--no-progress"],
+        optional=True),
     Stage("profile", "profile/report.json", "profile/report.md", "profile/report.json", lambda c: [
         "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),
