@@ -31,7 +31,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "benchmarks/checkpoints/small/checkpoint.pt"
-DEFAULT_EVENTS = Path("/work/bench/data96_test/seq_0000/events.h5")
+# Without --events: the first held-out sequence of the committed small's recipe (seed 2,
+# 20 s at the 96 x 128 render scale), synthesised into the temporary folder.
+SYNTH_ARGS = ("--sequences", "1", "--seconds", "20", "--seed", "2", "--render-scale", "0.25")
 RESULTS = ROOT / "benchmarks/results"
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=1000,700")
@@ -179,7 +181,7 @@ def markdown(result: dict) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=None)
-    parser.add_argument("--events", type=Path, default=DEFAULT_EVENTS)
+    parser.add_argument("--events", type=Path, default=None)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS / "serve_latency")
@@ -187,13 +189,18 @@ def main() -> int:
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
+    synth_args = list(SYNTH_ARGS) if args.events is None else None
     with tempfile.TemporaryDirectory(prefix="bench_serve_") as tmp:
         work = Path(tmp)
         model = args.model or export_small(work)
+        if args.events is None:
+            subprocess.run([sys.executable, "-m", "e3dpsm", "synth", "--out", str(work / "data"), *SYNTH_ARGS],
+                           check=True, cwd=ROOT)
+            args.events = next((work / "data").glob("*/events.h5"))
         runs = [one_run("1 page", model, args.events, args.seconds, args.threads, 1, False, work),
                 one_run("2 pages + stalled", model, args.events, args.seconds, args.threads, 2, True, work)]
     result = {**report_header("bench_serve", {"seconds": args.seconds, "threads": args.threads}),
-              "model": str(args.model or "benchmarks/checkpoints/small (exported)"), "events": str(args.events),
+              "model": str(args.model or "benchmarks/checkpoints/small (exported)"), "events": str(args.events), "synth_args": synth_args,
               "seconds": args.seconds, "threads": args.threads, "runs": runs}
     result["verdicts"] = verdicts(runs[0], runs[1])
     write_json_atomic(args.out.with_suffix(".json"), result)
