@@ -46,7 +46,6 @@ def pruned_tiny(tmp_path_factory, quant_data) -> Path:
     return out
 
 
-@pytest.mark.slow
 def test_prune_meets_the_macs_target_and_reports_it(pruned_tiny):
     from e3dpsm.checkpoint import load_checkpoint
     from e3dpsm.compress.plan import total_macs
@@ -65,7 +64,6 @@ def test_prune_meets_the_macs_target_and_reports_it(pruned_tiny):
     assert "| round | MACs" in (pruned_tiny / "report.md").read_text()
 
 
-@pytest.mark.slow
 def test_pruned_checkpoint_exports_keeps_parity_and_quantizes(pruned_tiny, quant_data, tmp_path):
     """prune -> export -> parity (three windows) -> quantize, with the numbers checked."""
     ckpt = pruned_tiny / "checkpoint.pt"
