@@ -25,10 +25,9 @@ import socket
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from e3dpsm.serve.report import percentiles as pct
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "benchmarks/checkpoints/small/checkpoint.pt"
@@ -68,14 +67,6 @@ def stalled_client(port: int) -> socket.socket:
     while b"\r\n\r\n" not in head:
         head += sock.recv(1)
     return sock
-
-
-def pct(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"count": 0, "p50": None, "p99": None}
-    p50, p90, p99 = np.percentile(values, [50, 90, 99]).tolist()
-    return {"count": len(values), "p50": round(p50, 3), "p90": round(p90, 3), "p99": round(p99, 3),
-            "max": round(max(values), 3)}
 
 
 def one_run(name: str, model: Path, events: Path, seconds: float, threads: int, pages: int, stalled: bool,

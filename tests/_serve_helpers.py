@@ -6,12 +6,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from _runtime_helpers import SENSOR_HW, WINDOW_US, synthetic_stream
+from _runtime_helpers import WINDOW_US, synthetic_stream
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,12 +63,3 @@ class ServerProcess:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def wait_until(predicate, timeout_s: float, period_s: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period_s)
-    return predicate()

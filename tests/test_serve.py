@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from _runtime_helpers import WINDOW_US, exported_tiny
-from _serve_helpers import ServerProcess, wait_until, write_recording
+from _serve_helpers import ServerProcess, write_recording
 from e3dpsm.cli import main
 from e3dpsm.serve import protocol
 from e3dpsm.serve.clients import ClientChannel
