@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import ServeEngine
     from e3dpsm.serve.server import ServeConfig, serve
-    from e3dpsm.serve.source import is_live
+    from e3dpsm.data.live import is_live_url
 
     out = args.out or default_out()
     check_writable_folder(Path(out))
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     hello_fields = {
         "joints": joints, "bones": bones, "models": [Path(args.model).name] + ([Path(args.compare).name] if compare else []),
         "window_ms": window_ms, "sensor_hw": tuple(source.sensor_hw), "frame_hw": tuple(session.meta.frame_hw),
-        "source": args.source if is_live(args.source) else Path(args.source).name, "live": source.live,
+        "source": args.source if is_live_url(args.source) else Path(args.source).name, "live": source.live,
         "ground_truth": ground_truth is not None, "speed": args.speed,
     }
     graphs = {"model": _graph_info(session), "compare": _graph_info(compare) if compare else None}
@@ -147,14 +147,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _open_source(args: argparse.Namespace, window_us: int):
-    from e3dpsm.serve.source import LiveFeed, RecordingReplay, is_live, open_live
+    from e3dpsm.data.live import is_live_url, open_live_source
+    from e3dpsm.serve.source import LiveFeed, RecordingReplay
 
-    if is_live(args.source):
+    if is_live_url(args.source):
         if args.loop:
             from e3dpsm.errors import ConfigError
 
             raise ConfigError("--loop replays a recording; a live source cannot restart")
-        return LiveFeed(open_live(args.source)), None
+        return LiveFeed(open_live_source(args.source)), None
     from e3dpsm.data.readers import read_events
     from e3dpsm.runtime.render_stream import ground_truth_beside
 

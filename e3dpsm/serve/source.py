@@ -24,7 +24,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.runtime.stream import EventChunk
 
 TICKS_PER_WINDOW = 4
-LIVE_SCHEMES = ("dv://",)
 
 
 @dataclass(frozen=True)
@@ -34,21 +33,6 @@ class Tick:
     finish: bool  # end of the recording's pass: close the remaining complete windows
     wall_ms: float  # when these events arrived (scheduled replay time, or a live chunk's arrival)
     pass_index: int  # 0, then 1, 2, ... with --loop (a fresh state each pass)
-
-
-def is_live(source: str) -> bool:
-    return source.startswith(LIVE_SCHEMES)
-
-
-def open_live(url: str, timeout_s: float = 5.0) -> Any:
-    """The live source of `url`, or one clear error when this install has no live reader."""
-    import importlib
-    import importlib.util
-
-    if importlib.util.find_spec("e3dpsm.data.live") is None:
-        raise ConfigError(f"--source {url}: this install has no live event reader (e3dpsm.data.live); "
-                          "pass an event file instead")
-    return importlib.import_module("e3dpsm.data.live").open_live_source(url, timeout_s=timeout_s)
 
 
 class RecordingReplay:
