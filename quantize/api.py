@@ -44,6 +44,13 @@ SEARCHES: tuple[str, ...] = ("nodes", "groups")
 # Held-out error budgets of `--exclude auto` (bound_pct: mean distance to the fp32 poses over
 # the fp32 MPJPE): the accuracy each mode is expected to keep (INT8 +1%, FP16 +0.1%).
 DEFAULT_BUDGET_PCT: dict[str, float] = {"int8": 1.0, "int8-dynamic": 1.0, "fp16": 0.1}
+# The share of the budget the search leaves unspent (--search-margin). The search sees a few
+# hundred frames of one sequence; the budget must hold on sequences it never saw. Measured on
+# the committed trained `small` (vnni host): the INT8 search's graph at 0.980% on its 200
+# frames of `test` was at 1.080% over all 1,000 frames of `test` and 1.148% / 1.200% over
+# 200 / 1,000 frames of the unseen `val` (int8_small_ladder.md). FP16 error barely moves
+# between sequences (0.1% budgets, README) and keeps the whole budget.
+DEFAULT_SEARCH_MARGIN: dict[str, float] = {"int8": 0.25, "int8-dynamic": 0.0, "fp16": 0.0}
 REPORT_FILE = "report.json"
 
 
@@ -54,6 +61,9 @@ class QuantizeOptions:
     frames: int = 200
     exclude: str = "auto"          # auto | none | recurrent | comma-separated groups / nodes
     budget_pct: float | None = None  # None: the mode's DEFAULT_BUDGET_PCT
+    # --exclude auto searches to (1 - margin) x budget (None: DEFAULT_SEARCH_MARGIN); the
+    # graph is still held to the whole budget (`golden check`).
+    search_margin: float | None = None
     split: str = "train"           # calibration frames
     holdout_split: str = "val"     # accuracy check (never calibration frames)
     holdout_frames: int = 200      # per held-out sequence
@@ -99,6 +109,8 @@ class QuantizeOptions:
             raise ConfigError(f"--rank-frames must be >= 0, got {self.rank_frames}")
         if self.budget_pct is not None and not self.budget_pct > 0:
             raise ConfigError(f"--budget-pct must be positive, got {self.budget_pct}")
+        if self.search_margin is not None and not 0.0 <= self.search_margin < 1.0:
+            raise ConfigError(f"--search-margin is a share of the budget in [0, 1), got {self.search_margin}")
         if self.search not in (None, *SEARCHES):
             raise ConfigError(f"unknown search {self.search!r}; choose from {list(SEARCHES)}")
         if self.search is not None and self.exclude != "auto":
@@ -115,6 +127,15 @@ class QuantizeOptions:
     @property
     def budget(self) -> float:
         return DEFAULT_BUDGET_PCT[self.mode] if self.budget_pct is None else self.budget_pct
+
+    @property
+    def margin(self) -> float:
+        return DEFAULT_SEARCH_MARGIN[self.mode] if self.search_margin is None else self.search_margin
+
+    @property
+    def search_target(self) -> float:
+        """The error the `--exclude auto` search aims at: the budget less its margin."""
+        return self.budget * (1.0 - self.margin)
 
 
 def artifact_name(mode: str) -> str:
@@ -173,7 +194,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
     window_ms = meta.train_window_ms
     report: dict[str, Any] = report_header("quantize", {
         "model": str(model_path), "data": str(data_dir), "out": str(out_dir), **options.__dict__,
-        "budget_pct": options.budget})
+        "budget_pct": options.budget, "search_target_pct": options.search_target})
 
     with atomic_dir(out_dir, force=force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-quant-") as work:
         work = Path(work)
@@ -284,7 +305,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         if pre16 is not None:
             kept = set(keep)
             precision = demote_to_int16(
-                [n for n in fixed if n not in kept], search.error_pct, options.budget,
+                [n for n in fixed if n not in kept], search.error_pct, options.search_target,
                 lambda int16, floats, label: _evaluator(pre_meta, holdout, options, work,
                                                         lambda excl: build(excl, int16))(keep + floats, label))
             fixed, int16_nodes = list(dict.fromkeys(keep + precision.float_nodes)), precision.int16
@@ -404,8 +425,8 @@ def _search_float_groups(keep: list[str], groups: Sequence[NodeGroup], meta: Gra
     nodes search's ranking) the ranked-prefix search."""
     evaluate = _evaluator(meta, holdout, options, work, build, built)
     if ranked is not None:
-        return ranked_prefix_exclusions(keep, ranked, options.budget, evaluate)
-    return greedy_exclusions(keep, list(groups), options.budget, evaluate, options.max_rounds)
+        return ranked_prefix_exclusions(keep, ranked, options.search_target, evaluate)
+    return greedy_exclusions(keep, list(groups), options.search_target, evaluate, options.max_rounds)
 
 
 def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMetadata, holdout: HoldoutSet,
@@ -422,7 +443,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         searched = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
         candidates = candidates_from_search(searched, built)
         info = getattr(timing.timer, "describe", lambda: {"kind": "injected"})()
-        latency = latency_aware_choice(searched, candidates, timing.timer, options.objective, options.budget,
+        latency = latency_aware_choice(searched, candidates, timing.timer, options.objective, options.search_target,
                                        max_timed=options.max_timed, reference=timing.reference, timer_info=info)
     finally:
         for _, path in built:
@@ -430,7 +451,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
     for cand in latency.candidates:
         cand.path = None
     chosen = latency.chosen
-    final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.budget,
+    final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.search_target,
                          searched.trials, searched.strategy, searched.sensitivity, searched.rank_frames)
     return final, latency
 

@@ -68,7 +68,12 @@ def markdown_report(report: dict[str, Any]) -> str:
     if search:
         fp32 = search["fp32_p50_ms"]
         timer = search.get("timer") or {}
-        lines += [f"## Exclusion search (objective: {search['objective']}, budget {search['budget_pct']:g}%)", "",
+        config = report.get("config") or {}
+        budget = config.get("budget_pct")
+        target = (f"target {search['budget_pct']:g}%: the {budget:g}% budget less a "
+                  f"{100 * (1 - search['budget_pct'] / budget):.0f}% margin for unseen data"
+                  if budget and search["budget_pct"] < budget else f"budget {search['budget_pct']:g}%")
+        lines += [f"## Exclusion search (objective: {search['objective']}, {target})", "",
                   f"Candidates timed side by side with the fp32 graph ({_fmt(fp32)} ms/step): "
                   f"{timer.get('steps', '?')} steps after {timer.get('warmup', '?')} warm-up, "
                   f"{timer.get('threads') or 'all'} threads, interleaved in chunks of {timer.get('chunk', '?')}; "

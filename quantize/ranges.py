@@ -58,8 +58,11 @@ class Histogram:
         return 0.5 * (e[:-1] + e[1:])
 
     def quantile(self, q: float) -> float:
-        """Value below which a fraction q of the counts lies (linear within a bin)."""
+        """Value below which a fraction q of the counts lies (linear within a bin); the range's
+        own end for an empty histogram (a tensor whose values never came), which has no quantiles."""
         cdf = np.concatenate([[0.0], np.cumsum(self.counts, dtype=np.float64)])
+        if cdf[-1] == 0:
+            return self.high if q >= 0.5 else self.low
         cdf /= cdf[-1]
         return float(np.interp(q, cdf, self.edges))
 

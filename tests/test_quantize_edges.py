@@ -89,7 +89,8 @@ GROUPS = [NodeGroup("a", "module", ("a1",)), NodeGroup("b", "module", ("b1",)), 
 P50_MS = {"base": 5.0, "r1:a": 30.0, "r1:b": 20.0, "r1:c": 10.0, "fp32": 40.0}  # b is faster than a
 
 
-def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, objective: str = "latency"):
+def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, objective: str = "latency",
+                 search_margin: float | None = 0.0):
     """api._latency_search with the held-out evaluation and the step timer injected."""
     def fake_evaluator(meta, holdout, options, work, build, built=None):
         def evaluate(excluded, label):
@@ -104,7 +105,8 @@ def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, obj
         return {label: P50_MS[label] for label in graphs}
 
     monkeypatch.setattr(api, "_evaluator", fake_evaluator)
-    options = QuantizeOptions(mode=mode, budget_pct=budget_pct, search="groups", max_rounds=1, objective=objective)
+    options = QuantizeOptions(mode=mode, budget_pct=budget_pct, search="groups", max_rounds=1, objective=objective,
+                              search_margin=search_margin)
     final, latency = api._latency_search(["r"], GROUPS, None, None, options, tmp_path, None,
                                          api._Timing(timer, tmp_path / "fp32.onnx"))
     return final, latency, asked
@@ -135,6 +137,35 @@ def test_latency_choice_uses_the_given_budget_not_the_mode_default(monkeypatch, 
     assert [c["label"] for c in block["candidates"] if c["within_budget"]] == \
         [c.label for c in latency.candidates if c.error_pct <= budget]
     assert "fp32" in asked[0]
+
+
+@pytest.mark.parametrize("budget_pct, margin, chosen, target", [
+    (1.0, None, "r1:a", 0.75),     # int8's default margin (0.25): b (0.875) is over the 0.75 target
+    (1.0, 0.25, "r1:a", 0.75),
+    (1.0, 0.125, "r1:b", 0.875),   # b exactly at the target
+    (1.0, 0.125 + 2**-40, "r1:a", 1.0 - 0.125 - 2**-40),
+    (1.0, 0.0, "r1:b", 1.0),
+])
+def test_the_search_aims_below_the_budget_by_its_margin(monkeypatch, tmp_path, budget_pct, margin, chosen, target):
+    """The search leaves a share of the budget for data it never saw: a candidate within the
+    budget but over the target is not chosen; the graph still carries the whole budget."""
+    final, latency, _ = _search_with(monkeypatch, tmp_path, "int8", budget_pct, search_margin=margin)
+    assert latency.chosen.label == chosen
+    assert final.budget_pct == pytest.approx(target) and latency.budget_pct == pytest.approx(target)
+    options = QuantizeOptions(mode="int8", budget_pct=budget_pct, search_margin=margin)
+    assert options.budget == budget_pct and options.search_target == pytest.approx(target)
+
+
+@pytest.mark.parametrize("margin", [-0.1, 1.0, 1.5])
+def test_search_margin_outside_zero_one_is_refused(margin):
+    from e3dpsm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="search-margin"):
+        QuantizeOptions(mode="int8", search_margin=margin)
+
+
+def test_fp16_keeps_its_whole_budget_by_default():
+    assert QuantizeOptions(mode="fp16").search_target == QuantizeOptions(mode="fp16").budget == 0.1
 
 
 def test_the_faster_group_is_chosen_only_when_within_the_users_budget(monkeypatch, tmp_path):

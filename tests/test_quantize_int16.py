@@ -149,13 +149,14 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
         assert report["holdout"]["bound_pct"] == pytest.approx(plan["error_pct"], rel=1e-6)
 
 
-def test_int16_tensors_take_the_min_max_range_under_mse_calibration(int16_setup, trained_graph: Path,
-                                                                     quant_data: Path) -> None:
+def test_int16_tensors_take_the_widened_min_max_range_under_mse_calibration(int16_setup, trained_graph: Path,
+                                                                             quant_data: Path) -> None:
     """The mse ranges are chosen for 256 levels (clipping buys a finer step); at 65,536 levels
-    clipping is all the error left, so 16-bit tensors get the calibration's full min-max range."""
+    clipping is all the error left, so 16-bit tensors get the calibration's full min-max range,
+    widened INT16_RANGE_MARGIN times (unseen sequences go past the calibration's range)."""
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.quantize.calibration import record_calibration_set
-    from e3dpsm.quantize.static import StaticConfig, calibrate, minmax_cache_path, quantize_int8
+    from e3dpsm.quantize.static import INT16_RANGE_MARGIN, StaticConfig, calibrate, minmax_cache_path, quantize_int8
 
     work = int16_setup["work"]
     calib = record_calibration_set(trained_graph, PreparedData.open(quant_data).split("train"), 16, 20.0, threads=1)
@@ -173,7 +174,41 @@ def test_int16_tensors_take_the_min_max_range_under_mse_calibration(int16_setup,
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     q = next(n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == tensor)
     low, high = min(minmax[tensor]["lowest"]["data"][0], 0.0), max(minmax[tensor]["highest"]["data"][0], 0.0)
+    low, high = low * INT16_RANGE_MARGIN, high * INT16_RANGE_MARGIN
+    assert INT16_RANGE_MARGIN > 1.0
     assert inits[q.input[2]].dtype == np.uint16
     assert float(inits[q.input[1]]) == pytest.approx((high - low) / 65535, rel=1e-5)
     narrowed = (chosen[tensor].high - chosen[tensor].low) / 65535
     assert abs(float(inits[q.input[1]]) - narrowed) > 1e-3 * narrowed
+
+
+@pytest.mark.parametrize("low, high, margin, expected", [
+    (-1.0, 3.0, 2.0, (-2.0, 6.0)),
+    (0.5, 4.0, 2.0, (0.0, 8.0)),      # zero joins the range first, as in every QDQ range
+    (-3.0, -1.0, 1.5, (-4.5, 0.0)),
+    (-1.0, 3.0, 1.0, (-1.0, 3.0)),
+])
+def test_widened_range(low: float, high: float, margin: float, expected: tuple[float, float]) -> None:
+    from e3dpsm.quantize.static import widened_range
+
+    assert widened_range(low, high, margin) == pytest.approx(expected)
+
+
+def test_widened_range_refuses_a_margin_that_clips() -> None:
+    from e3dpsm.quantize.static import widened_range
+
+    with pytest.raises(ValueError, match="margin below 1"):
+        widened_range(-1.0, 1.0, 0.5)
+
+
+def test_int16_tensors_are_widened_under_minmax_calibration_too(tmp_path: Path) -> None:
+    """Without an mse cache the calibration cache's own range is widened (it used to be
+    written as it was, clipping unseen sequences)."""
+    from e3dpsm.quantize.static import INT16_RANGE_MARGIN, int16_ranges
+
+    cache = tmp_path / "calibration.json"
+    cache.write_text(json.dumps({"data": {"a": {"lowest": {"data": [-0.5]}, "highest": {"data": [2.0]}},
+                                          "b": {"lowest": {"data": [1.0]}, "highest": {"data": [3.0]}}}}))
+    ranges = int16_ranges(cache, ["a", "b", "missing"])
+    assert ranges == {"a": pytest.approx((-0.5 * INT16_RANGE_MARGIN, 2.0 * INT16_RANGE_MARGIN)),
+                      "b": pytest.approx((0.0, 3.0 * INT16_RANGE_MARGIN))}

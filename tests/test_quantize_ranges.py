@@ -144,3 +144,12 @@ def test_an_unknown_target_is_refused() -> None:
 
     with pytest.raises(ConfigError, match="unknown --target-isa 'arm'"):
         StaticConfig.for_target("arm")
+
+
+def test_an_empty_histogram_keeps_its_range_and_stays_finite() -> None:
+    """A tensor none of whose values fell in its histogram (seen on the untrained `paper`):
+    its quantiles were NaN (0/0), and a NaN range reached the graph."""
+    hist = Histogram(np.zeros(64), -2.0, 3.0)
+    assert hist.quantile(1e-4) == -2.0 and hist.quantile(1.0 - 1e-4) == 3.0
+    choice = choose_range(hist)
+    assert np.isfinite(choice.low) and np.isfinite(choice.high) and choice.low <= 0.0 <= choice.high

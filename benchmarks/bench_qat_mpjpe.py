@@ -1,0 +1,139 @@
+"""The QAT bar of issue 24: the full-integer INT8 graph of a QAT fine-tune against the fp32
+checkpoint it was tuned from, by held-out MPJPE against ground truth, on ONNX Runtime and
+OpenVINO, over every frame of the held-out sequences (streams, state never reset).
+
+    python benchmarks/bench_qat_mpjpe.py --checkpoint benchmarks/checkpoints/small/checkpoint.pt \\
+        --qat-checkpoint benchmarks/checkpoints/small_qat/checkpoint.pt --data prep96_test \\
+        [--split train --eval-splits val,test] [--threads 2]
+
+Graphs (all `quantize --exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
+activations; calibrated on --split, which the MPJPE never sees):
+- the base checkpoint's fp32 graph (the reference MPJPE) and its PTQ full-integer graph;
+- the QAT checkpoint's fp32 graph, its full-integer graph with the learned ranges
+  (`--ranges-from-checkpoint`) and with calibrated min-max ranges.
+The bar: the QAT INT8 graph's MPJPE within +1% of the base fp32 graph's, on both runtimes.
+Distances to each graph's own fp32 poses are reported beside (the PTQ budget's measure).
+Writes benchmarks/results/qat_<variant>_mpjpe.md/.json.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.metrics import joint_errors, mpjpe
+from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+from e3dpsm.utils.isa import detect_isa
+
+RESULTS = Path(__file__).resolve().parent / "results"
+RUNTIMES = ("onnxruntime", "openvino")
+QAT_BAR_PCT = 1.0
+
+
+def _session(path: Path, runtime: str, threads: int):
+    if runtime == "onnxruntime":
+        from e3dpsm.runtime import StepSession
+
+        return StepSession(path, threads=threads)
+    from e3dpsm.runtime.openvino_session import OpenVINOStepSession
+
+    return OpenVINOStepSession(path, threads=threads)
+
+
+def _poses(path: Path, runtime: str, lnes: list[np.ndarray], window_ms: float, threads: int) -> np.ndarray:
+    from e3dpsm.validation.streams import onnx_stream
+
+    session = _session(path, runtime, threads)
+    return np.concatenate([onnx_stream(session, x, window_ms) for x in lnes])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", required=True, help="the fp32 checkpoint the QAT run started from")
+    parser.add_argument("--qat-checkpoint", required=True, help="its `train --qat` fine-tune")
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--split", default="train", help="calibration frames (never evaluated)")
+    parser.add_argument("--eval-splits", default="val,test", help="held-out splits, every frame")
+    parser.add_argument("--frames", type=int, default=200, help="calibration frames")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.export import export_step
+
+    data = PreparedData.open(args.data)
+    sequences = [s for split in args.eval_splits.split(",") for s in data.split(split)]
+    lnes = [np.asarray(s.lnes, dtype=np.float32) for s in sequences]
+    gt = np.concatenate([np.asarray(s.j3d_mm, dtype=np.float32) for s in sequences])
+    report = report_header("bench_qat_mpjpe", vars(args))
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-qat-") as work:
+        work = Path(work)
+        base_model, _ = load_checkpoint(args.checkpoint)
+        qat_model, qat_payload = load_checkpoint(args.qat_checkpoint)
+        window_ms = base_model.config.train_window_ms
+        base = export_step(base_model, work / "base.onnx")
+        qat = export_step(qat_model, work / "qat.onnx")
+        common = dict(mode="int8", exclude="none", frames=args.frames, split=args.split,
+                      holdout_split=args.eval_splits.split(",")[0], threads=args.threads)
+        graphs = {"base fp32": (base, base), "qat fp32": (qat, qat)}
+        for label, source, options in (
+                ("base full int8, minmax (PTQ)", base, QuantizeOptions(**common)),
+                ("qat full int8, QAT ranges", qat, QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint)),
+                ("qat full int8, minmax", qat, QuantizeOptions(**common))):
+            out = work / label.split(",")[0].replace(" ", "_") / label.split(", ")[1].split(" ")[0]
+            q = quantize_graph(source, args.data, out, options)
+            graphs[label] = (out / q["artifact"], source)
+        rows = []
+        poses: dict[tuple[str, str], np.ndarray] = {}
+        for label, (path, reference) in graphs.items():
+            row = {"label": label, "bytes": path.stat().st_size}
+            for runtime in RUNTIMES:
+                poses[label, runtime] = _poses(path, runtime, lnes, window_ms, args.threads)
+                row[f"{runtime}_mpjpe_mm"] = mpjpe(poses[label, runtime], gt)
+            rows.append(row)
+        base_mpjpe = {rt: next(r for r in rows if r["label"] == "base fp32")[f"{rt}_mpjpe_mm"] for rt in RUNTIMES}
+        for row in rows:
+            reference = next(label for label, (p, src) in graphs.items() if src == graphs[row["label"]][1]
+                             and "fp32" in label)
+            for rt in RUNTIMES:
+                row[f"{rt}_vs_base_pct"] = 100.0 * (row[f"{rt}_mpjpe_mm"] / base_mpjpe[rt] - 1.0)
+                row[f"{rt}_distance_to_own_fp32_mm"] = float(joint_errors(poses[row["label"], rt],
+                                                                          poses[reference, rt]).mean())
+    qat_rows = [r for r in rows if r["label"].startswith("qat full int8, QAT")]
+    met = all(r[f"{rt}_vs_base_pct"] <= QAT_BAR_PCT for r in qat_rows for rt in RUNTIMES)
+    report.update(isa=detect_isa().to_dict(), frames=int(len(gt)), sequences=[s.name for s in sequences],
+                  qat_steps=qat_payload.get("step"), rows=rows, bar_pct=QAT_BAR_PCT, bar_met=met)
+    name = f"qat_{base_model.config.variant}_mpjpe"
+    write_json_atomic(RESULTS / f"{name}.json", report)
+    write_text_atomic(RESULTS / f"{name}.md", markdown(report))
+    print(markdown(report))
+    return 0
+
+
+def markdown(report: dict) -> str:
+    isa = report["isa"]
+    config = report["config"]
+    lines = [f"# QAT full-integer INT8 against fp32, held-out MPJPE ({report['created']})", "",
+             f"Host ISA {isa['kind']} ({' '.join(isa['flags'])}), {config['threads']} threads. "
+             f"{report['frames']} held-out frames ({', '.join(report['sequences'])} of `{config['data']}`, splits "
+             f"{config['eval_splits']}), each sequence one stream; calibration on `{config['split']}`. "
+             f"QAT checkpoint `{config['qat_checkpoint']}` ({report['qat_steps']} steps) from `{config['checkpoint']}`.",
+             "", f"**Bar (+{report['bar_pct']:g}% of the base fp32 MPJPE, both runtimes): "
+             f"{'met' if report['bar_met'] else 'not met'}.**", "",
+             "| graph | MB | ORT MPJPE mm (vs base fp32) | OpenVINO MPJPE mm (vs base fp32) | distance to own fp32, ORT / OV mm |",
+             "|---|---:|---:|---:|---:|"]
+    for r in report["rows"]:
+        lines.append(f"| {r['label']} | {r['bytes'] / 1e6:.2f} | {r['onnxruntime_mpjpe_mm']:.2f} "
+                     f"({r['onnxruntime_vs_base_pct']:+.2f}%) | {r['openvino_mpjpe_mm']:.2f} "
+                     f"({r['openvino_vs_base_pct']:+.2f}%) | {r['onnxruntime_distance_to_own_fp32_mm']:.2f} / "
+                     f"{r['openvino_distance_to_own_fp32_mm']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
