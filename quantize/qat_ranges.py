@@ -37,6 +37,9 @@ log = logging.getLogger(__name__)
 QAT_RANGES_FORMAT = "e3dpsm-qat-ranges/1"
 
 
+GRAPH_OUTPUT_SUFFIX = "_QuantizeLinear_Input"
+
+
 def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> list[str]:
     """Activation tensors that get a QuantizeLinear when `pre_path` is quantised with the
     nodes `exclude` in float (read back from a QDQ graph built with placeholder ranges)."""
@@ -54,7 +57,10 @@ def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], o
         quantize_int8(pre_path, out, StaticConfig(op_types=tuple(op_types)), exclude=exclude, cache=cache)
         qdq = onnx.load(str(out))
     inits = {i.name for i in qdq.graph.initializer}
-    return sorted({n.input[0] for n in qdq.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits})
+    # A quantised graph output (an S5 state, in the full-integer graph) keeps its name on the
+    # DequantizeLinear; its producer's output is renamed `<name>_QuantizeLinear_Input`.
+    return sorted({n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX) if n.input[0].endswith(GRAPH_OUTPUT_SUFFIX) else n.input[0]
+                   for n in qdq.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits})
 
 
 def tensor_values(model_path: str | os.PathLike, names: Sequence[str], feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -99,9 +105,10 @@ def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
             **{s.input_name: state[s.name].numpy() for s in model.state_spec()}}
 
 
-def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None) -> list["QuantGroup"]:
+def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: bool = False) -> list["QuantGroup"]:
     """The quantisers a QAT run trains: the model exported and pre-processed as `quantize`
-    does, its INT8 graph's quantised tensors (recurrent groups in float), matched to sites."""
+    does, its INT8 graph's quantised tensors (recurrent groups in float, unless
+    `full_integer`: the `--exclude none` graph), matched to sites."""
     from e3dpsm.export import export_step
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.quantize.graph_groups import recurrent_groups
@@ -112,7 +119,8 @@ def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None) -> list["Quant
         export_step(model, raw)
         preprocess(raw, pre)
         pre_model = onnx.load(str(pre))
-        keep = [n for g in recurrent_groups(pre_model, GraphMetadata.from_onnx(pre_model)) for n in g.nodes]
+        keep = [] if full_integer else [n for g in recurrent_groups(pre_model, GraphMetadata.from_onnx(pre_model))
+                                        for n in g.nodes]
         quantised = quantised_activations(pre, keep, DEFAULT_OP_TYPES)
         groups = match_graph(model, pre, quantised, feed or probe_feed(model))
     covered = sum(len(g.tensors) for g in groups)

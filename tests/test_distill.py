@@ -3,6 +3,7 @@ label reads in label-free mode, refusals, and the `e3dpsm distill` command end t
 from __future__ import annotations
 
 import copy
+import json
 import shutil
 from pathlib import Path
 
@@ -265,3 +266,36 @@ def test_cli_bad_input_is_one_line(teacher_checkpoint: Path, prepared_small: Pat
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and expected in err, err
         assert not (tmp_path / argv[argv.index("--out") + 1]).joinpath("checkpoint.pt").exists()
+
+
+def test_qat_distillation_of_a_copy_learns_ranges_and_moves_towards_the_teacher(teacher_checkpoint: Path,
+                                                                                 prepared_small: Path,
+                                                                                 tmp_path: Path) -> None:
+    """`distill --qat`: a copy of the teacher is no longer a fixed point (the rounding moves
+    it), the learned ranges travel in the checkpoint, the weights stay plain, BatchNorm keeps
+    the teacher's statistics, and `quantize --ranges-from-checkpoint` takes the ranges."""
+    from e3dpsm.checkpoint import load_checkpoint, read_checkpoint
+    from e3dpsm.cli import main
+
+    out = tmp_path / "qat"
+    assert main(cli_args(teacher_checkpoint, str(teacher_checkpoint), prepared_small, out, "--qat",
+                         "--qat-full-integer", "--lr", "1e-3")) == 0
+    payload = read_checkpoint(out / "checkpoint.pt")
+    ranges = payload["qat_ranges"]["quantizers"]
+    assert len(ranges) > 50 and all(r["scale"] > 0 and 0 <= r["zero_point"] <= 255 for r in ranges)
+    assert any(s.startswith("delta_head") for r in ranges for s in r["sites"])  # the full-integer graph's
+    teacher = read_checkpoint(teacher_checkpoint)["model"]
+    assert set(payload["model"]) == set(teacher)  # no fake-quant keys
+    stats = [k for k in teacher if k.endswith(("running_mean", "running_var"))]
+    assert stats and all(torch.equal(payload["model"][k], teacher[k]) for k in stats)
+    moved = [k for k, v in payload["model"].items() if v.is_floating_point() and not torch.equal(v, teacher[k])]
+    assert moved  # the rounding gives a gradient the plain copy did not have
+    report = json.loads((out / "report.json").read_text())
+    assert report["initial"]["fused"] > 1e-3 and report["qat_ranges_learned"] == len(ranges)
+    assert payload["distill_config"]["qat"] and payload["distill_config"]["qat_full_integer"]
+    load_checkpoint(out / "checkpoint.pt")  # strict load
+
+
+def test_qat_full_integer_without_qat_is_refused_in_distill() -> None:
+    with pytest.raises(ConfigError, match="add --qat"):
+        DistillConfig(qat_full_integer=True)

@@ -108,6 +108,9 @@ def test_qat_finetune_writes_a_plain_checkpoint(training_runs: dict[str, Path], 
     assert torch.equal(payload["model"]["pose_prior_mm"], init["pose_prior_mm"])  # ...and kept their prior
     dumped = json.loads((tmp_path / "digest" / "rank0.json").read_text())
     assert dumped["sha256"] == _param_digest(model)["sha256"]
+    # BatchNorm kept the checkpoint's running statistics (the graph folds them)
+    stats = [k for k in init if k.endswith(("running_mean", "running_var"))]
+    assert stats and all(torch.equal(payload["model"][k], init[k]) for k in stats)
 
 
 def test_init_from_is_refused_with_resume_or_another_variant(training_runs: dict[str, Path], prepared_small: Path,
@@ -121,3 +124,51 @@ def test_init_from_is_refused_with_resume_or_another_variant(training_runs: dict
     err = capsys.readouterr().err
     assert rc != 0 and "holds variant 'tiny', not 'small'" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x" / "checkpoint.pt").exists()
+
+
+def test_full_integer_fake_quant_covers_the_recurrent_path_too() -> None:
+    """--qat-full-integer simulates `quantize --exclude none`: the delta head and the fusion's
+    pose embedding are fake-quantised as well, and the S5 states the readouts read (graph
+    outputs, renamed by ONNX Runtime's quantiser) are named as the graph names them."""
+    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX, qat_plan
+
+    model = e3dpsm.create_model("tiny", height=96, width=128).eval()
+    full = [name for name, _ in quantised_modules(model, full_integer=True)]
+    assert {"delta_head"} <= set(full) and set(n for n, _ in quantised_modules(model)) < set(full)
+    default_groups, full_groups = qat_plan(model), qat_plan(model, full_integer=True)
+    default_tensors = {t for g in default_groups for t in g.tensors}
+    full_tensors = {t for g in full_groups for t in g.tensors}
+    assert default_tensors < full_tensors
+    assert not any(t.endswith(GRAPH_OUTPUT_SUFFIX) for t in full_tensors)
+    handle = attach_fake_quant(model, QATConfig(full_integer=True), groups=full_groups)
+    assert parametrize.is_parametrized(model.delta_head, "weight")
+    handle.remove()
+
+
+def test_quantised_activations_name_quantised_graph_outputs_as_the_graph_does(tmp_path: Path) -> None:
+    """A graph output read by a MatMul: ONNX Runtime renames its producer's output
+    `<name>_QuantizeLinear_Input`; the tensor to learn a range for is `<name>`."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from e3dpsm.quantize.qat_ranges import quantised_activations
+
+    w = numpy_helper.from_array(np.eye(4, dtype=np.float32), "w")
+    graph = helper.make_graph(
+        [helper.make_node("Relu", ["x"], ["state"], name="relu"),
+         helper.make_node("MatMul", ["state", "w"], ["y"], name="readout")],
+        "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4]),
+         helper.make_tensor_value_info("state", TensorProto.FLOAT, [1, 4])], [w])
+    path = tmp_path / "g.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(path))
+    names = quantised_activations(path, [], ("MatMul",))
+    assert "state" in names and not any(n.endswith("_QuantizeLinear_Input") for n in names)
+
+
+def test_qat_full_integer_without_qat_is_refused() -> None:
+    from e3dpsm.errors import ConfigError
+    from e3dpsm.training.trainer import TrainArgs
+
+    with pytest.raises(ConfigError, match="add --qat"):
+        TrainArgs(variant="tiny", steps=1, qat_full_integer=True)

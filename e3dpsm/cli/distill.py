@@ -36,6 +36,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "bidirectional, as train does)")
     p.add_argument("--freeze-norm-stats", action="store_true",
                    help="keep the student's BatchNorm running statistics fixed (e.g. a pruned student)")
+    p.add_argument("--qat", action="store_true",
+                   help="quantisation-aware: the student trains with the INT8 graph's rounding simulated and "
+                        "learned ranges, towards the float teacher (e.g. --student = --teacher, --lr 1e-4); the "
+                        "checkpoint carries the ranges for quantize --ranges-from-checkpoint")
+    p.add_argument("--qat-full-integer", action="store_true",
+                   help="with --qat: simulate the full-integer graph (quantize --exclude none)")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace a run already in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -52,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
     config = DistillConfig(
         steps=args.steps, seq_len=args.seq_len, batch_size=args.batch_size, lr=args.lr,
         warmup_steps=args.warmup_steps, labels=args.labels, seed=args.seed, threads=args.threads,
-        causal=args.causal, freeze_norm_stats=args.freeze_norm_stats,
+        causal=args.causal, freeze_norm_stats=args.freeze_norm_stats, qat=args.qat,
+        qat_full_integer=args.qat_full_integer,
         prior=args.prior or ("data" if fresh else "keep"),
     )
     report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,

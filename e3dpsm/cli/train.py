@@ -30,7 +30,11 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="fine-tune: start from this checkpoint's weights (same variant and frame size)")
     p.add_argument("--qat", action="store_true",
                    help="quantisation-aware: simulate the INT8 graph's rounding while training (with --init-from "
-                        "and a small --lr, e.g. 1e-4, for a few hundred steps); the checkpoint stays float")
+                        "and a small --lr, e.g. 1e-4, for a few hundred steps); the checkpoint stays float; "
+                        "BatchNorm statistics stay the checkpoint's")
+    p.add_argument("--qat-full-integer", action="store_true",
+                   help="with --qat: simulate the full-integer graph (quantize --exclude none), recurrent "
+                        "groups included, instead of the default graph that keeps them in float")
     p.add_argument("--seq-len", type=int, default=40, help="frames per training window N (default 40)")
     p.add_argument("--batch-size", type=int, default=4, help="windows per step and rank (default 4)")
     p.add_argument("--lr", type=float, default=1e-3, help="peak Adam learning rate (default 1e-3)")
@@ -82,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed, split=args.split, overrides=ablation_overrides(args.ablation),
         supervise_direct=not args.no_direct_supervision, mask_invisible=args.mask_invisible,
         log_every=args.log_every, save_every=args.save_every, init_from=args.init_from, qat=args.qat,
+        qat_full_integer=args.qat_full_integer,
     )
     opts = RunOptions(resume=args.resume, force=args.force, stop_at=args.stop_at, device=args.device,
                       num_workers=args.num_workers, progress=not args.no_progress and sys.stderr.isatty())

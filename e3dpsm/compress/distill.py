@@ -33,6 +33,7 @@ from tqdm import tqdm
 from e3dpsm.data.prepared import ALL_SPLITS, PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.training.data import WindowDataset, seeded_batches
+from e3dpsm.training.qat import freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 
 if TYPE_CHECKING:
@@ -71,6 +72,13 @@ class DistillConfig:
     # updated by the batches. Default off, as in `train`: a fresh or pruned student needs
     # statistics of its own. On, a copy of the teacher is an exact fixed point.
     freeze_norm_stats: bool = False
+    # Quantisation-aware distillation: the student trains with the INT8 graph's rounding
+    # simulated and learned ranges (training/qat.py), towards the float teacher, which is
+    # the measure the INT8 budget holds a graph to (distance to the fp32 poses). `qat_full_integer`
+    # simulates the `quantize --exclude none` graph. Either freezes the student's BatchNorm
+    # statistics. The checkpoint carries the learned ranges (`quantize --ranges-from-checkpoint`).
+    qat: bool = False
+    qat_full_integer: bool = False
     prior: str = "keep"  # one of PRIOR_MODES
     prior_windows: int = 64  # windows of teacher poses averaged for prior="data"
     log_every: int = 10
@@ -83,6 +91,8 @@ class DistillConfig:
             raise ConfigError(f"distill seq_len must be at least 2 (the delta term needs two frames), got {self.seq_len}")
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"distill labels must be one of {list(LABEL_MODES)}, got {self.labels!r}")
+        if self.qat_full_integer and not self.qat:
+            raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
         if self.prior not in PRIOR_MODES:
             raise ConfigError(f"distill prior must be one of {list(PRIOR_MODES)}, got {self.prior!r}")
         if not self.lr > 0 or not self.charbonnier_mm > 0 or not self.clip_norm > 0:
@@ -152,12 +162,6 @@ def teacher_mean_pose(teacher: "E3DPSM", dataset: WindowDataset, config: Distill
     return (total / count).float()
 
 
-def _freeze_batchnorm(model: torch.nn.Module) -> None:
-    for module in model.modules():
-        if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
-            module.eval()
-
-
 def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, config: DistillConfig,
             *, split: str | None = None, progress: bool = True) -> dict[str, Any]:
     """Train `student` in place to reproduce `teacher` on prepared LNES windows (teacher frozen,
@@ -194,7 +198,18 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
         elif config.prior == "data":
             student.set_pose_prior(teacher_mean_pose(teacher, dataset, config, window_ms))
         prior_seconds = time.perf_counter() - prior_started
-        summary = _run(teacher, student, dataset, config, window_ms, criterion, progress)
+        fake_quant = None
+        if config.qat:
+            from e3dpsm.training.qat import QATConfig, attach_fake_quant
+
+            fake_quant = attach_fake_quant(student.train(), QATConfig(full_integer=config.qat_full_integer))
+        try:
+            summary = _run(teacher, student, dataset, config, window_ms, criterion, progress, fake_quant)
+            if fake_quant is not None:
+                summary["qat_ranges"] = fake_quant.ranges_payload()
+        finally:
+            if fake_quant is not None:
+                fake_quant.remove()  # the plain student, its learned ranges in the summary
     finally:
         teacher.train(teacher_was_training)
         student.train(student_was_training)
@@ -204,12 +219,16 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
 
 
 def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: DistillConfig, window_ms: float,
-         criterion: torch.nn.Module | None, progress: bool) -> dict[str, Any]:
+         criterion: torch.nn.Module | None, progress: bool, fake_quant: Any = None) -> dict[str, Any]:
     student.train()
-    if config.freeze_norm_stats:
-        _freeze_batchnorm(student)
+    if config.freeze_norm_stats or fake_quant is not None:
+        freeze_batchnorm_stats(student)
     device, teacher_device = _device(student), _device(teacher)
-    optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)
+    groups = [{"params": list(student.parameters())}]
+    if fake_quant is not None:
+        fake_quant.quantizers.to(device)
+        groups.append({"params": fake_quant.parameters(), "lr": config.lr * fake_quant.config.range_lr_scale})
+    optimizer = torch.optim.Adam(groups, lr=config.lr)
     schedule = WarmupCosine(config.steps, min(config.warmup_steps, max(1, config.steps // 10)), config.min_lr_ratio)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
     torch.manual_seed(config.seed * 1000)  # as `train` seeds a fresh single-process run

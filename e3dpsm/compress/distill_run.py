@@ -74,13 +74,15 @@ def run_distill(teacher_path: str | os.PathLike, student_spec: str, data_dir: st
                   "split": summary["split"]}
     header = report_header("distill", {"teacher": str(teacher_path), "student": student_spec, "data": str(data_dir),
                                        "split": summary["split"], "distill": config.to_dict()})
-    report = {**header, **{k: v for k, v in summary.items() if k not in ("teacher", "student", "config")},
+    qat = {"qat_ranges": summary["qat_ranges"]} if "qat_ranges" in summary else {}
+    report = {**header, **{k: v for k, v in summary.items() if k not in ("teacher", "student", "config", "qat_ranges")},
               "teacher": {**teacher_info, **summary["teacher"]}, "student": {**student_info, **summary["student"]},
-              "checkpoint": str(out / CHECKPOINT_NAME)}
+              "checkpoint": str(out / CHECKPOINT_NAME),
+              **({"qat_ranges_learned": len(qat["qat_ranges"]["quantizers"])} if qat else {})}
     markdown = report_markdown(report)  # everything built before the first write
     save_checkpoint(out / CHECKPOINT_NAME, student.eval(), step=config.steps, window_ms=summary["window_ms"],
                     data=str(data_dir), train_args=train_args, teacher=teacher_info, student_source=student_info,
-                    distill_config=config.to_dict())
+                    distill_config=config.to_dict(), **qat)
     write_json_atomic(out / REPORT_NAME, report)
     write_text_atomic(out / MARKDOWN_NAME, markdown)
     return report

@@ -47,6 +47,11 @@ class QATConfig:
     weights: bool = True
     activations: bool = True
     range_lr_scale: float = 10.0
+    # Simulate the full-integer graph (`quantize --exclude none`: the recurrent groups'
+    # Conv/MatMul/Gemm too, the S5 readouts and the delta head among them) instead of the
+    # default graph, which keeps them in float. The S5 readout matrices are parameters, not
+    # Linear modules: their inputs are fake-quantised, their weights are not.
+    full_integer: bool = False
 
 
 def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:
@@ -58,16 +63,27 @@ def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:
     return torch.fake_quantize_per_channel_affine(weight, scale, zero, 0, -WEIGHT_QMAX, WEIGHT_QMAX)
 
 
+def freeze_batchnorm_stats(model: nn.Module) -> int:
+    """Put every BatchNorm in eval mode (running statistics used, not updated) while the rest
+    trains; returns how many. Its affine parameters still learn."""
+    frozen = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    for module in frozen:
+        module.eval()
+    return len(frozen)
+
+
 class _WeightFakeQuant(nn.Module):
     def forward(self, weight: torch.Tensor) -> torch.Tensor:
         return fake_quantize_weight(weight)
 
 
-def quantised_modules(model: nn.Module) -> list[tuple[str, nn.Module]]:
-    """(name, module) of every Conv2d / Linear that the INT8 graph quantises."""
+def quantised_modules(model: nn.Module, full_integer: bool = False) -> list[tuple[str, nn.Module]]:
+    """(name, module) of every Conv2d / Linear that the INT8 graph quantises (with
+    `full_integer`, every one)."""
+    floats = () if full_integer else FLOAT_MODULE_PREFIXES
     return [(name, module) for name, module in model.named_modules()
             if isinstance(module, (nn.Conv2d, nn.Linear))
-            and not any(name == p or name.startswith(p + ".") for p in FLOAT_MODULE_PREFIXES)]
+            and not any(name == p or name.startswith(p + ".") for p in floats)]
 
 
 class FakeQuantHandle:
@@ -76,7 +92,7 @@ class FakeQuantHandle:
 
     def __init__(self, model: nn.Module, config: QATConfig, groups: Sequence[QuantGroup] = ()) -> None:
         self.model, self.config = model, config
-        self.modules = quantised_modules(model)
+        self.modules = quantised_modules(model, config.full_integer)
         self.groups = list(groups)
         self.quantizers = nn.ModuleList(LearnedQuantizer() for _ in self.groups)
         self._hooks: list[torch.utils.hooks.RemovableHandle] = []
@@ -184,5 +200,5 @@ def attach_fake_quant(model: nn.Module, config: QATConfig | None = None,
     if groups is None and config.activations:
         from e3dpsm.quantize.qat_ranges import qat_plan
 
-        groups = qat_plan(model)
+        groups = qat_plan(model, full_integer=config.full_integer)
     return FakeQuantHandle(model, config, groups or ()).attach()

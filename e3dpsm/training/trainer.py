@@ -30,7 +30,7 @@ from e3dpsm.training.data import WindowDataset, epoch_size, mean_pose_mm, seeded
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
-from e3dpsm.training.qat import attach_fake_quant
+from e3dpsm.training.qat import QATConfig, attach_fake_quant, freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
@@ -69,6 +69,13 @@ class TrainArgs:
     init_from: str | None = None
     # Quantisation-aware: train with the INT8 graph's rounding simulated (training/qat.py).
     qat: bool = False
+    # --qat: simulate the full-integer graph (`quantize --exclude none`) instead of the default
+    # one, whose recurrent groups stay float (training/qat.py QATConfig.full_integer).
+    qat_full_integer: bool = False
+
+    def __post_init__(self) -> None:
+        if self.qat_full_integer and not self.qat:
+            raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -187,10 +194,15 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
         model.set_pose_prior(torch.from_numpy(mean_pose_mm(sequences)))
     # QAT: the graph's quantised tensors are found on the CPU model (it is exported once);
     # a resumed run takes its learned ranges back from the checkpoint.
-    fake_quant = attach_fake_quant(model.train()) if args.qat else None
+    fake_quant = attach_fake_quant(model.train(), QATConfig(full_integer=args.qat_full_integer)) if args.qat else None
     if fake_quant and payload is not None and payload.get("qat_ranges"):
         fake_quant.load_ranges(payload["qat_ranges"])
     model.to(ctx.device).train()
+    if fake_quant:
+        # BatchNorm keeps the fine-tuned checkpoint's running statistics: small QAT batches
+        # would otherwise re-estimate them from fake-quantised activations, and the graph
+        # folds whatever they end at (Jacob et al. 2018 freeze them too).
+        freeze_batchnorm_stats(model)
     if fake_quant:
         fake_quant.quantizers.to(ctx.device)
     trained = wrap_model(model, ctx)
