@@ -45,11 +45,13 @@ def _session(path: Path, runtime: str, threads: int):
     return OpenVINOStepSession(path, threads=threads)
 
 
-def _poses(path: Path, runtime: str, lnes: list[np.ndarray], window_ms: float, threads: int) -> np.ndarray:
-    from e3dpsm.validation.streams import onnx_stream
+def _outputs(path: Path, runtime: str, lnes: list[np.ndarray], window_ms: float, threads: int) -> dict[str, np.ndarray]:
+    """Every pose output (fused, direct, delta) over the sequences, each one stream."""
+    from e3dpsm.validation.streams import onnx_stream_outputs
 
     session = _session(path, runtime, threads)
-    return np.concatenate([onnx_stream(session, x, window_ms) for x in lnes])
+    streams = [onnx_stream_outputs(session, x, window_ms) for x in lnes]
+    return {name: np.concatenate([s[name] for s in streams]) for name in streams[0]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,12 +91,12 @@ def main(argv: list[str] | None = None) -> int:
             q = quantize_graph(source, args.data, out, options)
             graphs[label] = (out / q["artifact"], source)
         rows = []
-        poses: dict[tuple[str, str], np.ndarray] = {}
+        outputs: dict[tuple[str, str], dict[str, np.ndarray]] = {}
         for label, (path, reference) in graphs.items():
             row = {"label": label, "bytes": path.stat().st_size}
             for runtime in RUNTIMES:
-                poses[label, runtime] = _poses(path, runtime, lnes, window_ms, args.threads)
-                row[f"{runtime}_mpjpe_mm"] = mpjpe(poses[label, runtime], gt)
+                outputs[label, runtime] = _outputs(path, runtime, lnes, window_ms, args.threads)
+                row[f"{runtime}_mpjpe_mm"] = mpjpe(outputs[label, runtime]["pose"], gt)
             rows.append(row)
         base_mpjpe = {rt: next(r for r in rows if r["label"] == "base fp32")[f"{rt}_mpjpe_mm"] for rt in RUNTIMES}
         for row in rows:
@@ -102,11 +104,21 @@ def main(argv: list[str] | None = None) -> int:
                              and "fp32" in label)
             for rt in RUNTIMES:
                 row[f"{rt}_vs_base_pct"] = 100.0 * (row[f"{rt}_mpjpe_mm"] / base_mpjpe[rt] - 1.0)
-                row[f"{rt}_distance_to_own_fp32_mm"] = float(joint_errors(poses[row["label"], rt],
-                                                                          poses[reference, rt]).mean())
+                row[f"{rt}_distance_to_own_fp32_mm"] = float(joint_errors(outputs[row["label"], rt]["pose"],
+                                                                          outputs[reference, rt]["pose"]).mean())
+                # the INT8 budget's measure, against the base checkpoint's fp32 graph: the
+                # largest mean joint distance over the pose outputs, % of its MPJPE
+                row[f"{rt}_bound_vs_base_pct"] = 100.0 * max(
+                    float(joint_errors(outputs[row["label"], rt][k], outputs["base fp32", rt][k]).mean())
+                    for k in outputs["base fp32", rt]) / base_mpjpe[rt]
     qat_rows = [r for r in rows if r["label"].startswith("qat full int8, QAT")]
     met = all(r[f"{rt}_vs_base_pct"] <= QAT_BAR_PCT for r in qat_rows for rt in RUNTIMES)
-    report.update(isa=detect_isa().to_dict(), frames=int(len(gt)), sequences=[s.name for s in sequences],
+    # A QAT graph may meet the MPJPE bar by another route than the fp32 model's: it is taken
+    # as a compression of that model only if its poses are no further from the fp32 ones than
+    # the PTQ graph's are.
+    ptq = next(r for r in rows if r["label"].startswith("base full int8"))
+    faithful = all(r[f"{rt}_bound_vs_base_pct"] <= ptq[f"{rt}_bound_vs_base_pct"] for r in qat_rows for rt in RUNTIMES)
+    report.update(faithful=faithful, isa=detect_isa().to_dict(), frames=int(len(gt)), sequences=[s.name for s in sequences],
                   qat_steps=qat_payload.get("step"), rows=rows, bar_pct=QAT_BAR_PCT, bar_met=met)
     name = f"qat_{base_model.config.variant}_mpjpe"
     write_json_atomic(RESULTS / f"{name}.json", report)
@@ -124,14 +136,22 @@ def markdown(report: dict) -> str:
              f"{config['eval_splits']}), each sequence one stream; calibration on `{config['split']}`. "
              f"QAT checkpoint `{config['qat_checkpoint']}` ({report['qat_steps']} steps) from `{config['checkpoint']}`.",
              "", f"**Bar (+{report['bar_pct']:g}% of the base fp32 MPJPE, both runtimes): "
-             f"{'met' if report['bar_met'] else 'not met'}.**", "",
-             "| graph | MB | ORT MPJPE mm (vs base fp32) | OpenVINO MPJPE mm (vs base fp32) | distance to own fp32, ORT / OV mm |",
-             "|---|---:|---:|---:|---:|"]
+             f"{'met' if report['bar_met'] else 'not met'} by MPJPE; "
+             + ("the QAT graph's poses are no further from the fp32 ones than the PTQ graph's.**"
+                if report.get("faithful") else
+                "not accepted: the QAT graph's poses are further from the fp32 checkpoint's than the PTQ "
+                "graph's (last column), so it meets the bar by another route, not as a compression of it.**"), "",
+             "The last column is the INT8 budget's measure against the base checkpoint's fp32 graph: the "
+             "largest mean joint distance over the fused, direct and delta poses, % of its MPJPE (budget 1%).", "",
+             "| graph | MB | ORT MPJPE mm (vs base fp32) | OpenVINO MPJPE mm (vs base fp32) | distance to own fp32, "
+             "ORT / OV mm | distance to base fp32, ORT / OV % |",
+             "|---|---:|---:|---:|---:|---:|"]
     for r in report["rows"]:
         lines.append(f"| {r['label']} | {r['bytes'] / 1e6:.2f} | {r['onnxruntime_mpjpe_mm']:.2f} "
                      f"({r['onnxruntime_vs_base_pct']:+.2f}%) | {r['openvino_mpjpe_mm']:.2f} "
                      f"({r['openvino_vs_base_pct']:+.2f}%) | {r['onnxruntime_distance_to_own_fp32_mm']:.2f} / "
-                     f"{r['openvino_distance_to_own_fp32_mm']:.2f} |")
+                     f"{r['openvino_distance_to_own_fp32_mm']:.2f} | {r['onnxruntime_bound_vs_base_pct']:.3f} / "
+                     f"{r['openvino_bound_vs_base_pct']:.3f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -275,7 +275,9 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     calib_seconds = time.perf_counter() - started
     learned, qat_report = {}, None
     if options.ranges_from_checkpoint:
-        quantised = quantised_activations(pre, keep, config.op_types)
+        # Every tensor the graph may quantise: `--exclude none` quantises the recurrent groups
+        # too, and a search may; overrides for tensors a graph leaves float are not used.
+        quantised = quantised_activations(pre, fixed if fixed is not None else [], config.op_types)
         learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised, calib.feeds[0])
     search = latency = precision = None
     int16_nodes: list[str] = []

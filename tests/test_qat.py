@@ -140,6 +140,10 @@ def test_full_integer_fake_quant_covers_the_recurrent_path_too() -> None:
     full_tensors = {t for g in full_groups for t in g.tensors}
     assert default_tensors < full_tensors
     assert not any(t.endswith(GRAPH_OUTPUT_SUFFIX) for t in full_tensors)
+    # the S5 states the readouts read are hooked (through layers/s5.py Projection)
+    sites = {site for g in full_groups for site in g.sites}
+    assert any(t.startswith("s5_") for t in full_tensors)
+    assert any(".read_re:in" in site for site in sites) and any(".drive_re:out" in site for site in sites)
     handle = attach_fake_quant(model, QATConfig(full_integer=True), groups=full_groups)
     assert parametrize.is_parametrized(model.delta_head, "weight")
     handle.remove()

@@ -68,6 +68,17 @@ def _expand(coeff: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return coeff.view(coeff.shape[0], *([1] * (like.dim() - 2)), coeff.shape[1])
 
 
+class Projection(nn.Module):
+    """`x @ weight.T` for a weight the caller owns. A module of its own, with no parameters,
+    so that the S5 projections have a place quantisation-aware training can hook (their
+    inputs, the S5 states among them, and outputs are tensors the INT8 graph quantises;
+    training/qat_sites.py finds places by module); the computation and the graph are the
+    plain MatMul's."""
+
+    def forward(self, x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        return x @ weight.t()
+
+
 class S5(nn.Module):
     def __init__(
         self,
@@ -122,6 +133,10 @@ class S5(nn.Module):
             self.cb_re, self.cb_im = readout()
         self.d = nn.Parameter(torch.rand(dim, generator=gen))
         self.log_step = nn.Parameter(log_step)
+        self.drive_re, self.drive_im = Projection(), Projection()
+        self.read_re, self.read_im = Projection(), Projection()
+        if bidirectional:
+            self.read_back_re, self.read_back_im = Projection(), Projection()
 
     # -- discretisation ------------------------------------------------------------------
     def lambda_pair(self) -> ComplexPair:
@@ -150,7 +165,7 @@ class S5(nn.Module):
     # -- pieces shared by step and sequence ----------------------------------------------
     def drive(self, u: torch.Tensor, gamma: ComplexPair) -> ComplexPair:
         """B_bar u for u [B, ..., H] -> pair of [B, ..., P]."""
-        bu_re, bu_im = u @ self.b_re.t(), u @ self.b_im.t()
+        bu_re, bu_im = self.drive_re(u, self.b_re), self.drive_im(u, self.b_im)
         g_re, g_im = _expand(gamma[0], bu_re), _expand(gamma[1], bu_re)
         return g_re * bu_re - g_im * bu_im, g_re * bu_im + g_im * bu_re
 
@@ -160,8 +175,9 @@ class S5(nn.Module):
         return l_re * x[0] - l_im * x[1] + v[0], l_re * x[1] + l_im * x[0] + v[1]
 
     def readout(self, x: ComplexPair, backward: bool = False) -> torch.Tensor:
-        c_re, c_im = (self.cb_re, self.cb_im) if backward else (self.c_re, self.c_im)
-        return x[0] @ c_re.t() - x[1] @ c_im.t()
+        if backward:
+            return self.read_back_re(x[0], self.cb_re) - self.read_back_im(x[1], self.cb_im)
+        return self.read_re(x[0], self.c_re) - self.read_im(x[1], self.c_im)
 
     # -- public API ----------------------------------------------------------------------
     def step(self, u: torch.Tensor, state: ComplexPair, step_scale: torch.Tensor) -> tuple[torch.Tensor, ComplexPair]:

@@ -73,6 +73,12 @@ class LearnedQuantizer(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not bool(self.initialised):
             low, high = torch.aminmax(x.detach())
+            if not float(high) - float(low) > 0.0:
+                # A constant first batch (the Kalman fusion's pose input is all zeros before
+                # its first frame) has no range to start from: a scale at MIN_SCALE would zero
+                # the tensor and Adam moves the log-scale by about its learning rate per step,
+                # so it never recovers. Pass it through; start from the first batch that varies.
+                return x
             self.init_from_range(float(low), float(high))
         return fake_quantize_learned(x, self.scale, self.zero_point)
 
