@@ -57,6 +57,18 @@ def speed_verdict(report: dict[str, Any]) -> str | None:
             f"{', '.join(alternatives)}.")
 
 
+def search_target_phrase(report: dict[str, Any]) -> str:
+    """What the search aimed at: "target 0.75%: the 1% budget less a 25% margin for unseen
+    data", or "budget 1%" when it spent the whole budget."""
+    search = report.get("search") or {}
+    target = search["budget_pct"]
+    budget = (report.get("config") or {}).get("budget_pct")
+    if budget and target < budget:
+        return (f"target {target:g}%: the {budget:g}% budget less a {100 * (1 - target / budget):.0f}% "
+                "margin for unseen data")
+    return f"budget {target:g}%"
+
+
 def markdown_report(report: dict[str, Any]) -> str:
     h = report["holdout"]
     verdict = speed_verdict(report)
@@ -68,12 +80,7 @@ def markdown_report(report: dict[str, Any]) -> str:
     if search:
         fp32 = search["fp32_p50_ms"]
         timer = search.get("timer") or {}
-        config = report.get("config") or {}
-        budget = config.get("budget_pct")
-        target = (f"target {search['budget_pct']:g}%: the {budget:g}% budget less a "
-                  f"{100 * (1 - search['budget_pct'] / budget):.0f}% margin for unseen data"
-                  if budget and search["budget_pct"] < budget else f"budget {search['budget_pct']:g}%")
-        lines += [f"## Exclusion search (objective: {search['objective']}, {target})", "",
+        lines += [f"## Exclusion search (objective: {search['objective']}, {search_target_phrase(report)})", "",
                   f"Candidates timed side by side with the fp32 graph ({_fmt(fp32)} ms/step): "
                   f"{timer.get('steps', '?')} steps after {timer.get('warmup', '?')} warm-up, "
                   f"{timer.get('threads') or 'all'} threads, interleaved in chunks of {timer.get('chunk', '?')}; "

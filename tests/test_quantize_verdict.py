@@ -53,3 +53,14 @@ def test_no_timing_no_verdict() -> None:
     report = _report(1.0, 1.0, bf16=False)
     report["search"]["chosen"]["p50_ms"] = None
     assert speed_verdict(report) is None and "Verdict" not in markdown_report(report)
+
+
+@pytest.mark.parametrize("target, budget, phrase", [
+    (0.75, 1.0, "target 0.75%: the 1% budget less a 25% margin for unseen data"),
+    (1.0, 1.0, "budget 1%"),
+    (0.1, None, "budget 0.1%"),
+])
+def test_reports_name_the_search_target_and_its_margin(target, budget, phrase) -> None:
+    from e3dpsm.quantize.front_report import search_target_phrase
+
+    assert search_target_phrase({"search": {"budget_pct": target}, "config": {"budget_pct": budget}}) == phrase

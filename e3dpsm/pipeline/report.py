@@ -99,7 +99,7 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
     model = (f"Checkpoint `{config['checkpoint']}` (variant `{variant}`, not trained here)" if config.get("checkpoint")
              else f"Variant `{variant}`")
     int8_report = _load(out / "quantize/int8/report.json") or {}
-    from e3dpsm.quantize.front_report import front_table, speed_verdict
+    from e3dpsm.quantize.front_report import front_table, search_target_phrase, speed_verdict
 
     verdict = speed_verdict(int8_report) if int8_report else None
     lines = ["# E-3DPSM pipeline report", "", *([f"**{verdict}**", ""] if verdict else []),
@@ -114,7 +114,7 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
                   "[parity/report.json](../parity/report.json)).", ""]
     quantised = int8_report.get("search")
     if quantised:
-        lines += [f"## INT8 exclusion search (objective: {quantised['objective']}, budget {quantised['budget_pct']:g}%)",
+        lines += [f"## INT8 exclusion search (objective: {quantised['objective']}, {search_target_phrase(int8_report)})",
                   "", "Candidate graphs timed side by side with the fp32 graph "
                   f"({_fmt(quantised['fp32_p50_ms'])} ms/step); the front of (held-out distance to fp32, latency) "
                   "and the chosen graph ([quantize/int8/report.md](../quantize/int8/report.md)).", "",
