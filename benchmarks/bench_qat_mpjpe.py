@@ -35,21 +35,12 @@ RUNTIMES = ("onnxruntime", "openvino")
 QAT_BAR_PCT = 1.0
 
 
-def _session(path: Path, runtime: str, threads: int):
-    if runtime == "onnxruntime":
-        from e3dpsm.runtime import StepSession
-
-        return StepSession(path, threads=threads)
-    from e3dpsm.runtime.openvino_session import OpenVINOStepSession
-
-    return OpenVINOStepSession(path, threads=threads)
-
-
 def _outputs(path: Path, runtime: str, lnes: list[np.ndarray], window_ms: float, threads: int) -> dict[str, np.ndarray]:
     """Every pose output (fused, direct, delta) over the sequences, each one stream."""
+    from e3dpsm.golden.verify import open_runner
     from e3dpsm.validation.streams import onnx_stream_outputs
 
-    session = _session(path, runtime, threads)
+    session = open_runner(path, runtime, threads=threads)
     streams = [onnx_stream_outputs(session, x, window_ms) for x in lnes]
     return {name: np.concatenate([s[name] for s in streams]) for name in streams[0]}
 
@@ -82,17 +73,19 @@ def main(argv: list[str] | None = None) -> int:
         qat = export_step(qat_model, work / "qat.onnx")
         common = dict(mode="int8", exclude="none", frames=args.frames, split=args.split,
                       holdout_split=args.eval_splits.split(",")[0], threads=args.threads)
-        graphs = {"base fp32": (base, base), "qat fp32": (qat, qat)}
-        for label, source, options in (
-                ("base full int8, minmax (PTQ)", base, QuantizeOptions(**common)),
-                ("qat full int8, QAT ranges", qat, QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint)),
-                ("qat full int8, minmax", qat, QuantizeOptions(**common))):
+        # label -> (graph, the label of the fp32 graph it was quantised from)
+        graphs = {"base fp32": (base, "base fp32"), "qat fp32": (qat, "qat fp32")}
+        for label, reference, options in (
+                ("base full int8, minmax (PTQ)", "base fp32", QuantizeOptions(**common)),
+                ("qat full int8, QAT ranges", "qat fp32",
+                 QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint)),
+                ("qat full int8, minmax", "qat fp32", QuantizeOptions(**common))):
             out = work / label.split(",")[0].replace(" ", "_") / label.split(", ")[1].split(" ")[0]
-            q = quantize_graph(source, args.data, out, options)
-            graphs[label] = (out / q["artifact"], source)
+            q = quantize_graph(graphs[reference][0], args.data, out, options)
+            graphs[label] = (out / q["artifact"], reference)
         rows = []
         outputs: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-        for label, (path, reference) in graphs.items():
+        for label, (path, _) in graphs.items():
             row = {"label": label, "bytes": path.stat().st_size}
             for runtime in RUNTIMES:
                 outputs[label, runtime] = _outputs(path, runtime, lnes, window_ms, args.threads)
@@ -100,8 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
         base_mpjpe = {rt: next(r for r in rows if r["label"] == "base fp32")[f"{rt}_mpjpe_mm"] for rt in RUNTIMES}
         for row in rows:
-            reference = next(label for label, (p, src) in graphs.items() if src == graphs[row["label"]][1]
-                             and "fp32" in label)
+            reference = graphs[row["label"]][1]
             for rt in RUNTIMES:
                 row[f"{rt}_vs_base_pct"] = 100.0 * (row[f"{rt}_mpjpe_mm"] / base_mpjpe[rt] - 1.0)
                 row[f"{rt}_distance_to_own_fp32_mm"] = float(joint_errors(outputs[row["label"], rt]["pose"],

@@ -35,8 +35,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 QAT_RANGES_FORMAT = "e3dpsm-qat-ranges/1"
-
-
+# ONNX Runtime's name for a quantised graph output's producer output (`<name>` + this).
 GRAPH_OUTPUT_SUFFIX = "_QuantizeLinear_Input"
 
 
@@ -59,7 +58,7 @@ def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], o
     inits = {i.name for i in qdq.graph.initializer}
     # A quantised graph output (an S5 state, in the full-integer graph) keeps its name on the
     # DequantizeLinear; its producer's output is renamed `<name>_QuantizeLinear_Input`.
-    return sorted({n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX) if n.input[0].endswith(GRAPH_OUTPUT_SUFFIX) else n.input[0]
+    return sorted({n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX)
                    for n in qdq.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits})
 
 

@@ -19,6 +19,7 @@ import onnx.version_converter
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.quantize.calibration import CalibrationSet, FeedListReader
+from e3dpsm.quantize.ranges import with_zero
 from e3dpsm.utils.isa import ISA_KINDS
 
 if TYPE_CHECKING:
@@ -172,7 +173,8 @@ def widened_range(low: float, high: float, margin: float) -> tuple[float, float]
     one-sided."""
     if margin < 1.0:
         raise ValueError(f"a range margin below 1 would clip the calibration frames themselves, got {margin}")
-    return min(low, 0.0) * margin, max(high, 0.0) * margin
+    low, high = with_zero(low, high)
+    return low * margin, high * margin
 
 
 def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.PathLike) -> list[str]:

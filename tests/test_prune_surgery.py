@@ -194,6 +194,28 @@ def test_bad_keep_lists_are_refused():
         prune_model(model, {"decoder.layers.0.ffn": [0, 1], "decoder.layers.9.ffn": [0]})
     with pytest.raises(ValueError, match="outside"):
         prune_model(model, {"attention.0.ff": []})  # a GEGLU keeps at least one channel
+    # an index one past the last channel, of a unit and of a decoder layer
+    width = model.config.res_hidden_width(0, 0)
+    with pytest.raises(ValueError, match=rf"within \[0, {width}\)"):
+        prune_model(model, {"stages.0.block1": [0, width]})
+    ffn = model.config.decoder_ffn
+    with pytest.raises(ValueError, match=rf"within \[0, {ffn}\)"):
+        prune_model(model, {f"decoder.layers.{k}.ffn": [0, ffn] for k in range(model.config.decoder_layers)})
+
+
+def test_macs_per_stage_groups_each_stage_with_its_s5_and_attention():
+    """Each Conv2d/Linear's MACs land in its own stage (its residual convs, deformable block
+    and S5 block), the rest in the stem or the decoder and heads; nothing is lost."""
+    from e3dpsm.compress.plan import count_macs, macs_per_stage
+
+    model = e3dpsm.create_model("small", **SIZE)
+    per_module = count_macs(model)
+    groups = macs_per_stage(model)
+    assert sum(groups.values()) == sum(per_module.values())
+    for s in model.config.ssm_stages:
+        ssm = sum(v for k, v in per_module.items() if k.startswith(f"ssm.{s}."))
+        rest = sum(v for k, v in per_module.items() if k.startswith((f"stages.{s}.", f"attention.{s}.")))
+        assert ssm > 0 and groups[f"stage{s + 1}"] == ssm + rest
 
 
 def test_unpruned_configs_read_back_unchanged():

@@ -93,79 +93,15 @@ def test_a_constant_first_batch_does_not_initialise_the_range() -> None:
     assert torch.allclose(y, x, atol=scale / 2 + 1e-6)
 
 
-def _qat_steps(model: torch.nn.Module, handle, steps: int = 3) -> dict:
-    cfg = model.config
-    frames = (torch.rand(1, 4, cfg.in_channels, cfg.height, cfg.width, generator=torch.Generator().manual_seed(1)) < 0.05).float()
-    frames = frames * torch.rand(frames.shape, generator=torch.Generator().manual_seed(2))
-    optimizer = torch.optim.Adam([{"params": model.parameters(), "lr": 1e-4},
-                                  {"params": handle.parameters(), "lr": 1e-2}])
-    start = None
-    for step in range(steps):
-        loss = model.forward_sequence(frames, causal=False)["pose"].pow(2).mean()
-        optimizer.zero_grad()
-        loss.backward()
-        if start is None:  # initialised by the first forward pass
-            start = {i: q.qparams() for i, q in enumerate(handle.quantizers)}
-        optimizer.step()
-    return start
-
-
-@pytest.fixture(scope="module")
-def qat_tiny_full_integer(tmp_path_factory) -> dict:
-    """As qat_tiny, simulating the full-integer graph (QATConfig(full_integer=True))."""
+def _qat_tiny(tmp_path_factory, config: QATConfig, name: str) -> dict:
+    """The trained tiny after 3 QAT steps under `config` (learned ranges moved from their
+    start), saved as a checkpoint with its `qat_ranges`, and its fp32 export."""
     from e3dpsm.export import export_step
 
     torch.manual_seed(0)
     model, _ = load_checkpoint(TRAINED_TINY, variant="tiny")
     model.train()
-    handle = attach_fake_quant(model, QATConfig(full_integer=True))
-    _qat_steps(model, handle)
-    root = tmp_path_factory.mktemp("qat_tiny_full")
-    ranges = handle.ranges_payload()
-    with handle.removed():
-        ckpt = save_checkpoint(root / "checkpoint.pt", model, qat_ranges=ranges)
-        graph = export_step(model.eval(), root / "step.onnx")
-    return {"checkpoint": ckpt, "graph": graph, "handle": handle}
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "known defect (2026-11-30): 5 of the 22 recurrent-path tensors keep calibrated ranges: the four S5 "
-    "states, which are graph outputs (ONNX Runtime renames their producers' outputs and the override by "
-    "name does not reach that QuantizeLinear), and the fusion's pose input; the other 17 take the learned ones"))
-def test_full_integer_graph_takes_the_recurrent_paths_learned_ranges(qat_tiny_full_integer, quant_data: Path,
-                                                                     tmp_path: Path) -> None:
-    """Catches: `--exclude none --ranges-from-checkpoint` matching only the default graph's
-    tensors, so the recurrent path (S5 readouts, the delta head) kept calibrated ranges
-    where training had learned others."""
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
-
-    run = qat_tiny_full_integer
-    report = quantize_graph(run["graph"], quant_data, tmp_path / "q", QuantizeOptions(
-        mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"])))
-    by_tensor = {t: q.qparams() for g, q in zip(run["handle"].groups, run["handle"].quantizers) for t in g.tensors}
-    recurrent = [t for g in run["handle"].groups for t in g.tensors
-                 if any(s.startswith(("delta_head", "pose_embed")) or ".read_" in s for s in g.sites)]
-    assert recurrent
-    model = onnx.load(str(tmp_path / "q" / report["artifact"]))
-    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
-    suffix = "_QuantizeLinear_Input"
-    written = {n.input[0].removesuffix(suffix): (inits[n.input[1]], inits[n.input[2]]) for n in model.graph.node
-               if n.op_type == "QuantizeLinear" and n.input[1] in inits and n.input[0] not in inits}
-    wrong = [t for t in recurrent if not (written[t][0] == np.float32(by_tensor[t][0])
-                                          and int(written[t][1]) == by_tensor[t][1])]
-    assert len(recurrent) > 4 and wrong == [], f"{len(wrong)} of {len(recurrent)}: {wrong}"
-
-
-@pytest.fixture(scope="module")
-def qat_tiny(tmp_path_factory) -> dict:
-    """The trained tiny after a few QAT steps (learned ranges moved from their start), saved
-    as a checkpoint with its `qat_ranges`, and its fp32 export."""
-    from e3dpsm.export import export_step
-
-    torch.manual_seed(0)
-    model, payload = load_checkpoint(TRAINED_TINY, variant="tiny")
-    model.train()
-    handle = attach_fake_quant(model, QATConfig())
+    handle = attach_fake_quant(model, config)
     cfg = model.config
     frames = (torch.rand(1, 4, cfg.in_channels, cfg.height, cfg.width, generator=torch.Generator().manual_seed(1)) < 0.05).float()
     frames = frames * torch.rand(frames.shape, generator=torch.Generator().manual_seed(2))
@@ -180,12 +116,66 @@ def qat_tiny(tmp_path_factory) -> dict:
             start = {i: q.qparams() for i, q in enumerate(handle.quantizers)}
         optimizer.step()
     learned = {i: q.qparams() for i, q in enumerate(handle.quantizers)}
-    root = tmp_path_factory.mktemp("qat_tiny")
+    root = tmp_path_factory.mktemp(name)
     ranges = handle.ranges_payload()
     with handle.removed():
         ckpt = save_checkpoint(root / "checkpoint.pt", model, qat_ranges=ranges)
         graph = export_step(model.eval(), root / "step.onnx")
     return {"checkpoint": ckpt, "graph": graph, "start": start, "learned": learned, "handle": handle}
+
+
+@pytest.fixture(scope="module")
+def qat_tiny_full_integer(tmp_path_factory) -> dict:
+    """As qat_tiny, simulating the full-integer graph (QATConfig(full_integer=True))."""
+    return _qat_tiny(tmp_path_factory, QATConfig(full_integer=True), "qat_tiny_full")
+
+
+def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str], list[str], set[str]]:
+    """Quantise the full-integer QAT tiny with `--exclude none --ranges-from-checkpoint`:
+    (the recurrent path's learned tensors, those whose graph range is not the learned one,
+    the ones known to keep calibrated ranges: the S5 states and the fusion's pose input)."""
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX
+
+    report = quantize_graph(run["graph"], quant_data, work / "q", QuantizeOptions(
+        mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"])))
+    groups = list(zip(run["handle"].groups, run["handle"].quantizers))
+    by_tensor = {t: q.qparams() for g, q in groups for t in g.tensors}
+    recurrent = [t for g, _ in groups for t in g.tensors
+                 if any(s.startswith(("delta_head", "pose_embed")) or ".read_" in s for s in g.sites)]
+    known = {t for g, _ in groups for t in g.tensors if t.startswith("s5_") or "pose_embed.0:in" in g.sites}
+    model = onnx.load(str(work / "q" / report["artifact"]))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    written = {n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX): (inits[n.input[1]], inits[n.input[2]]) for n in model.graph.node
+               if n.op_type == "QuantizeLinear" and n.input[1] in inits and n.input[0] not in inits}
+    wrong = [t for t in recurrent if not (written[t][0] == np.float32(by_tensor[t][0])
+                                          and int(written[t][1]) == by_tensor[t][1])]
+    return recurrent, wrong, known
+
+
+def test_full_integer_graph_takes_the_recurrent_paths_learned_ranges(qat_tiny_full_integer, quant_data: Path,
+                                                                     tmp_path: Path) -> None:
+    """Catches: `--exclude none --ranges-from-checkpoint` matching only the default graph's
+    tensors, so the recurrent path (S5 readouts, the delta head) kept calibrated ranges
+    where training had learned others. The known exceptions are the next test's."""
+    recurrent, wrong, known = _recurrent_ranges(qat_tiny_full_integer, quant_data, tmp_path)
+    others = [t for t in recurrent if t not in known]
+    assert len(others) > 10 and [t for t in wrong if t not in known] == []
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "known defect (2026-11-30): the four S5 states, which are graph outputs (ONNX Runtime renames their "
+    "producers' outputs and the override by name does not reach that QuantizeLinear), and the fusion's pose "
+    "input keep calibrated ranges in the full-integer graph"))
+def test_full_integer_graph_takes_the_learned_ranges_of_the_s5_states_too(qat_tiny_full_integer, quant_data: Path,
+                                                                           tmp_path: Path) -> None:
+    recurrent, wrong, known = _recurrent_ranges(qat_tiny_full_integer, quant_data, tmp_path)
+    assert known and known <= set(recurrent) and wrong == [], f"{len(wrong)} of {len(recurrent)}: {wrong}"
+
+
+@pytest.fixture(scope="module")
+def qat_tiny(tmp_path_factory) -> dict:
+    return _qat_tiny(tmp_path_factory, QATConfig(), "qat_tiny")
 
 
 def test_qat_checkpoint_carries_learned_ranges_that_moved(qat_tiny) -> None:

@@ -28,7 +28,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from e3dpsm.compress.units import ATTN_BLOCK, RES, Unit
+from e3dpsm.compress.units import RES, Unit
 
 _KERNEL_SUFFIX = "_kernel_time"
 
@@ -148,6 +148,5 @@ def predict_ms(profile: LatencyProfile, units: Sequence[Unit], new_widths: Mappi
             continue
         inside_removed = any(unit.scope.startswith(s) and unit.scope != s for s in removed_scopes)
         width = 0 if inside_removed else new_widths[unit.name]
-        removed = width == 0 or (unit.kind == ATTN_BLOCK and width == 0)
-        total += saved_ms(profile, unit.name, unit.width, width, removed)
+        total += saved_ms(profile, unit.name, unit.width, width, removed=width == 0)
     return profile.run_ms - total

@@ -79,9 +79,7 @@ def macs_per_stage(model: E3DPSM) -> dict[str, int]:
     out: dict[str, int] = {}
     for name, value in count_macs(model).items():
         parts = name.split(".")
-        if parts[0] in ("stages", "attention"):
-            key = f"stage{int(parts[1]) + 1}"
-        elif parts[0] == "ssm":
+        if parts[0] in ("stages", "attention", "ssm"):
             key = f"stage{int(parts[1]) + 1}"
         else:
             key = "decoder+heads" if parts[0] != "stem" else "stem"

@@ -146,18 +146,12 @@ def export_fp32(model: E3DPSM, path: Path) -> Path:
 def time_graphs(graphs: dict[str, tuple[str, Path]], frames: np.ndarray, window_ms: float, threads: int,
                 steps: int) -> dict[str, float]:
     """Median step ms of each (runtime, graph), all side by side in one interleaved run."""
+    from e3dpsm.golden.verify import open_runner
     from e3dpsm.profiles.latency import measure_side_by_side
-    from e3dpsm.runtime.session import CarriedStateRunner, StepSession
+    from e3dpsm.runtime.session import CarriedStateRunner
 
-    runners = {}
-    for label, (runtime, path) in graphs.items():
-        if runtime == "openvino":
-            from e3dpsm.runtime.openvino_session import OpenVINOStepSession
-
-            session = OpenVINOStepSession(path, threads=threads)
-        else:
-            session = StepSession(path, threads=threads)
-        runners[label] = CarriedStateRunner(session, window_ms)
+    runners = {label: CarriedStateRunner(open_runner(path, runtime, threads=threads), window_ms)
+               for label, (runtime, path) in graphs.items()}
     seconds = measure_side_by_side(runners, frames, steps, warmup=max(10, steps // 10), chunk=20)
     return {label: 1e3 * float(np.median(t)) for label, t in seconds.items()}
 
@@ -222,7 +216,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         if not widths:
             log.info("round %d: nothing left to cut", k)
             break
-        student = prune_model(student, keep_lists(student, prunable_units(student.config), widths))
+        student = prune_model(student, keep_lists(student, units, widths))
         t_plan = time.perf_counter() - t0
         recovery = recover(teacher, student, k)
         graph = export_fp32(student, work / f"round{k}.onnx")

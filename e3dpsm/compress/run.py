@@ -34,9 +34,10 @@ def distill_recovery(data_dir: str | os.PathLike, config: PruneConfig, progress:
     return recover
 
 
-def _int8(graph: Path, data: str | os.PathLike, out: Path, threads: int) -> Path | None:
-    """A static INT8 graph (recurrences in float, min-max ranges) or None when the data has no
-    calibration split; the quantiser's own report lands beside it."""
+def _int8(graph: Path, data: str | os.PathLike, out: Path, threads: int) -> Path:
+    """A static INT8 graph (recurrences in float, min-max ranges), calibrated on `train` (else
+    the first split) and checked on `val` (else the last); the quantiser's own report lands
+    beside it."""
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.quantize.api import QuantizeOptions, artifact_name, quantize_graph
 
@@ -87,13 +88,12 @@ def run_prune(checkpoint: str | os.PathLike, data: str | os.PathLike, out: str |
         if int8:
             for k in sorted({0, best}):
                 q = _int8(tmp / rounds[k]["graph"], eval_data, graphs / f"round{k}_int8", config.threads)
-                if q is not None:
-                    held = json.loads((q.parent / "report.json").read_text(encoding="utf-8"))["holdout"]
-                    rounds[k]["int8"] = {key: held.get(key) for key in ("split", "frames", "mpjpe_mm", "fp32_mpjpe_mm",
-                                                                        "loss_pct")}
-                    timed[f"r{k}_ort_int8"] = ("onnxruntime", q)
-                    timed[f"r{k}_ov_int8"] = ("openvino", q)
-                    int8_reports[k] = os.path.relpath(q, tmp)
+                held = json.loads((q.parent / "report.json").read_text(encoding="utf-8"))["holdout"]
+                rounds[k]["int8"] = {key: held.get(key) for key in ("split", "frames", "mpjpe_mm", "fp32_mpjpe_mm",
+                                                                    "loss_pct")}
+                timed[f"r{k}_ort_int8"] = ("onnxruntime", q)
+                timed[f"r{k}_ov_int8"] = ("openvino", q)
+                int8_reports[k] = os.path.relpath(q, tmp)
         frames = np.asarray(held_out.split(eval_split)[0].lnes[:200], dtype=np.float32)
         # One interleaved run per runtime: OpenVINO's and ONNX Runtime's thread pools, alternating
         # in one process every few steps, disturbed each other's figures on a loaded 2-core host.

@@ -34,11 +34,17 @@ def _geglu_rows(idx: torch.Tensor, hidden: int) -> Slicer:
     return lambda t: t.index_select(0, both)
 
 
+def _keep_index(name: str, keep: Sequence[int], width: int) -> torch.Tensor:
+    """The kept channel indices, ascending; ValueError unless distinct and within [0, width)."""
+    idx = torch.as_tensor(sorted(keep), dtype=torch.long)
+    if len(set(keep)) != len(keep) or (len(keep) and (idx.min() < 0 or idx.max() >= width)):
+        raise ValueError(f"{name}: keep indices must be distinct, within [0, {width})")
+    return idx
+
+
 def unit_slicers(model: E3DPSM, unit: Unit, keep: Sequence[int]) -> dict[str, Slicer]:
     """state_dict key -> how to slice it, for every tensor the unit's channels run through."""
-    idx = torch.as_tensor(sorted(keep), dtype=torch.long)
-    if len(set(keep)) != len(keep) or (len(keep) and (idx.min() < 0 or idx.max() >= unit.width)):
-        raise ValueError(f"unit {unit.name}: keep indices must be distinct, within [0, {unit.width})")
+    idx = _keep_index(f"unit {unit.name}", keep, unit.width)
     p = unit.name
     if unit.kind == RES:
         rows = _rows(idx)
@@ -91,9 +97,7 @@ def prune_model(model: E3DPSM, keep: Mapping[str, Sequence[int]]) -> E3DPSM:
     slicers: dict[str, Slicer] = {}
     for name, kept in keep.items():
         if name in decoder_keep:
-            idx = torch.as_tensor(sorted(kept), dtype=torch.long)
-            if len(set(kept)) != len(kept) or (len(kept) and (idx.min() < 0 or idx.max() >= cfg.decoder_ffn)):
-                raise ValueError(f"{name}: keep indices must be distinct, within [0, {cfg.decoder_ffn})")
+            idx = _keep_index(name, kept, cfg.decoder_ffn)
             layer = name[: -len(".ffn")]
             slicers.update({f"{layer}.linear1.weight": _rows(idx), f"{layer}.linear1.bias": _rows(idx),
                             f"{layer}.linear2.weight": _cols(idx)})

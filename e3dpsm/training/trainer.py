@@ -203,7 +203,6 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
         # would otherwise re-estimate them from fake-quantised activations, and the graph
         # folds whatever they end at (Jacob et al. 2018 freeze them too).
         freeze_batchnorm_stats(model)
-    if fake_quant:
         fake_quant.quantizers.to(ctx.device)
     trained = wrap_model(model, ctx)
 
