@@ -279,7 +279,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         # Every tensor the graph may quantise: `--exclude none` quantises the recurrent groups
         # too, and a search may; overrides for tensors a graph leaves float are not used.
         quantised = quantised_activations(pre, fixed if fixed is not None else [], config.op_types)
-        learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised, calib.feeds[0])
+        learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised)
     search = latency = precision = None
     int16_nodes: list[str] = []
     pre16 = _opset21_copy(pre, work) if options.int16 and fixed is None and options.strategy == "nodes" else None

@@ -145,16 +145,21 @@ def read_ranges(payload: Mapping[str, Any], source: str) -> list[dict[str, Any]]
     return list(ranges["quantizers"])
 
 
-def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike, quantised: Sequence[str],
-                      feed: Mapping[str, np.ndarray]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike,
+                      quantised: Sequence[str]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
-    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors)."""
+    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors).
+
+    Matched on `probe_feed`, as `qat_plan` matched at training time, not on a stream's first
+    frame: with the initial states, values coincide (a state output equals the input
+    projection it starts from, the fusion's previous pose is all zeros and matches nothing),
+    so a tensor took another site's range or none."""
     from e3dpsm.checkpoint import load_checkpoint
 
     model, payload = load_checkpoint(checkpoint)
     learned = read_ranges(payload, str(checkpoint))
     by_site = {site: q for q in learned for site in q["sites"]}
-    groups = match_graph(model, pre_path, quantised, feed)
+    groups = match_graph(model, pre_path, quantised, probe_feed(model))
     if not groups:
         raise ConfigError(f"no tensor of the graph matches {checkpoint}'s model: quantise the graph exported "
                           "from that checkpoint")

@@ -130,10 +130,9 @@ def qat_tiny_full_integer(tmp_path_factory) -> dict:
     return _qat_tiny(tmp_path_factory, QATConfig(full_integer=True), "qat_tiny_full")
 
 
-def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str], list[str], set[str]]:
+def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str], list[str]]:
     """Quantise the full-integer QAT tiny with `--exclude none --ranges-from-checkpoint`:
-    (the recurrent path's learned tensors, those whose graph range is not the learned one,
-    the ones known to keep calibrated ranges: the S5 states and the fusion's pose input)."""
+    (the recurrent path's learned tensors, those whose graph range is not the learned one)."""
     from e3dpsm.quantize import QuantizeOptions, quantize_graph
     from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX
 
@@ -143,34 +142,26 @@ def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str
     by_tensor = {t: q.qparams() for g, q in groups for t in g.tensors}
     recurrent = [t for g, _ in groups for t in g.tensors
                  if any(s.startswith(("delta_head", "pose_embed")) or ".read_" in s for s in g.sites)]
-    known = {t for g, _ in groups for t in g.tensors if t.startswith("s5_") or "pose_embed.0:in" in g.sites}
     model = onnx.load(str(work / "q" / report["artifact"]))
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     written = {n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX): (inits[n.input[1]], inits[n.input[2]]) for n in model.graph.node
                if n.op_type == "QuantizeLinear" and n.input[1] in inits and n.input[0] not in inits}
     wrong = [t for t in recurrent if not (written[t][0] == np.float32(by_tensor[t][0])
                                           and int(written[t][1]) == by_tensor[t][1])]
-    return recurrent, wrong, known
+    return recurrent, wrong
 
 
 def test_full_integer_graph_takes_the_recurrent_paths_learned_ranges(qat_tiny_full_integer, quant_data: Path,
                                                                      tmp_path: Path) -> None:
     """Catches: `--exclude none --ranges-from-checkpoint` matching only the default graph's
     tensors, so the recurrent path (S5 readouts, the delta head) kept calibrated ranges
-    where training had learned others. The known exceptions are the next test's."""
-    recurrent, wrong, known = _recurrent_ranges(qat_tiny_full_integer, quant_data, tmp_path)
-    others = [t for t in recurrent if t not in known]
-    assert len(others) > 10 and [t for t in wrong if t not in known] == []
-
-
-@pytest.mark.xfail(strict=True, reason=(
-    "known defect (2026-11-30): the four S5 states, which are graph outputs (ONNX Runtime renames their "
-    "producers' outputs and the override by name does not reach that QuantizeLinear), and the fusion's pose "
-    "input keep calibrated ranges in the full-integer graph"))
-def test_full_integer_graph_takes_the_learned_ranges_of_the_s5_states_too(qat_tiny_full_integer, quant_data: Path,
-                                                                           tmp_path: Path) -> None:
-    recurrent, wrong, known = _recurrent_ranges(qat_tiny_full_integer, quant_data, tmp_path)
-    assert known and known <= set(recurrent) and wrong == [], f"{len(wrong)} of {len(recurrent)}: {wrong}"
+    where training had learned others; and matching on a stream's first frame, where the
+    S5 states (graph outputs) equal the input projection they start from and took its range,
+    and the fusion's previous pose is all zeros and matched nothing."""
+    recurrent, wrong = _recurrent_ranges(qat_tiny_full_integer, quant_data, tmp_path)
+    states = [t for t in recurrent if t.startswith("s5_")]
+    assert len(recurrent) > 15 and len(states) == 4, recurrent
+    assert wrong == [], f"{len(wrong)} of {len(recurrent)} keep other ranges than the learned: {wrong}"
 
 
 @pytest.fixture(scope="module")
