@@ -29,6 +29,8 @@ import onnx
 from e3dpsm.errors import CheckpointError, ConfigError
 from e3dpsm.onnx_graph import with_outputs
 
+from e3dpsm.training.qat_sites import QuantSite
+
 if TYPE_CHECKING:
     from e3dpsm.training.qat_sites import QuantGroup
 
@@ -37,11 +39,12 @@ log = logging.getLogger(__name__)
 QAT_RANGES_FORMAT = "e3dpsm-qat-ranges/1"
 # ONNX Runtime's name for a quantised graph output's producer output (`<name>` + this).
 GRAPH_OUTPUT_SUFFIX = "_QuantizeLinear_Input"
+WEIGHT_SUFFIX = "_quantized"
 
 
-def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> list[str]:
-    """Activation tensors that get a QuantizeLinear when `pre_path` is quantised with the
-    nodes `exclude` in float (read back from a QDQ graph built with placeholder ranges)."""
+def _placeholder_qdq(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> onnx.ModelProto:
+    """The QDQ graph `pre_path` quantises to with the nodes `exclude` in float, built with
+    placeholder ranges: where the Q/DQ pairs go, not what they hold."""
     from onnxruntime.quantization.calibrate import CalibrationMethod, TensorsData, create_calibrator, save_tensors_data
 
     from e3dpsm.quantize.static import StaticConfig, quantize_int8
@@ -54,12 +57,28 @@ def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], o
         save_tensors_data(TensorsData(CalibrationMethod.MinMax, {n: (np.float32(-1), np.float32(1)) for n in names}), cache)
         out = Path(work) / "q.onnx"
         quantize_int8(pre_path, out, StaticConfig(op_types=tuple(op_types)), exclude=exclude, cache=cache)
-        qdq = onnx.load(str(out))
+        return onnx.load(str(out))
+
+
+def _activations_of(qdq: onnx.ModelProto) -> list[str]:
     inits = {i.name for i in qdq.graph.initializer}
     # A quantised graph output (an S5 state, in the full-integer graph) keeps its name on the
     # DequantizeLinear; its producer's output is renamed `<name>_QuantizeLinear_Input`.
     return sorted({n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX)
                    for n in qdq.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits})
+
+
+def _weights_of(qdq: onnx.ModelProto) -> list[str]:
+    # ONNX Runtime stores a quantised weight as `<name>_quantized` beside its DequantizeLinear.
+    inits = {i.name for i in qdq.graph.initializer}
+    return sorted({n.input[0].removesuffix(WEIGHT_SUFFIX) for n in qdq.graph.node
+                   if n.op_type == "DequantizeLinear" and n.input[0] in inits and n.input[0].endswith(WEIGHT_SUFFIX)})
+
+
+def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> list[str]:
+    """Activation tensors that get a QuantizeLinear when `pre_path` is quantised with the
+    nodes `exclude` in float."""
+    return _activations_of(_placeholder_qdq(pre_path, exclude, op_types))
 
 
 def tensor_values(model_path: str | os.PathLike, names: Sequence[str], feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -77,7 +96,23 @@ def match_graph(model, pre_path: str | os.PathLike, quantised: Sequence[str],
     """Groups of the graph's quantised tensors and the torch model's sites (qat_sites)."""
     from e3dpsm.training.qat_sites import capture_sites, match_groups
 
-    return match_groups(tensor_values(pre_path, quantised, feed), capture_sites(model, feed))
+    sites = {k: v for k, v in capture_sites(model, feed).items() if not QuantSite.parse(k).is_weight}
+    return match_groups(tensor_values(pre_path, quantised, feed), sites)
+
+
+def match_weights(model, pre_path: str | os.PathLike, weights: Sequence[str],
+                  feed: Mapping[str, np.ndarray]) -> list["QuantGroup"]:
+    """Groups of the graph's quantised weight initializers and the `Projection` weights that
+    hold the same numbers (sites `name:weight`): which products the graph rounds the weight
+    of. A Conv's or Linear's weight is a parameter and needs no matching."""
+    from onnx import numpy_helper
+
+    from e3dpsm.training.qat_sites import capture_sites, match_groups
+
+    wanted = set(weights)
+    values = {i.name: numpy_helper.to_array(i) for i in onnx.load(str(pre_path)).graph.initializer if i.name in wanted}
+    sites = {k: v for k, v in capture_sites(model, feed).items() if QuantSite.parse(k).is_weight}
+    return match_groups(values, sites)
 
 
 def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
@@ -107,7 +142,8 @@ def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
 def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: bool = False) -> list["QuantGroup"]:
     """The quantisers a QAT run trains: the model exported and pre-processed as `quantize`
     does, its INT8 graph's quantised tensors (recurrent groups in float, unless
-    `full_integer`: the `--exclude none` graph), matched to sites."""
+    `full_integer`: the `--exclude none` graph), matched to sites; and the groups of
+    quantised weights matched to `Projection` weights (`QuantGroup.is_weight`)."""
     from e3dpsm.export import export_step
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.quantize.graph_groups import recurrent_groups
@@ -120,12 +156,15 @@ def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: 
         pre_model = onnx.load(str(pre))
         keep = [] if full_integer else [n for g in recurrent_groups(pre_model, GraphMetadata.from_onnx(pre_model))
                                         for n in g.nodes]
-        quantised = quantised_activations(pre, keep, DEFAULT_OP_TYPES)
-        groups = match_graph(model, pre, quantised, feed or probe_feed(model))
+        qdq = _placeholder_qdq(pre, keep, DEFAULT_OP_TYPES)
+        quantised = _activations_of(qdq)
+        feed = feed or probe_feed(model)
+        groups = match_graph(model, pre, quantised, feed)
+        weight_groups = match_weights(model, pre, _weights_of(qdq), feed)
     covered = sum(len(g.tensors) for g in groups)
-    log.info("QAT: %d learned quantisers cover %d of the %d tensors the INT8 graph quantises",
-             len(groups), covered, len(quantised))
-    return groups
+    log.info("QAT: %d learned quantisers cover %d of the %d tensors the INT8 graph quantises; %d projection "
+             "weights rounded as the graph rounds them", len(groups), covered, len(quantised), len(weight_groups))
+    return groups + weight_groups
 
 
 def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]]) -> dict[str, Any]:

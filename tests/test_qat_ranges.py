@@ -185,7 +185,7 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
     report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
         mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"])))
     block = report["qat_ranges"]
-    assert block["learned_tensors"] >= 0.8 * (block["learned_tensors"] + block["calibrated_tensors"])
+    assert block["calibrated_tensors"] == 0 and block["uncovered"] == [], block["uncovered"]  # every range learned
     learned = {}
     for q in read_checkpoint(qat_tiny["checkpoint"])["qat_ranges"]["quantizers"]:
         for site in q["sites"]:
@@ -221,3 +221,110 @@ def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: 
     err = capsys.readouterr().err.strip()
     assert rc != 0 and "carries no learned QAT ranges" in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+@pytest.mark.parametrize("fixture", ["qat_tiny", "qat_tiny_full_integer"])
+def test_qat_covers_every_tensor_the_graph_quantises(fixture: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:
+    """Catches: products written inline (attention scores and mixing, the deformable offsets)
+    whose tensors have no module and so kept calibrated ranges (layers/products.py)."""
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.quantize.graph_groups import recurrent_groups
+    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
+
+    run = request.getfixturevalue(fixture)
+    pre = tmp_path / "pre.onnx"
+    preprocess(run["graph"], pre)
+    model = onnx.load(str(pre))
+    keep = [] if run["handle"].config.full_integer else [
+        n for g in recurrent_groups(model, GraphMetadata.from_onnx(model)) for n in g.nodes]
+    quantised = set(quantised_activations(pre, keep, DEFAULT_OP_TYPES))
+    covered = {t for g in run["handle"].groups for t in g.tensors}
+    assert quantised and quantised == covered, sorted(quantised - covered)
+    sites = {s for g in run["handle"].groups for s in g.sites}
+    assert any(s.endswith(".scores:in1") for s in sites) and any(s.endswith(".mix:in1") for s in sites)
+
+
+def test_projection_weights_are_rounded_where_the_graph_quantises_them(qat_tiny, qat_tiny_full_integer) -> None:
+    """A `Projection`'s weight is an argument, not a parameter; the graph quantises it S8 per
+    output channel wherever it quantises the MatMul: the offsets and the S5 backward readout
+    (causal: no recurrence) always, the S5 drive and forward readout (the recurrent group) in
+    the full-integer graph only."""
+    default = {n for n, _ in qat_tiny["handle"].projections}
+    full = {n for n, _ in qat_tiny_full_integer["handle"].projections}
+    recurrent = {n for n in full if ".s5.read_re" in n or ".s5.read_im" in n or ".s5.drive_" in n}
+    assert any(n.endswith("offset_product") for n in default) and any(".s5.read_back_" in n for n in default)
+    assert recurrent and not recurrent & default and full == default | recurrent
+
+
+
+def test_a_projections_weight_is_rounded_s8_per_output_channel() -> None:
+    from e3dpsm.layers.products import Projection
+    from e3dpsm.training.qat import FakeQuantHandle
+    from e3dpsm.training.qat_sites import QuantGroup
+
+    holder = torch.nn.Module()
+    holder.proj = Projection()
+    handle = FakeQuantHandle(holder, QATConfig(activations=False), [QuantGroup(("w",), ("proj:weight",))]).attach()
+    gen = torch.Generator().manual_seed(3)
+    x, weight = torch.randn(5, 7, generator=gen), torch.randn(4, 7, generator=gen)
+    step = weight.abs().amax(dim=1, keepdim=True).numpy() / 127
+    rounded = np.clip(np.round(weight.numpy() / step), -127, 127) * step  # numpy, per row (output channel)
+    with torch.no_grad():
+        got = holder.proj(x, weight).numpy()
+        handle.remove()
+        plain = holder.proj(x, weight).numpy()
+    np.testing.assert_allclose(got, x.numpy() @ rounded.T, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(plain, x.numpy() @ weight.numpy().T, rtol=1e-5, atol=1e-6)
+    assert np.abs(got - plain).max() > 1e-4
+
+
+# The full-integer graph against the fake-quantised model it was trained as, one step from the
+# same inputs and states: rounding flips (a value on a step boundary, float32 order of
+# operations) leave some difference; a range or a rounding the graph has and training did not
+# simulate leaves about as much as quantisation itself. The bar: the pose outputs' distance
+# from the simulation, summed over the feeds, is at most this fraction of the simulation's
+# distance from the float model (measured: 0.03-0.19 with learned ranges, above 1 with
+# calibrated ones, on the trained tiny after 3 QAT steps).
+SIMULATION_TOLERANCE = 0.3
+
+
+def _simulation_gap(run: dict, graph: Path) -> dict[str, float]:
+    from e3dpsm.quantize.qat_ranges import probe_feed, tensor_values
+
+    model, handle = run["handle"].model, run["handle"]
+    outputs = ("pose", "pose_direct", "pose_delta")
+    gap = {k: 0.0 for k in outputs}
+    effect = {k: 0.0 for k in outputs}
+    model.eval()
+    for seed in range(3):
+        feed = probe_feed(model, steps=3, seed=seed)
+        ort_out = tensor_values(graph, outputs, feed)
+        state = {s.name: torch.from_numpy(feed[s.input_name]) for s in model.state_spec()}
+        args = (torch.from_numpy(feed["lnes"]), state, torch.from_numpy(feed["window_ms"]))
+        with torch.no_grad():
+            simulated, _ = model.step(*args)
+            with handle.removed():
+                plain, _ = model.step(*args)
+        for k in outputs:
+            gap[k] += float(np.linalg.norm(simulated[k].numpy() - ort_out[k], axis=-1).mean())
+            effect[k] += float(np.linalg.norm(simulated[k].numpy() - plain[k].numpy(), axis=-1).mean())
+    return {k: gap[k] / effect[k] for k in outputs}
+
+
+def test_fake_quantised_step_is_the_full_integer_graphs_step(qat_tiny_full_integer, quant_data: Path,
+                                                              tmp_path: Path) -> None:
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    run = qat_tiny_full_integer
+    graphs = {}
+    for name, ranges in (("learned", str(run["checkpoint"])), ("calibrated", None)):
+        report = quantize_graph(run["graph"], quant_data, tmp_path / name, QuantizeOptions(
+            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=ranges))
+        graphs[name] = tmp_path / name / report["artifact"]
+    learned = _simulation_gap(run, graphs["learned"])
+    assert max(learned.values()) <= SIMULATION_TOLERANCE, learned
+    # The same check on the graph calibrated afresh (what `quantize` made of a QAT model before
+    # its ranges reached the graph) fails: the tolerance bites.
+    calibrated = _simulation_gap(run, graphs["calibrated"])
+    assert max(calibrated.values()) > SIMULATION_TOLERANCE, calibrated

@@ -11,6 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from e3dpsm.layers.products import MatMul
+
 
 class MultiHeadAttention(nn.Module):
     def __init__(self, dim: int, heads: int) -> None:
@@ -19,6 +21,9 @@ class MultiHeadAttention(nn.Module):
         self.q_proj = nn.Linear(dim, dim)
         self.kv_proj = nn.Linear(dim, 2 * dim)
         self.out_proj = nn.Linear(dim, dim)
+        # Modules (no parameters) so that QAT reaches the scores, k, v and the softmaxed
+        # weights, which the INT8 graph quantises as MatMul inputs and outputs.
+        self.scores, self.mix = MatMul(), MatMul()
 
     def _split(self, x: torch.Tensor) -> torch.Tensor:
         n, length, _ = x.shape
@@ -27,8 +32,8 @@ class MultiHeadAttention(nn.Module):
     def forward(self, query: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         q = self._split(self.q_proj(query))
         k, v = (self._split(t) for t in self.kv_proj(context).chunk(2, dim=-1))
-        attn = (q @ k.transpose(-2, -1) * self.head_dim**-0.5).softmax(dim=-1)
-        out = (attn @ v).transpose(1, 2).reshape(query.shape)
+        attn = (self.scores(q, k.transpose(-2, -1)) * self.head_dim**-0.5).softmax(dim=-1)
+        out = self.mix(attn, v).transpose(1, 2).reshape(query.shape)
         return self.out_proj(out)
 
 

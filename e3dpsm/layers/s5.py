@@ -31,6 +31,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from e3dpsm.layers.products import Projection
+
 Discretization = Literal["bilinear", "zoh"]
 ComplexPair = tuple[torch.Tensor, torch.Tensor]
 
@@ -66,17 +68,6 @@ def lecun_truncated_normal(shape: tuple[int, ...], fan_in: int, gen: torch.Gener
 def _expand(coeff: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """[B, P] -> [B, 1, ..., 1, P] broadcastable against `like` [B, ..., P]."""
     return coeff.view(coeff.shape[0], *([1] * (like.dim() - 2)), coeff.shape[1])
-
-
-class Projection(nn.Module):
-    """`x @ weight.T` for a weight the caller owns. A module of its own, with no parameters,
-    so that the S5 projections have a place quantisation-aware training can hook (their
-    inputs, the S5 states among them, and outputs are tensors the INT8 graph quantises;
-    training/qat_sites.py finds places by module); the computation and the graph are the
-    plain MatMul's."""
-
-    def forward(self, x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-        return x @ weight.t()
 
 
 class S5(nn.Module):

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
+from e3dpsm.layers.products import Projection
 from e3dpsm.training.qat_lsq import LearnedQuantizer
 from e3dpsm.training.qat_sites import QuantGroup, QuantSite
 
@@ -86,6 +87,15 @@ def quantised_modules(model: nn.Module, full_integer: bool = False) -> list[tupl
             and not any(name == p or name.startswith(p + ".") for p in floats)]
 
 
+def quantised_projections(model: nn.Module, weight_groups: Sequence[QuantGroup]) -> list[tuple[str, nn.Module]]:
+    """(name, module) of every `Projection` (layers/products.py: S5 drives and readouts, the
+    deformable offsets) whose weight the INT8 graph quantises (S8 per output channel, as an
+    initializer): `weight_groups` matched them by value (qat_ranges.match_weights)."""
+    sites = {QuantSite.parse(key).module for group in weight_groups for key in group.sites}
+    return [(name, module) for name, module in model.named_modules()
+            if isinstance(module, Projection) and name in sites]
+
+
 class FakeQuantHandle:
     """The hooks, weight parametrisations and learned quantisers one `attach_fake_quant`
     call added. `groups`: the graph's quantised tensors matched to sites (qat_sites)."""
@@ -93,9 +103,11 @@ class FakeQuantHandle:
     def __init__(self, model: nn.Module, config: QATConfig, groups: Sequence[QuantGroup] = ()) -> None:
         self.model, self.config = model, config
         self.modules = quantised_modules(model, config.full_integer)
-        self.groups = list(groups)
+        self.groups = [g for g in groups if not g.is_weight]
         self.quantizers = nn.ModuleList(LearnedQuantizer() for _ in self.groups)
+        self.projections = quantised_projections(model, [g for g in groups if g.is_weight])
         self._hooks: list[torch.utils.hooks.RemovableHandle] = []
+        self._weight_hooks: list[torch.utils.hooks.RemovableHandle] = []
         self._weights_attached = False
 
     def parameters(self) -> list[nn.Parameter]:
@@ -106,6 +118,9 @@ class FakeQuantHandle:
         if self.config.weights and not self._weights_attached:
             for _, module in self.modules:
                 parametrize.register_parametrization(module, "weight", _WeightFakeQuant())
+            for _, module in self.projections:  # the weight is an argument, not a parameter
+                self._weight_hooks.append(module.register_forward_pre_hook(
+                    lambda mod, args: (args[0], fake_quantize_weight(args[1]), *args[2:])))
             self._weights_attached = True
 
     def _detach_weights(self) -> None:
@@ -114,6 +129,9 @@ class FakeQuantHandle:
                 # leave_parametrized=False puts the original Parameter object back, so an
                 # optimizer built on the parameters keeps tracking the same tensors.
                 parametrize.remove_parametrizations(module, "weight", leave_parametrized=False)
+            for hook in self._weight_hooks:
+                hook.remove()
+            self._weight_hooks.clear()
             self._weights_attached = False
 
     def _attach_hooks(self) -> None:
@@ -128,6 +146,10 @@ class FakeQuantHandle:
                     def before(mod: nn.Module, args: tuple, q: LearnedQuantizer = quantizer) -> tuple:
                         return (q(args[0]), *args[1:])
                     self._hooks.append(module.register_forward_pre_hook(before))
+                elif site.kind == "in1":  # a product's second activation (layers/products.py MatMul)
+                    def second(mod: nn.Module, args: tuple, q: LearnedQuantizer = quantizer) -> tuple:
+                        return (args[0], q(args[1]), *args[2:])
+                    self._hooks.append(module.register_forward_pre_hook(second))
                 elif site.kind == "out":
                     def after(mod: nn.Module, args: tuple, out: torch.Tensor, q: LearnedQuantizer = quantizer):
                         return q(out)

@@ -8,8 +8,11 @@ bias), a 2-D one a Gemm between Reshapes (a Q on each side of the Reshape). Name
 say which module a tensor belongs to, so values do: one step of the PyTorch model and of the
 graph on the same inputs, and a tensor matches a site when both hold the same numbers.
 
-Sites: every leaf module's first input (`name:in`), its output (`name:out`) and, for a Linear
-with a bias, its output before the bias (`name:prebias`). Values are compared sorted, so a
+Sites: every leaf module's first input (`name:in`), its output (`name:out`), for a Linear
+with a bias its output before the bias (`name:prebias`), and for a product of two
+activations (layers/products.py `MatMul`: attention scores and mixing) its second input
+(`name:in1`). A `Projection`'s weight is a site too (`name:weight`), matched to the graph's
+quantised weight initializers: the graph rounds it where it quantises that MatMul. Values are compared sorted, so a
 reshape or transpose between the two is no obstacle (per-tensor quantisation does not care
 about layout). Matches form a bipartite graph; each connected component is one quantiser:
 the same learned (scale, zero point) for all its ONNX tensors (a Gemm's output and the
@@ -25,6 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from e3dpsm.layers.products import MatMul, Projection
+
 # Relative tolerance of a value match: the graph's fused ops (BatchNorm folded into Conv)
 # move values by float32 round-off, far below what separates two different tensors.
 MATCH_RTOL = 1e-4
@@ -38,7 +43,11 @@ class QuantSite:
     """One place in the PyTorch model: a leaf module's input, output or pre-bias output."""
 
     module: str
-    kind: str  # "in", "out", "prebias"
+    kind: str  # "in", "in1", "out", "prebias", "weight"
+
+    @property
+    def is_weight(self) -> bool:
+        return self.kind == "weight"
 
     @property
     def key(self) -> str:
@@ -56,6 +65,11 @@ class QuantGroup:
 
     tensors: tuple[str, ...]
     sites: tuple[str, ...]
+
+    @property
+    def is_weight(self) -> bool:
+        """Weights (initializers and `Projection` weight arguments), not activations."""
+        return all(QuantSite.parse(s).is_weight for s in self.sites)
 
 
 def leaf_modules(model: nn.Module) -> list[tuple[str, nn.Module]]:
@@ -81,6 +95,10 @@ def capture_sites(model: nn.Module, feed: Mapping[str, np.ndarray], frame_input:
             calls[name] = calls.get(name, 0) + 1
             if args and isinstance(args[0], torch.Tensor) and args[0].is_floating_point():
                 values[f"{name}:in"] = args[0].detach().numpy().copy()
+            if isinstance(mod, MatMul):
+                values[f"{name}:in1"] = args[1].detach().numpy().copy()
+            if isinstance(mod, Projection):  # the weight, an argument (matched to initializers)
+                values[f"{name}:weight"] = args[1].detach().numpy().copy()
             if isinstance(output, torch.Tensor) and output.is_floating_point():
                 values[f"{name}:out"] = output.detach().numpy().copy()
                 if isinstance(mod, nn.Linear) and mod.bias is not None:
