@@ -69,6 +69,21 @@ def search_target_phrase(report: dict[str, Any]) -> str:
     return f"budget {target:g}%"
 
 
+def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
+    """The report's section on a QAT checkpoint's ranges (`--ranges-from-checkpoint`)."""
+    if not block:
+        return []
+    learned, calibrated = block["learned_tensors"], block["calibrated_tensors"]
+    lines = ["## Learned ranges (QAT)", "",
+             f"{learned} of the {learned + calibrated} quantised tensors take `{block['checkpoint']}`'s learned "
+             f"ranges as they are; {calibrated} keep calibrated ones"
+             + (": " + ", ".join(f"`{t}`" for t in block["uncovered"]) if calibrated else "") + ".", "",
+             "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
+             "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
+             "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`).", ""]
+    return lines
+
+
 def markdown_report(report: dict[str, Any]) -> str:
     h = report["holdout"]
     verdict = speed_verdict(report)
@@ -76,6 +91,7 @@ def markdown_report(report: dict[str, Any]) -> str:
              f"Artifact `{report['artifact']}`; held-out ({h['split']}, {h['frames']} frames) MPJPE "
              f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
              f"{h['bound_pct']:.3f}% of fp32 MPJPE.", ""]
+    lines += qat_ranges_lines(report.get("qat_ranges"))
     search = report.get("search")
     if search:
         fp32 = search["fp32_p50_ms"]

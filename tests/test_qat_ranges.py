@@ -186,6 +186,8 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
         mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"])))
     block = report["qat_ranges"]
     assert block["calibrated_tensors"] == 0 and block["uncovered"] == [], block["uncovered"]  # every range learned
+    assert (f"{block['learned_tensors']} of the {block['learned_tensors']} quantised tensors take"
+            in (out / "report.md").read_text())
     learned = {}
     for q in read_checkpoint(qat_tiny["checkpoint"])["qat_ranges"]["quantizers"]:
         for site in q["sites"]:
