@@ -281,6 +281,25 @@ def test_a_projections_weight_is_rounded_s8_per_output_channel() -> None:
     assert np.abs(got - plain).max() > 1e-4
 
 
+def test_a_products_second_activation_is_fake_quantised() -> None:
+    """Catches: an `in1` site (attention k and v) matched but never quantised."""
+    from e3dpsm.layers.products import MatMul
+    from e3dpsm.training.qat import FakeQuantHandle
+    from e3dpsm.training.qat_sites import QuantGroup
+
+    holder = torch.nn.Module()
+    holder.mm = MatMul()
+    handle = FakeQuantHandle(holder, QATConfig(weights=False), [QuantGroup(("v",), ("mm:in1",))]).attach()
+    handle.quantizers[0].set_qparams(0.05, 120)
+    gen = torch.Generator().manual_seed(4)
+    a, b = torch.randn(3, 5, generator=gen), torch.randn(5, 6, generator=gen) * 4
+    with torch.no_grad():
+        got = holder.mm(a, b).numpy()
+    want = a.numpy() @ numpy_qdq_u8(b.numpy(), np.float32(0.05), 120)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert np.abs(got - a.numpy() @ b.numpy()).max() > 0.1  # b saturates at (255 - 120) * 0.05
+
+
 # The full-integer graph against the fake-quantised model it was trained as, one step from the
 # same inputs and states: rounding flips (a value on a step boundary, float32 order of
 # operations) leave some difference; a range or a rounding the graph has and training did not
