@@ -255,7 +255,7 @@ def test_projection_weights_are_rounded_where_the_graph_quantises_them(qat_tiny,
     default = {n for n, _ in qat_tiny["handle"].projections}
     full = {n for n, _ in qat_tiny_full_integer["handle"].projections}
     recurrent = {n for n in full if ".s5.read_re" in n or ".s5.read_im" in n or ".s5.drive_" in n}
-    assert any(n.endswith("offset_product") for n in default) and any(".s5.read_back_" in n for n in default)
+    assert any(n.endswith("offset_projection") for n in default) and any(".s5.read_back_" in n for n in default)
     assert recurrent and not recurrent & default and full == default | recurrent
 
 

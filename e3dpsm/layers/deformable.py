@@ -32,7 +32,7 @@ from torch import nn
 from e3dpsm.layers.deform_conv_sampling import deform_conv_sample, kernel_grid
 from e3dpsm.layers.feedforward import GEGLU
 from e3dpsm.layers.gather_sampling import bilinear_gather, sampling_grid
-from e3dpsm.layers.products import Projection
+from e3dpsm.layers.products import Affine
 
 ATTENTION_LAYOUTS: tuple[str, ...] = ("2d", "1d")
 SAMPLERS: tuple[str, ...] = ("grid_sample", "gather", "deform_conv")
@@ -78,9 +78,9 @@ class DeformableAttention(nn.Module):
         map_h, map_w = self.map_hw
         self.register_buffer("offset_scale", torch.tensor([2.0 / map_w, 2.0 / map_h]).repeat(heads * points), persistent=False)
         self.sampling_offsets = nn.Linear(dim, heads * points * 2)
-        # The offsets' product with a rescaled weight, as a module: a place QAT can hook
+        # The offsets' projection with a rescaled weight, as a module: a place QAT can hook
         # (layers/products.py); `sampling_offsets` itself is never called.
-        self.offset_product = Projection()
+        self.offset_projection = Affine()
         self.attention_weights = nn.Linear(dim, heads * points)
         self.value_proj = nn.Linear(dim, dim)
         self.output_proj = nn.Linear(dim, dim)
@@ -114,7 +114,7 @@ class DeformableAttention(nn.Module):
         """
         slots = self.heads * self.points
         scale = self.offset_scale
-        offsets = self.offset_product(query, self.sampling_offsets.weight * scale[:, None]) + self.sampling_offsets.bias * scale
+        offsets = self.offset_projection(query, self.sampling_offsets.weight * scale[:, None], self.sampling_offsets.bias * scale)
         origin = (2.0 * self.reference - 1.0).repeat(1, slots)  # [H*W or 1, slots*2], (x, y) per slot
         return offsets + origin
 
@@ -193,7 +193,7 @@ class DeformableAttention(nn.Module):
         """query, value: [N, L, dim] tokens (row-major over the h x w map) -> [N, L, dim]."""
         if self.sampler != "grid_sample":
             weight, bias, origin = self.pixel_offset_projection()
-            xy = self.offset_product(query, weight) + bias + origin
+            xy = self.offset_projection(query, weight, bias) + origin
             out = self.sample(self.value_proj(value), xy, self.attention_weights(query))
             return self.output_proj(out) + query
         n, num_tokens, _ = query.shape

@@ -10,6 +10,7 @@ the plain MatMul's, and a state dict gains no keys.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -27,3 +28,12 @@ class MatMul(nn.Module):
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return a @ b
+
+
+class Affine(nn.Module):
+    """`F.linear(x, weight, bias)` for a weight and bias the caller owns (the deformable
+    offsets' rescaled projection). One fused op, as before it was a module, so training
+    computes what it did; its sites are a Linear's (`in`, `out`, `prebias`) and its weight."""
+
+    def forward(self, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        return F.linear(x, weight, bias)

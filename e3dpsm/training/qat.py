@@ -28,9 +28,9 @@ import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
-from e3dpsm.layers.products import Projection
+from e3dpsm.layers.products import Affine, Projection
 from e3dpsm.training.qat_lsq import LearnedQuantizer
-from e3dpsm.training.qat_sites import QuantGroup, QuantSite
+from e3dpsm.training.qat_sites import QuantGroup, QuantSite, linear_bias
 
 # Modules the INT8 graph keeps in float whatever the search decides: the Kalman fusion's
 # pose embedding and the delta head feeding it (graph_groups' `fusion` recurrent group:
@@ -88,12 +88,12 @@ def quantised_modules(model: nn.Module, full_integer: bool = False) -> list[tupl
 
 
 def quantised_projections(model: nn.Module, weight_groups: Sequence[QuantGroup]) -> list[tuple[str, nn.Module]]:
-    """(name, module) of every `Projection` (layers/products.py: S5 drives and readouts, the
-    deformable offsets) whose weight the INT8 graph quantises (S8 per output channel, as an
+    """(name, module) of every `Projection` or `Affine` (layers/products.py: S5 drives and
+    readouts, the deformable offsets) whose weight the INT8 graph quantises (S8 per output channel, as an
     initializer): `weight_groups` matched them by value (qat_ranges.match_weights)."""
     sites = {QuantSite.parse(key).module for group in weight_groups for key in group.sites}
     return [(name, module) for name, module in model.named_modules()
-            if isinstance(module, Projection) and name in sites]
+            if isinstance(module, (Projection, Affine)) and name in sites]
 
 
 class FakeQuantHandle:
@@ -156,7 +156,8 @@ class FakeQuantHandle:
                     self._hooks.append(module.register_forward_hook(after))
                 else:  # "prebias": the graph's MatMul output, before the Add of the bias
                     def prebias(mod: nn.Module, args: tuple, out: torch.Tensor, q: LearnedQuantizer = quantizer):
-                        return q(out - mod.bias) + mod.bias
+                        bias = linear_bias(mod, args)
+                        return q(out - bias) + bias
                     self._hooks.append(module.register_forward_hook(prebias))
 
     def attach(self) -> "FakeQuantHandle":

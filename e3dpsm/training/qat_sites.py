@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from e3dpsm.layers.products import MatMul, Projection
+from e3dpsm.layers.products import Affine, MatMul, Projection
 
 # Relative tolerance of a value match: the graph's fused ops (BatchNorm folded into Conv)
 # move values by float32 round-off, far below what separates two different tensors.
@@ -72,6 +72,16 @@ class QuantGroup:
         return all(QuantSite.parse(s).is_weight for s in self.sites)
 
 
+def linear_bias(module: nn.Module, args: tuple) -> torch.Tensor | None:
+    """The bias a Linear (its parameter) or an `Affine` (its third argument) adds after the
+    MatMul whose output the graph quantises; None for anything else."""
+    if isinstance(module, nn.Linear):
+        return module.bias
+    if isinstance(module, Affine):
+        return args[2]
+    return None
+
+
 def leaf_modules(model: nn.Module) -> list[tuple[str, nn.Module]]:
     return [(name, m) for name, m in model.named_modules() if name and not any(True for _ in m.children())]
 
@@ -97,12 +107,13 @@ def capture_sites(model: nn.Module, feed: Mapping[str, np.ndarray], frame_input:
                 values[f"{name}:in"] = args[0].detach().numpy().copy()
             if isinstance(mod, MatMul):
                 values[f"{name}:in1"] = args[1].detach().numpy().copy()
-            if isinstance(mod, Projection):  # the weight, an argument (matched to initializers)
+            if isinstance(mod, (Projection, Affine)):  # the weight, an argument (matched to initializers)
                 values[f"{name}:weight"] = args[1].detach().numpy().copy()
             if isinstance(output, torch.Tensor) and output.is_floating_point():
                 values[f"{name}:out"] = output.detach().numpy().copy()
-                if isinstance(mod, nn.Linear) and mod.bias is not None:
-                    values[f"{name}:prebias"] = (output - mod.bias).detach().numpy().copy()
+                bias = linear_bias(mod, args)
+                if bias is not None:
+                    values[f"{name}:prebias"] = (output - bias).detach().numpy().copy()
         return hook
 
     for name, module in leaf_modules(model):
