@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     report.update(device={"name": torch.cuda.get_device_name(device), "capability": list(torch.cuda.get_device_capability(device)),
                           "multiprocessors": props.multi_processor_count, "memory_gb": round(props.total_memory / 2**30, 1),
                           "cuda": torch.version.cuda, "cudnn": torch.backends.cudnn.version()},
-                  paper_reference=PAPER_REFERENCE, params_m=sum(p.numel() for p in model.parameters()) / 1e6,
+                  paper_reference=PAPER_REFERENCE, params_m=model.num_parameters() / 1e6,
                   frames="synthetic moving edges (e3dpsm.profiles.inputs.moving_edge_frames), 64 frames reused",
                   modes={})
     out_dirs = args.out_dir or [Path("benchmarks/results")]

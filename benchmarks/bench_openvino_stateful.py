@@ -84,7 +84,7 @@ def bench_variant(variant: str, args: argparse.Namespace, work: Path) -> dict[st
               "explicit-session / stateful-session":
                   summary["explicit-session"]["p50"] / summary["stateful-session"]["p50"]}
     states = model.state_spec()
-    return {"variant": variant, "params": sum(p.numel() for p in model.parameters()),
+    return {"variant": variant, "params": model.num_parameters(),
             "state_values": int(sum(np.prod(s.shape) for s in states)), "latency_ms": summary, "ratios": ratios}
 
 

@@ -29,8 +29,20 @@ def test_variant_forward_backward_every_parameter_gets_gradient(name: str) -> No
 
 
 def test_paper_variant_matches_released_parameter_count() -> None:
-    params = sum(p.numel() for p in e3dpsm.create_model("paper").parameters())
+    params = e3dpsm.create_model("paper").num_parameters()
     assert abs(params - PAPER_PARAMS) / PAPER_PARAMS < 0.05, params
+
+
+# The counts each variant's docstring states (e3dpsm/models/variants.py), at 192 x 256.
+DOCUMENTED_PARAMS = {"paper": 6_648_662, "released": 6_640_406 + 96, "small": 1_474_790, "tiny": 94_610}
+
+
+@pytest.mark.parametrize("variant", sorted(DOCUMENTED_PARAMS))
+def test_num_parameters_is_the_documented_count(variant: str) -> None:
+    model = e3dpsm.create_model(variant)
+    assert model.num_parameters() == DOCUMENTED_PARAMS[variant]
+    # Buffers (the pose prior, the fixed grids) are state, not parameters.
+    assert sum(b.numel() for b in model.buffers()) > 0
 
 
 @pytest.mark.parametrize("window_ms", [20.0, 50.0])

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         report = report_header("export", {**vars(args), "func": None})
         report.update(
             model=model.config.to_dict(),
-            params=sum(p.numel() for p in model.parameters()),
+            params=model.num_parameters(),
             result={**result.to_dict(), "path": GRAPH_NAME},
             states=[s.to_metadata() for s in model.state_spec()],
             ort_optimized=ort_graph,

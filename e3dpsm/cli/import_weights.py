@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         report.update(
             source={"path": str(args.released), "kind": kind},
             variant="released",
-            params=sum(p.numel() for p in model.parameters()),
+            params=model.num_parameters(),
             checks=result.checks,
             warnings=result.warnings,
             mapping=result.mapping,

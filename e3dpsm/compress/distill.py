@@ -33,7 +33,7 @@ from tqdm import tqdm
 from e3dpsm.data.prepared import ALL_SPLITS, PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.training.data import WindowDataset, seeded_batches
-from e3dpsm.training.qat import freeze_batchnorm_stats
+from e3dpsm.training.qat import check_qat_flags, freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 
 if TYPE_CHECKING:
@@ -91,8 +91,7 @@ class DistillConfig:
             raise ConfigError(f"distill seq_len must be at least 2 (the delta term needs two frames), got {self.seq_len}")
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"distill labels must be one of {list(LABEL_MODES)}, got {self.labels!r}")
-        if self.qat_full_integer and not self.qat:
-            raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
+        check_qat_flags(self.qat, self.qat_full_integer)
         if self.prior not in PRIOR_MODES:
             raise ConfigError(f"distill prior must be one of {list(PRIOR_MODES)}, got {self.prior!r}")
         if not self.lr > 0 or not self.charbonnier_mm > 0 or not self.clip_norm > 0:
@@ -274,12 +273,8 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
     seconds = time.perf_counter() - started
     return {"steps": config.steps, "seconds": seconds, "seconds_per_step": seconds / config.steps,
             "initial": initial, "final": record, "log": log,
-            "teacher": {"variant": teacher.config.variant, "parameters": _count(teacher)},
-            "student": {"variant": student.config.variant, "parameters": _count(student)}}
-
-
-def _count(model: torch.nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters())
+            "teacher": {"variant": teacher.config.variant, "parameters": teacher.num_parameters()},
+            "student": {"variant": student.config.variant, "parameters": student.num_parameters()}}
 
 
 __all__ = ["DistillConfig", "LABEL_MODES", "PRIOR_MODES", "check_pair", "distill", "distill_loss", "distill_terms",

@@ -190,7 +190,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
     base_ms = time_graphs({"unpruned": (base_runtime, base_graph)}, timing_frames, window_ms, config.threads,
                           config.timing_steps)["unpruned"]
     base_profile = _profile(base_graph, teacher, timing_frames, window_ms, config, base_ms)
-    base = {"round": 0, "measured_ms": base_ms, "macs": base_macs, "macs_fraction": 1.0, "params": _params(teacher),
+    base = {"round": 0, "measured_ms": base_ms, "macs": base_macs, "macs_fraction": 1.0, "params": teacher.num_parameters(),
             "macs_per_stage": macs_per_stage(teacher), "heldout": heldout_figures(teacher_poses, eval_seqs, None, eval_data.action_names),
             "profile": base_profile.to_dict(), "graph": str(base_graph)}
     base["heldout"]["to_teacher_mm"] = 0.0
@@ -230,7 +230,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         record = {
             "round": k, "round_target": round_target, "aim": aim, "cuts": widths,
             "candidates": [c.to_dict() for c in candidates],
-            "macs": total_macs(student), "params": _params(student), "macs_per_stage": macs_per_stage(student),
+            "macs": total_macs(student), "params": student.num_parameters(), "macs_per_stage": macs_per_stage(student),
             "predicted_ms": predicted_ms,
             "measured_side_by_side_ms": measured, "profile": profile.to_dict(),
             "heldout": heldout_figures(poses, eval_seqs, teacher_poses, eval_data.action_names),
@@ -258,10 +258,6 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
             break
     best = _best_round(rounds, base, config)
     return {"rounds": rounds, "best": best, "models": models, "base_macs": base_macs}
-
-
-def _params(model: E3DPSM) -> int:
-    return sum(p.numel() for p in model.parameters())
 
 
 def _over_budget(record: dict[str, Any], base: dict[str, Any], config: PruneConfig) -> bool:

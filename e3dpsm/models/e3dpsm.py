@@ -75,6 +75,10 @@ class E3DPSM(nn.Module):
         """Set the direct head's offset, typically the mean pose of the training set."""
         self.pose_prior_mm.copy_(torch.as_tensor(mean_pose_mm, dtype=torch.float32).view_as(self.pose_prior_mm))
 
+    def num_parameters(self) -> int:
+        """Trainable and frozen parameters alike (buffers such as the pose prior excluded)."""
+        return sum(p.numel() for p in self.parameters())
+
     # -- state layout --------------------------------------------------------------------
     def state_spec(self) -> tuple[StateSpec, ...]:
         cfg, specs = self.config, []

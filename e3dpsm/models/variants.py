@@ -33,7 +33,8 @@ def released() -> E3DPSMConfig:
 
 @register_model
 def small() -> E3DPSMConfig:
-    """Half-width pyramid, lighter decoder: trains on two CPU cores in minutes."""
+    """Half-width pyramid, lighter decoder: trains on two CPU cores in minutes. 1,474,790
+    parameters (1,468,670 at 96 x 128: the reference grid follows the input size)."""
     return E3DPSMConfig(
         variant="small", stem_width=8, widths=(16, 32, 64, 96), attn_heads=(2, 2, 4, 4),
         attn_head_dim=(8, 16, 16, 24), attn_points=4, decoder_layers=2, decoder_heads=4,
@@ -43,7 +44,7 @@ def small() -> E3DPSMConfig:
 
 @register_model
 def tiny() -> E3DPSMConfig:
-    """Smallest graph with every component: for tests and CI."""
+    """Smallest graph with every component, for tests and CI: 94,610 parameters."""
     return E3DPSMConfig(
         variant="tiny", stem_width=8, widths=(8, 16, 16, 24), extra_res_block=False,
         attn_heads=(1, 2, 2, 2), attn_head_dim=(8, 8, 8, 12), attn_points=4, decoder_layers=1,

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
+from e3dpsm.errors import ConfigError
 from e3dpsm.layers.products import Affine, Projection
 from e3dpsm.training.qat_lsq import LearnedQuantizer
 from e3dpsm.training.qat_sites import QuantGroup, QuantSite, linear_bias
@@ -53,6 +54,13 @@ class QATConfig:
     # default graph, which keeps them in float. The S5 readout matrices are parameters, not
     # Linear modules: their inputs are fake-quantised, their weights are not.
     full_integer: bool = False
+
+
+def check_qat_flags(qat: bool, full_integer: bool) -> None:
+    """The one refusal `train` and `distill` share: --qat-full-integer only picks the graph
+    --qat simulates."""
+    if full_integer and not qat:
+        raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
 
 
 def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:

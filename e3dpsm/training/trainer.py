@@ -30,7 +30,7 @@ from e3dpsm.training.data import WindowDataset, epoch_size, mean_pose_mm, seeded
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
-from e3dpsm.training.qat import QATConfig, attach_fake_quant, freeze_batchnorm_stats
+from e3dpsm.training.qat import QATConfig, attach_fake_quant, check_qat_flags, freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
@@ -74,8 +74,7 @@ class TrainArgs:
     qat_full_integer: bool = False
 
     def __post_init__(self) -> None:
-        if self.qat_full_integer and not self.qat:
-            raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
+        check_qat_flags(self.qat, self.qat_full_integer)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -279,7 +278,7 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
         **report_header("train", {"args": args.to_dict(), "data": str(data_dir), "world_size": ctx.world_size}),
         "step": step, "total_steps": total_steps, "finished": step >= total_steps, "steps_per_epoch": epoch_steps,
         "windows": len(dataset), "seconds": time.perf_counter() - started, "last": last_terms,
-        "parameters": sum(p.numel() for p in model.parameters()), "checkpoint": str(out / CHECKPOINT_NAME),
+        "parameters": model.num_parameters(), "checkpoint": str(out / CHECKPOINT_NAME),
     }
     if ctx.is_main:
         write_json_atomic(out / REPORT_NAME, report)
