@@ -78,6 +78,10 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
              f"{learned} of the {learned + calibrated} quantised tensors take `{block['checkpoint']}`'s learned "
              f"ranges as they are; {calibrated} keep calibrated ones"
              + (": " + ", ".join(f"`{t}`" for t in block["uncovered"]) if calibrated else "") + ".", "",
+             *([f"{len(stale)} learned ranges name modules this version of the model does not have (renamed since "
+                "the checkpoint was trained): " + ", ".join(f"`{s}`" for s in stale)
+                + ". Repeat the QAT fine-tune with this version for their tensors to take learned ranges.", ""]
+               if (stale := block.get("unknown_sites")) else []),
              "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
              "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
              "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`).", ""]

@@ -32,6 +32,8 @@ from e3dpsm.onnx_graph import with_outputs
 from e3dpsm.training.qat_sites import QuantSite
 
 if TYPE_CHECKING:
+    import torch
+
     from e3dpsm.training.qat_sites import QuantGroup
 
 log = logging.getLogger(__name__)
@@ -184,6 +186,14 @@ def read_ranges(payload: Mapping[str, Any], source: str) -> list[dict[str, Any]]
     return list(ranges["quantizers"])
 
 
+def unknown_sites(model: torch.nn.Module, learned: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Sites of the learned quantisers whose module the model does not have: a checkpoint
+    trained before a module was renamed or restructured. Their tensors cannot be matched and
+    keep calibrated ranges."""
+    modules = dict(model.named_modules())
+    return sorted({site for q in learned for site in q["sites"] if QuantSite.parse(site).module not in modules})
+
+
 def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike,
                       quantised: Sequence[str]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
@@ -198,6 +208,11 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
     model, payload = load_checkpoint(checkpoint)
     learned = read_ranges(payload, str(checkpoint))
     by_site = {site: q for q in learned for site in q["sites"]}
+    stale = unknown_sites(model, learned)
+    if stale:
+        log.warning("%s: %d learned ranges name modules this version of the model does not have (%s%s); their "
+                    "tensors keep calibrated ranges: repeat the QAT fine-tune with this version", checkpoint,
+                    len(stale), ", ".join(stale[:3]), ", ..." if len(stale) > 3 else "")
     groups = match_graph(model, pre_path, quantised, probe_feed(model))
     if not groups:
         raise ConfigError(f"no tensor of the graph matches {checkpoint}'s model: quantise the graph exported "
@@ -210,7 +225,7 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
                 overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
     uncovered = sorted(set(quantised) - set(overrides))
     report = {"checkpoint": str(checkpoint), "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
-              "uncovered": uncovered}
+              "uncovered": uncovered, "unknown_sites": stale}
     log.info("QAT ranges: %d tensors take the learned ranges, %d keep calibrated ones", len(overrides), len(uncovered))
     return overrides, report
 

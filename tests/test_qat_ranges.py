@@ -213,6 +213,41 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
     assert checked >= block["learned_tensors"] * 0.9 and checked > 50
 
 
+COMMITTED_QAT = Path(__file__).resolve().parents[1] / "benchmarks" / "checkpoints" / "small_qat" / "checkpoint.pt"
+
+
+def test_committed_qat_checkpoint_names_only_modules_the_model_has() -> None:
+    """A module renamed after a QAT fine-tune silently returns its tensors to calibrated
+    ranges (the deformable offsets did, 2026-12-01): the committed fine-tune must name only
+    sites this version has, and a renamed one is found."""
+    from e3dpsm.quantize.qat_ranges import read_ranges, unknown_sites
+
+    model, payload = load_checkpoint(COMMITTED_QAT)
+    learned = read_ranges(payload, str(COMMITTED_QAT))
+    assert unknown_sites(model, learned) == []
+    renamed = [{**q, "sites": [s.replace("offset_projection", "offset_product") for s in q["sites"]]} for q in learned]
+    stale = unknown_sites(model, renamed)
+    assert len(stale) == 8 and all("offset_product" in s for s in stale), stale  # 4 layers x (in, prebias)
+
+
+def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant_data: Path, tmp_path: Path) -> None:
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    payload = read_checkpoint(qat_tiny["checkpoint"])
+    quantizers = payload["qat_ranges"]["quantizers"]
+    victim = next(q for q in quantizers if len(q["sites"]) == 1 and q["sites"][0].endswith(":out"))
+    victim["sites"] = [victim["sites"][0].replace(":out", "_renamed:out").replace(".", "_", 1)]
+    stale_ckpt = tmp_path / "stale.pt"
+    torch.save(payload, stale_ckpt)
+    out = tmp_path / "q"
+    report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
+        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(stale_ckpt)))
+    block = report["qat_ranges"]
+    assert block["unknown_sites"] == victim["sites"]
+    assert block["calibrated_tensors"] >= 1
+    assert "Repeat the QAT fine-tune" in (out / "report.md").read_text()
+
+
 def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: Path, quant_data: Path, tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture) -> None:
     from e3dpsm.cli import main
