@@ -94,7 +94,10 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines = [f"# e3dpsm quantize: {report['mode']}", "", *([f"**{verdict}**", ""] if verdict else []),
              f"Artifact `{report['artifact']}`; held-out ({h['split']}, {h['frames']} frames) MPJPE "
              f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
-             f"{h['bound_pct']:.3f}% of fp32 MPJPE.", ""]
+             f"{h['bound_pct']:.3f}% of fp32 MPJPE"
+             + (f" (the budget's reference: {h['budget_mpjpe_mm']:.2f} mm, the lowest fp32 MPJPE of any held-out or "
+                "calibration sequence, `--budget-reference lowest`)." if h.get("budget_reference") == "lowest" else "."),
+             ""]
     lines += qat_ranges_lines(report.get("qat_ranges"))
     search = report.get("search")
     if search:

@@ -3,6 +3,7 @@ as a continuous stream over held-out sequences (never the calibration frames), c
 with the FP32 graph on the same frames."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from typing import Sequence
@@ -24,6 +25,9 @@ class HoldoutSet:
     gt: list[np.ndarray]
     fp32_outputs: list[dict[str, np.ndarray]]
     window_ms: float
+    # The MPJPE the budget is relative to (None: the FP32 MPJPE pooled over these frames).
+    # `with_lowest_reference` lowers it to the best FP32 MPJPE of any sequence measured.
+    reference_mpjpe: float | None = None
 
     @property
     def fp32(self) -> list[np.ndarray]:
@@ -38,13 +42,36 @@ class HoldoutSet:
     def fp32_mpjpe(self) -> float:
         return _pooled_mpjpe(self.fp32, self.gt)
 
+    @property
+    def fp32_mpjpe_by_sequence(self) -> list[float]:
+        return [mpjpe(p, g) for p, g in zip(self.fp32, self.gt)]
+
+    @property
+    def budget_mpjpe(self) -> float:
+        """The denominator of the budget's relative error (`bound_pct`)."""
+        return self.fp32_mpjpe if self.reference_mpjpe is None else self.reference_mpjpe
+
+    def with_lowest_reference(self, *others: HoldoutSet) -> HoldoutSet:
+        """The same frames, budgeted against the lowest FP32 MPJPE of any one sequence here
+        or in `others` (the calibration sequences, say).
+
+        The budget is relative to the FP32 error, and that error differs between sequences
+        (a model trained for minutes: 101-120 mm on its training sequences, 352 on the
+        held-out one the search saw, 170 on the test one `golden check` ran on; the absolute
+        distance carried, 1.71 -> 1.67 mm, the relative one doubled). Budgeting against the
+        lowest error measured keeps the relative budget on a sequence the model does as well
+        on as on the best one seen, training sequences included, where its error is lowest."""
+        lowest = min(v for h in (self, *others) for v in h.fp32_mpjpe_by_sequence)
+        return dataclasses.replace(self, reference_mpjpe=lowest)
+
     def head(self, frames: int) -> HoldoutSet:
         """The first `frames` of every sequence. The streams are causal, so the FP32 outputs
         on a sequence's head are the head of its outputs: nothing is re-run."""
         if frames < 1:
             raise ValueError(f"frames must be positive, got {frames}")
         return HoldoutSet([x[:frames] for x in self.lnes], [g[:frames] for g in self.gt],
-                          [{k: v[:frames] for k, v in o.items()} for o in self.fp32_outputs], self.window_ms)
+                          [{k: v[:frames] for k, v in o.items()} for o in self.fp32_outputs], self.window_ms,
+                          self.reference_mpjpe)
 
 
 def _pooled_mpjpe(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> float:
@@ -66,7 +93,8 @@ def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | No
     mean joint distance of the fused poses to FP32's; by the triangle inequality it bounds
     |loss_pct| (x fp32 MPJPE) from above and, unlike the loss, cannot look good by luck.
     `bound_pct`, which the exclusion search budgets on, is the largest such distance over
-    every pose output (fused, direct, delta) relative to the FP32 MPJPE: `golden check`
+    every pose output (fused, direct, delta) relative to the FP32 MPJPE (`budget_mpjpe_mm`:
+    the pooled one, or a lower reference, `HoldoutSet.with_lowest_reference`): `golden check`
     holds a compressed graph to its budget on each of them.
     """
     session = StepSession(model, threads=threads)
@@ -82,5 +110,6 @@ def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | No
         "loss_pct": 100.0 * (value - base) / base,
         "deviation_from_fp32_mm": by_output["pose"],
         "deviation_by_output_mm": by_output,
-        "bound_pct": 100.0 * max(by_output.values()) / base,
+        "budget_mpjpe_mm": holdout.budget_mpjpe,
+        "bound_pct": 100.0 * max(by_output.values()) / holdout.budget_mpjpe,
     }

@@ -48,3 +48,13 @@ def test_index_gives_the_serve_command_for_the_held_out_sequence(tmp_path) -> No
     assert argv == ["e3dpsm", "serve", "--model", str((out / "export/step.onnx").resolve()), "--source",
                     str((out / "data/seq_0002/events.h5").resolve()), "--threads", "2"]
     assert "e3dpsm serve" in (out / "report/index.html").read_text()
+
+
+def test_gap_names_a_lowest_budget_reference(tmp_path) -> None:
+    report = {"holdout": {"bound_pct": 0.8, "split": "val", "frames": 100, "budget_reference": "lowest",
+                          "budget_mpjpe_mm": 101.04, "fp32_mpjpe_mm": 352.08}, "quantization": {"budget_pct": 1.0}}
+    _check(tmp_path / "golden/checks/step_int8-onnxruntime", "onnxruntime", [0.3, 0.6, 0.1], 170.0)
+    line = budget_gap(tmp_path, report)
+    assert "(100 frames, relative to 101.0 mm (the lowest fp32 MPJPE of any sequence it measured; `val` pooled: " \
+           "352.1 mm))" in line
+    assert "0.353% on onnxruntime (0.44x)" in line

@@ -36,6 +36,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="--exclude auto: share of the budget the search leaves unspent, so that the budget "
                    "holds on sequences the search never saw (default 0.25 for int8, 0 for fp16; the graph "
                    "is still held to the whole budget)")
+    p.add_argument("--budget-reference", choices=("holdout", "lowest"), default="holdout",
+                   help="what the budget is relative to: the fp32 MPJPE over the held-out frames (holdout, "
+                   "default) or the lowest fp32 MPJPE of any one held-out or calibration sequence (lowest: for a "
+                   "model whose error differs widely between sequences, so that the budget holds on an easy one)")
     p.add_argument("--search", choices=("nodes", "groups"), default=None,
                    help="--exclude auto: 'nodes' quantises each Conv/MatMul/Gemm alone to rank them by held-out "
                    "error, then keeps the fewest top-ranked in float that meet the budget (int8 default; one "
@@ -81,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
 
     options = QuantizeOptions(
         mode=args.mode, calibration=args.calibration, frames=args.frames, exclude=args.exclude,
-        budget_pct=args.budget_pct, search_margin=args.search_margin, split=args.split, holdout_split=args.holdout_split,
+        budget_pct=args.budget_pct, search_margin=args.search_margin, budget_reference=args.budget_reference,
+        split=args.split, holdout_split=args.holdout_split,
         holdout_frames=args.holdout_frames, rank_frames=args.rank_frames, threads=args.threads,
         objective=args.objective,
         timing_steps=args.timing_steps, search=args.search, target_isa=args.target_isa,

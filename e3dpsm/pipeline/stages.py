@@ -96,7 +96,11 @@ def _train_argv(cfg: PipelineConfig) -> list[str]:
 
 def _quantize(mode: str) -> Callable[[PipelineConfig], list[str]]:
     def argv(cfg: PipelineConfig) -> list[str]:
-        extra = ["--frames", "200", "--holdout-frames", "100"] if mode == "int8" else []
+        # The pipeline's model trains for minutes: its fp32 error differs 2x between sequences
+        # (101-120 mm on the training ones, 352 on val, 170 on test), and a budget relative to
+        # val's error doubled on test. It budgets against the lowest error it measured instead.
+        extra = (["--frames", "200", "--holdout-frames", "100", "--budget-reference", "lowest"]
+                 if mode == "int8" else [])
         return ["quantize", "--model", _p(cfg, GRAPH), "--data", _p(cfg, "prepared"), "--out",
                 _p(cfg, f"quantize/{mode}"), "--mode", mode, "--threads", str(cfg.threads), "--force", *extra]
     return argv
