@@ -142,7 +142,10 @@ def test_quantize_reports_the_front_and_builds_the_fastest_graph_within_budget(t
     groups in float instead, and report.json / report.md / front.png must show the front."""
     # A budget just below the base graph's distance (recurrence in float only, measured
     # first): most single groups kept in float lower it a little, so round 1 finds several
-    # candidates within the budget while the base graph is outside it.
+    # candidates within the budget while the base graph is outside it. No search margin: with
+    # the INT8 default (0.25) the search aims a quarter below that budget, which one candidate
+    # at most reaches. (Found failing on a vnni host on 2026-12-01, at HEAD and as far back as
+    # 5ec3ab5^, with one candidate inside; the default test command deselects slow tests.)
     fast = dict(frames=16, holdout_frames=40)
     base = quantize_graph(trained_graph, quant_data, tmp_path / "base",
                           QuantizeOptions(mode="int8", exclude="recurrent", **fast))
@@ -153,7 +156,8 @@ def test_quantize_reports_the_front_and_builds_the_fastest_graph_within_budget(t
 
     out = tmp_path / "int8"
     report = quantize_graph(trained_graph, quant_data, out,
-                            QuantizeOptions(mode="int8", budget_pct=budget, max_rounds=1, search="groups", **fast),
+                            QuantizeOptions(mode="int8", budget_pct=budget, max_rounds=1, search="groups",
+                                            search_margin=0.0, **fast),
                             timer=timer)
     search = report["search"]
     inside = [c for c in search["candidates"] if c["within_budget"] and c["p50_ms"] is not None]
