@@ -152,7 +152,7 @@ def markdown(report: dict) -> str:
                      f"{r['openvino_bound_vs_base_pct']:.3f} |")
     if "onnxruntime_mpjpe_by_sequence_mm" in report["rows"][0]:
         names = list(report["rows"][0]["onnxruntime_mpjpe_by_sequence_mm"])
-        base = report["rows"][0]
+        base = next(r for r in report["rows"] if r["label"] == "base fp32")
         lines += ["", "Per held-out sequence, MPJPE mm on ONNX Runtime / OpenVINO (vs the base fp32 on that sequence); "
                   "the bar above is pooled over all of them:", "",
                   "| graph | " + " | ".join(f"`{n}`" for n in names) + " |", "|---|" + "---:|" * len(names)]

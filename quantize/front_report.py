@@ -74,14 +74,15 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
     if not block:
         return []
     learned, calibrated = block["learned_tensors"], block["calibrated_tensors"]
+    stale = block.get("unknown_sites") or []
     lines = ["## Learned ranges (QAT)", "",
              f"{learned} of the {learned + calibrated} quantised tensors take `{block['checkpoint']}`'s learned "
              f"ranges as they are; {calibrated} keep calibrated ones"
              + (": " + ", ".join(f"`{t}`" for t in block["uncovered"]) if calibrated else "") + ".", "",
-             *([f"{len(stale)} learned ranges name modules this version of the model does not have (renamed since "
-                "the checkpoint was trained): " + ", ".join(f"`{s}`" for s in stale)
-                + ". Repeat the QAT fine-tune with this version for their tensors to take learned ranges.", ""]
-               if (stale := block.get("unknown_sites")) else []),
+             *([f"{len(stale)} sites of the learned ranges name modules this version of the model does not have "
+                "(renamed since the checkpoint was trained): " + ", ".join(f"`{s}`" for s in stale)
+                + ". Tensors matched only through them keep calibrated ranges; repeat the QAT fine-tune with this "
+                "version for them to take learned ones.", ""] if stale else []),
              "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
              "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
              "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`).", ""]
@@ -94,9 +95,9 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines = [f"# e3dpsm quantize: {report['mode']}", "", *([f"**{verdict}**", ""] if verdict else []),
              f"Artifact `{report['artifact']}`; held-out ({h['split']}, {h['frames']} frames) MPJPE "
              f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
-             f"{h['bound_pct']:.3f}% of fp32 MPJPE"
-             + (f" (the budget's reference: {h['budget_mpjpe_mm']:.2f} mm, the lowest fp32 MPJPE of any held-out or "
-                "calibration sequence, `--budget-reference lowest`)." if h.get("budget_reference") == "lowest" else "."),
+             + (f"{h['bound_pct']:.3f}% of the budget's reference MPJPE, {h['budget_mpjpe_mm']:.2f} mm: the lowest "
+                "fp32 MPJPE of any held-out or calibration sequence (`--budget-reference lowest`)."
+                if h.get("budget_reference") == "lowest" else f"{h['bound_pct']:.3f}% of fp32 MPJPE."),
              ""]
     lines += qat_ranges_lines(report.get("qat_ranges"))
     search = report.get("search")

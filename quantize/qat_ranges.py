@@ -210,8 +210,9 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
     by_site = {site: q for q in learned for site in q["sites"]}
     stale = unknown_sites(model, learned)
     if stale:
-        log.warning("%s: %d learned ranges name modules this version of the model does not have (%s%s); their "
-                    "tensors keep calibrated ranges: repeat the QAT fine-tune with this version", checkpoint,
+        log.warning("%s: %d sites of its learned ranges name modules this version of the model does not have "
+                    "(%s%s); tensors matched only through them keep calibrated ranges: repeat the QAT fine-tune "
+                    "with this version", checkpoint,
                     len(stale), ", ".join(stale[:3]), ", ..." if len(stale) > 3 else "")
     groups = match_graph(model, pre_path, quantised, probe_feed(model))
     if not groups:

@@ -55,6 +55,6 @@ def test_gap_names_a_lowest_budget_reference(tmp_path) -> None:
                           "budget_mpjpe_mm": 101.04, "fp32_mpjpe_mm": 352.08}, "quantization": {"budget_pct": 1.0}}
     _check(tmp_path / "golden/checks/step_int8-onnxruntime", "onnxruntime", [0.3, 0.6, 0.1], 170.0)
     line = budget_gap(tmp_path, report)
-    assert "(100 frames, relative to 101.0 mm (the lowest fp32 MPJPE of any sequence it measured; `val` pooled: " \
-           "352.1 mm))" in line
+    assert "(100 frames, relative to 101.0 mm, the lowest fp32 MPJPE of any sequence it measured; `val` pooled: " \
+           "352.1 mm)" in line
     assert "0.353% on onnxruntime (0.44x)" in line

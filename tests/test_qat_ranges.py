@@ -245,7 +245,7 @@ def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant
     block = report["qat_ranges"]
     assert block["unknown_sites"] == victim["sites"]
     assert block["calibrated_tensors"] >= 1
-    assert "Repeat the QAT fine-tune" in (out / "report.md").read_text()
+    assert "repeat the QAT fine-tune" in (out / "report.md").read_text()
 
 
 def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: Path, quant_data: Path, tmp_path: Path,

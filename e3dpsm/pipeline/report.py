@@ -70,8 +70,8 @@ def budget_gap(out: Path, int8_report: dict[str, Any]) -> str | None:
     if not checks:
         return None
     budget = (int8_report.get("quantization") or {}).get("budget_pct")
-    reference = (f", relative to {holdout['budget_mpjpe_mm']:.1f} mm (the lowest fp32 MPJPE of any sequence it "
-                 f"measured; `{holdout['split']}` pooled: {holdout['fp32_mpjpe_mm']:.1f} mm)"
+    reference = (f", relative to {holdout['budget_mpjpe_mm']:.1f} mm, the lowest fp32 MPJPE of any sequence it "
+                 f"measured; `{holdout['split']}` pooled: {holdout['fp32_mpjpe_mm']:.1f} mm"
                  if holdout.get("budget_reference") == "lowest" else "")
     return (f"Budget on unseen data: the search measured {holdout['bound_pct']:.3f}% on `{holdout['split']}` "
             f"({holdout['frames']} frames{reference}); the golden check of the same graph on the test split measured "
