@@ -150,19 +150,18 @@ def markdown(report: dict) -> str:
                      f"({r['openvino_vs_base_pct']:+.2f}%) | {r['onnxruntime_distance_to_own_fp32_mm']:.2f} / "
                      f"{r['openvino_distance_to_own_fp32_mm']:.2f} | {r['onnxruntime_bound_vs_base_pct']:.3f} / "
                      f"{r['openvino_bound_vs_base_pct']:.3f} |")
-    if "onnxruntime_mpjpe_by_sequence_mm" in report["rows"][0]:
-        names = list(report["rows"][0]["onnxruntime_mpjpe_by_sequence_mm"])
-        base = next(r for r in report["rows"] if r["label"] == "base fp32")
-        lines += ["", "Per held-out sequence, MPJPE mm on ONNX Runtime / OpenVINO (vs the base fp32 on that sequence); "
-                  "the bar above is pooled over all of them:", "",
-                  "| graph | " + " | ".join(f"`{n}`" for n in names) + " |", "|---|" + "---:|" * len(names)]
-        for r in report["rows"]:
-            cells = []
-            for n in names:
-                ort, ov = r["onnxruntime_mpjpe_by_sequence_mm"][n], r["openvino_mpjpe_by_sequence_mm"][n]
-                ort0, ov0 = base["onnxruntime_mpjpe_by_sequence_mm"][n], base["openvino_mpjpe_by_sequence_mm"][n]
-                cells.append(f"{ort:.2f} ({100 * (ort / ort0 - 1):+.2f}%) / {ov:.2f} ({100 * (ov / ov0 - 1):+.2f}%)")
-            lines.append(f"| {r['label']} | " + " | ".join(cells) + " |")
+    names = report["sequences"]
+    base = next(r for r in report["rows"] if r["label"] == "base fp32")
+    lines += ["", "Per held-out sequence, MPJPE mm on ONNX Runtime / OpenVINO (vs the base fp32 on that sequence); "
+              "the bar above is pooled over all of them:", "",
+              "| graph | " + " | ".join(f"`{n}`" for n in names) + " |", "|---|" + "---:|" * len(names)]
+    for r in report["rows"]:
+        cells = []
+        for n in names:
+            ort, ov = r["onnxruntime_mpjpe_by_sequence_mm"][n], r["openvino_mpjpe_by_sequence_mm"][n]
+            ort0, ov0 = base["onnxruntime_mpjpe_by_sequence_mm"][n], base["openvino_mpjpe_by_sequence_mm"][n]
+            cells.append(f"{ort:.2f} ({100 * (ort / ort0 - 1):+.2f}%) / {ov:.2f} ({100 * (ov / ov0 - 1):+.2f}%)")
+        lines.append(f"| {r['label']} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

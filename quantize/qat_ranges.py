@@ -212,8 +212,7 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
     if stale:
         log.warning("%s: %d sites of its learned ranges name modules this version of the model does not have "
                     "(%s%s); tensors matched only through them keep calibrated ranges: repeat the QAT fine-tune "
-                    "with this version", checkpoint,
-                    len(stale), ", ".join(stale[:3]), ", ..." if len(stale) > 3 else "")
+                    "with this version", checkpoint, len(stale), ", ".join(stale[:3]), ", ..." if len(stale) > 3 else "")
     groups = match_graph(model, pre_path, quantised, probe_feed(model))
     if not groups:
         raise ConfigError(f"no tensor of the graph matches {checkpoint}'s model: quantise the graph exported "

@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
     search = report.get("exclusion_search") or {}
     print(json.dumps({"out": args.out, "artifact": report["artifact"], "mpjpe_mm": round(h["mpjpe_mm"], 3),
                       "fp32_mpjpe_mm": round(h["fp32_mpjpe_mm"], 3), "loss_pct": round(h["loss_pct"], 4),
-                      "distance_pct": round(h["bound_pct"], 4), "budget_mpjpe_mm": round(h["budget_mpjpe_mm"], 3), "within_budget": search.get("within_budget"),
+                      "distance_pct": round(h["bound_pct"], 4), "budget_mpjpe_mm": round(h["budget_mpjpe_mm"], 3),
+                      "within_budget": search.get("within_budget"),
                       "p50_ms": (report.get("search") or {}).get("chosen", {}).get("p50_ms"),
                       "bytes": report["sizes"]["output_bytes"]}))
     return 0
