@@ -10,7 +10,8 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
 - full integer (`--exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
   activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor), and
   `mse` after `--equalize` (GEGLU scales folded into the weights);
-- the default `--exclude auto` graph with `--calibration mse`;
+- the default `--exclude auto` graph with `--calibration mse`, with and without int16, and
+  with AdaRound weights (`--weight-rounding adaround`, also on the full-integer graph);
 - the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units).
 - with `--qat-checkpoint CKPT` (a `train --qat` fine-tune of --checkpoint): its export full
   integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
@@ -115,9 +116,13 @@ def main(argv: list[str] | None = None) -> int:
         runs = [(f"full int8, {c}", QuantizeOptions(mode="int8", exclude="none", calibration=c)) for c in CALIBRATIONS]
         runs.append(("full int8, mse, equalized", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
                                                                    equalize=True)))
+        runs.append(("full int8, mse, adaround", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
+                                                                  weight_rounding="adaround")))
         if not args.no_search:
             runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse", int16=False)))
             runs.append(("default search, mse, int16", QuantizeOptions(mode="int8", calibration="mse")))
+            runs.append(("default search, mse, int16, adaround", QuantizeOptions(mode="int8", calibration="mse",
+                                                                                  weight_rounding="adaround")))
             runs.append(("default search, mse, int16, no search margin",
                          QuantizeOptions(mode="int8", calibration="mse", search_margin=0.0)))
         sources = {label: fp32 for label, _ in runs}
@@ -157,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                          "mpjpe_loss_pct": q["holdout"]["loss_pct"], "bytes": path.stat().st_size,
                          "compute_nodes_in_float": len(kept) if ranked else 0,
                          "compute_nodes_int16": len(q["quantization"].get("int16_nodes") or []),
+                         "compute_nodes_int16w16": len(q["quantization"].get("int16w16_nodes") or []),
                          "mpjpe_vs_base_pct": 100.0 * (measured["mpjpe_mm"] / base_mpjpe - 1.0),
                          "qat_ranges": {k: v for k, v in (q.get("qat_ranges") or {}).items() if k != "uncovered"},
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
@@ -198,20 +204,23 @@ def markdown(report: dict) -> str:
              f"and delta poses relative to the fp32 MPJPE ({report['fp32_mpjpe_mm']:.1f} mm), on "
              f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched). "
              f"Step p50 side by side, {cfg['steps']} steps each.", "",
-             "| graph | distance % | independent % | compute nodes in float (+ int16) | MB | ORT p50 ms (x fp32) "
+             "| graph | distance % | independent % | compute nodes in float (+ 16-bit) | MB (x fp32) | ORT p50 ms (x fp32) "
              "| OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|"]
     ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
-    lines.append(f"| fp32 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} | {ort32:.2f} | {ov32:.2f} |")
+    lines.append(f"| fp32 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} (1x) | {ort32:.2f} | {ov32:.2f} |")
     if "openvino bf16" in p50:
         lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | "
                      f"{report['fp32_bytes'] / 1e6:.2f} | | {p50['openvino bf16']:.2f} ({ov32 / p50['openvino bf16']:.2f}x) |")
     for r in report["rows"]:
         ort, ov = r.get("ort_ms", p50.get(f"ort {r['label']}")), r.get("openvino_ms", p50.get(f"openvino {r['label']}"))
         o32, v32 = r.get("ort_fp32_ms", ort32), r.get("openvino_fp32_ms", ov32)
-        out8 = str(r["compute_nodes_in_float"]) + (f" (+{r['compute_nodes_int16']} int16)" if r.get("compute_nodes_int16") else "")
+        sixteen = [f"+{r[key]} {kind}" for key, kind in (("compute_nodes_int16", "int16"),
+                                                         ("compute_nodes_int16w16", "int16w16")) if r.get(key)]
+        out8 = str(r["compute_nodes_in_float"]) + (f" ({', '.join(sixteen)})" if sixteen else "")
+        size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"
         lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {r['check_distance_pct']:.3f}{frames} | "
-                     f"{out8} | {r['bytes'] / 1e6:.2f} | {ort:.2f} ({o32 / ort:.2f}x) | {ov:.2f} ({v32 / ov:.2f}x) |")
+                     f"{out8} | {size} | {ort:.2f} ({o32 / ort:.2f}x) | {ov:.2f} ({v32 / ov:.2f}x) |")
     if any("mpjpe_vs_base_pct" in r for r in report["rows"]):
         lines += ["", "MPJPE on the independent check's frames against the base checkpoint's fp32 graph (a short "
                   "check; the QAT bar is judged on every held-out frame by benchmarks/bench_qat_mpjpe.py, "

@@ -10,13 +10,16 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import numpy as np
 import onnx
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 from e3dpsm.export.onnx_export import op_histogram
+from e3dpsm.quantize.adaround import WEIGHT_ROUNDINGS, AdaRoundConfig, adaround_weights, apply_rounding
 from e3dpsm.quantize.artifact import finalize, save_model
+from e3dpsm.quantize.compact import compact_qdq, graph_names
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
 from e3dpsm.quantize.equalize import equalize_geglu
@@ -28,7 +31,7 @@ from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
-from e3dpsm.quantize.precision import demote_to_int16
+from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16
 from e3dpsm.quantize.qat_ranges import learned_overrides, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
                                    quantize_int8, quantised_node_count)
@@ -103,6 +106,11 @@ class QuantizeOptions:
     # int8 `--search nodes`: nodes that must leave 8 bits try 16-bit activations before float
     # (precision.py); the graph goes to opset 21 for it.
     int16: bool = True
+    # int8: how 8-bit weights are rounded: to nearest (ONNX Runtime) or by AdaRound against the
+    # calibration frames' layer outputs (adaround.py). None: AdaRound where the search may
+    # keep activations at 16 bits (`--exclude auto`, nodes, int16), where it pays; nearest
+    # elsewhere (with 8-bit activations their error dominates: docs/quantize.md).
+    weight_rounding: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -125,12 +133,24 @@ class QuantizeOptions:
             raise ConfigError(f"--search picks how --exclude auto searches; drop it with --exclude {self.exclude}")
         if self.ranges_from_checkpoint is not None and self.mode != "int8":
             raise ConfigError(f"--ranges-from-checkpoint gives INT8 ranges; drop it with --mode {self.mode}")
+        if self.weight_rounding not in (None, *WEIGHT_ROUNDINGS):
+            raise ConfigError(f"unknown weight rounding {self.weight_rounding!r}; choose from {list(WEIGHT_ROUNDINGS)}")
+        if self.weight_rounding == "adaround" and self.mode != "int8":
+            raise ConfigError(f"--weight-rounding rounds INT8 weights; drop it with --mode {self.mode}")
         if self.search == "nodes" and self.mode != "int8":
             raise ConfigError(f"--search nodes ranks INT8 nodes; {self.mode} searches groups (drop --search)")
 
     @property
     def strategy(self) -> str:
         return self.search or ("nodes" if self.mode == "int8" else "groups")
+
+    @property
+    def rounding(self) -> str:
+        """The weight rounding this run uses (`weight_rounding`, resolved)."""
+        if self.weight_rounding is not None:
+            return self.weight_rounding
+        searches_int16 = self.mode == "int8" and self.exclude == "auto" and self.strategy == "nodes" and self.int16
+        return "adaround" if searches_int16 else "nearest"
 
     @property
     def budget(self) -> float:
@@ -233,7 +253,9 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         # error depends on the CPU's kernels (utils/isa.py), so it also says where it was checked.
         info["budget_pct"] = options.budget
         info["checked_on_isa"] = detect_isa().to_dict()
+        info["budget_reference"] = options.budget_reference
         finalize(model, meta, info)
+        compaction = compact_qdq(model, keep=graph_names(source))
         out_path = tmp / artifact_name(options.mode)
         size = save_model(model, out_path)
         accuracy = accuracy_of(out_path, holdout, options.threads)
@@ -244,7 +266,8 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             "excluded_nodes": info.get("excluded_nodes", []),
             "holdout": {"split": options.holdout_split, "frames": holdout.frames,
                         "budget_reference": options.budget_reference, **accuracy},
-            "sizes": {"source_bytes": Path(model_path).stat().st_size, "output_bytes": size},
+            "sizes": {"source_bytes": Path(model_path).stat().st_size, "output_bytes": size,
+                      "compaction": compaction.to_dict()},
             "nodes": {"source": len(source.graph.node), "output": len(model.graph.node),
                       "source_ops": op_histogram(source), "output_ops": op_histogram(model)},
             **extra,
@@ -289,6 +312,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     started = time.perf_counter()
     ranges = calibrate(pre, config, calib, cache)
     calib_seconds = time.perf_counter() - started
+    rounded, rounding_report = _adaround(options, config, pre, pre_model, cache, calib, work)
     learned, qat_report = {}, None
     if options.ranges_from_checkpoint:
         # Every tensor the graph may quantise: `--exclude none` quantises the recurrent groups
@@ -297,14 +321,16 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised)
     search = latency = precision = None
     int16_nodes: list[str] = []
+    int16w16_nodes: list[str] = []
     pre16 = _opset21_copy(pre, work) if options.int16 and fixed is None and options.strategy == "nodes" else None
 
-    def build(excluded: list[str], int16: Sequence[str] = ()) -> onnx.ModelProto:
+    def build(excluded: list[str], int16: Sequence[str] = (), int16w16: Sequence[str] = ()) -> onnx.ModelProto:
         path = scratch_model_path(work, "int8")
         # The cache: no re-calibration per trial. 16-bit nodes need the opset-21 copy.
-        quantize_int8(pre16 if int16 else pre, path, config, exclude=excluded, cache=cache, learned=learned,
-                      int16_nodes=int16)
+        quantize_int8(pre16 if int16 or int16w16 else pre, path, config, exclude=excluded, cache=cache,
+                      learned=learned, int16_nodes=int16, int16w16_nodes=int16w16)
         model = onnx.load(str(path))
+        apply_rounding(model, rounded)
         path.unlink()
         return model
 
@@ -326,17 +352,24 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                 [n for n in fixed if n not in kept], search.error_pct, options.search_target,
                 lambda int16, floats, label: _evaluator(pre_meta, holdout, options, work,
                                                         lambda excl: build(excl, int16))(keep + floats, label))
-            fixed, int16_nodes = list(dict.fromkeys(keep + precision.float_nodes)), precision.int16
-    quantize_int8(pre16 if int16_nodes else pre, out, config, exclude=fixed, cache=cache, learned=learned,
-                  int16_nodes=int16_nodes)
+            precision = promote_to_int16w16(
+                precision, lambda int16, w16, floats, label: _evaluator(
+                    pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
+            fixed = list(dict.fromkeys(keep + precision.float_nodes))
+            int16_nodes, int16w16_nodes = precision.int16, precision.int16w16
+    quantize_int8(pre16 if int16_nodes or int16w16_nodes else pre, out, config, exclude=fixed, cache=cache,
+                  learned=learned, int16_nodes=int16_nodes, int16w16_nodes=int16w16_nodes)
     model = onnx.load(str(out))
+    if rounding_report is not None:
+        rounding_report["applied"] = apply_rounding(model, rounded)
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),
         "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
         "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
-        "excluded_nodes": fixed, "int16_nodes": int16_nodes, **quantised_node_count(model),
-        "ranges_from_checkpoint": options.ranges_from_checkpoint,
+        "excluded_nodes": fixed, "int16_nodes": int16_nodes, "int16w16_nodes": int16w16_nodes,
+        **quantised_node_count(model),
+        "ranges_from_checkpoint": options.ranges_from_checkpoint, "weight_rounding": options.rounding,
     }
     extra = {
         "calibration": {"record_seconds": round(calib.seconds, 2), "calibrate_seconds": round(calib_seconds, 2),
@@ -347,8 +380,27 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         **({"equalization": equalized} if options.equalize else {}),
         **({"precision_search": precision.to_dict()} if precision else {}),
         **({"qat_ranges": qat_report} if qat_report else {}),
+        **({"weight_rounding": rounding_report} if rounding_report is not None else {}),
     }
     return model, info, extra
+
+
+def _adaround(options: QuantizeOptions, config: StaticConfig, pre: Path, pre_model: onnx.ModelProto, cache: Path,
+              calib, work: Path) -> tuple[dict, dict | None]:
+    """AdaRound's integers for every weight (adaround.py), chosen once at ONNX Runtime's own
+    scales (read off a graph with every Conv/MatMul/Gemm quantised) and written into each
+    trial graph and the artifact; ({}, None) for nearest rounding."""
+    if options.rounding != "adaround":
+        return {}, None
+    started = time.perf_counter()
+    probe = work / "adaround_probe.onnx"
+    quantize_int8(pre, probe, config, exclude=[], cache=cache)
+    rounded = adaround_weights(pre_model, onnx.load(str(probe)), calib.feeds, threads=options.threads)
+    probe.unlink()
+    ratios = [r.output_error_ratio for r in rounded.values()]
+    return rounded, {"method": "adaround", **asdict(AdaRoundConfig()), "weights": len(rounded),
+                     "median_output_error_ratio": float(np.median(ratios)) if ratios else None,
+                     "seconds": round(time.perf_counter() - started, 2)}
 
 
 def _opset21_copy(pre: Path, work: Path) -> Path | None:

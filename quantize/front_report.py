@@ -89,6 +89,19 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
     return lines
 
 
+def size_lines(sizes: dict[str, Any]) -> list[str]:
+    """The artifact's size against the fp32 graph's, and what compaction (compact.py) saved."""
+    if not sizes.get("source_bytes"):
+        return []
+    out, src = sizes["output_bytes"], sizes["source_bytes"]
+    line = f"Size: {out / 1e6:.3f} MB against the fp32 graph's {src / 1e6:.3f} MB ({out / src:.3f}x)"
+    compaction = sizes.get("compaction") or {}
+    if compaction.get("bytes_saved"):
+        line += (f", {compaction['bytes_saved'] / 1e3:.0f} kB less than the quantiser wrote it (its added names "
+                 f"shortened, {compaction['initializers_shared']} repeated constants shared, stored shapes dropped)")
+    return [line + ".", ""]
+
+
 def markdown_report(report: dict[str, Any]) -> str:
     h = report["holdout"]
     verdict = speed_verdict(report)
@@ -98,7 +111,7 @@ def markdown_report(report: dict[str, Any]) -> str:
              + (f"{h['bound_pct']:.3f}% of the budget's reference MPJPE, {h['budget_mpjpe_mm']:.2f} mm: the lowest "
                 "fp32 MPJPE of any held-out or calibration sequence (`--budget-reference lowest`)."
                 if h.get("budget_reference") == "lowest" else f"{h['bound_pct']:.3f}% of fp32 MPJPE."),
-             ""]
+             "", *size_lines(report.get("sizes") or {})]
     lines += qat_ranges_lines(report.get("qat_ranges"))
     search = report.get("search")
     if search:
@@ -120,10 +133,29 @@ def markdown_report(report: dict[str, Any]) -> str:
         lines += [f"| {i + 1} | `{r['node']}` | {r['error_pct']:.3f} | {'yes' if r['node'] in chosen else ''} |"
                   for i, r in enumerate(ranked[:SENSITIVE_ROWS])]
         lines.append("")
+    lines += precision_lines(report.get("precision_search"))
     return "\n".join(lines)
 
 
-def plot_front(search: dict[str, Any], path: str | os.PathLike) -> Path | None:
+def precision_lines(plan: dict[str, Any] | None) -> list[str]:
+    """Where each node the search took out of 8 bits ended (precision.py), and why."""
+    if not plan or not plan.get("choices"):
+        return []
+    counts = {kind: len(plan.get(key) or []) for kind, key in
+              (("int16", "int16_nodes"), ("int16w16", "int16w16_nodes"), ("float", "float_nodes"))}
+    lines = [f"## Precision per node ({len(plan['choices'])} nodes out of 8 bits: "
+             + ", ".join(f"{n} {kind}" for kind, n in counts.items()) + ")", "",
+             f"int16: 16-bit activations, 8-bit weights; int16w16: 16-bit weights too; float: neither. Each node "
+             f"takes the first that keeps the graph within the {plan['target_pct']:.3f}% target; graph error "
+             f"after the decisions {plan['error_pct']:.3f}%.", "",
+             "| node | precision | graph error % per precision tried | why |", "|---|---|---|---|"]
+    for choice in plan["choices"]:
+        tried = ", ".join(f"{p} {e:.3f}" for p, e in choice["errors"].items())
+        lines.append(f"| `{choice['node']}` | {choice['precision']} | {tried} | {choice['reason']} |")
+    return lines + [""]
+
+
+def plot_front(search: dict[str, Any], path: str | os.PathLike, reference: str = "holdout") -> Path | None:
     """Distance to fp32 vs p50 step latency of every timed candidate; the front joined, the
     chosen one circled, the budget as a vertical line. None when nothing was timed."""
     rows = [r for r in search["candidates"] if r["p50_ms"] is not None]
@@ -149,7 +181,9 @@ def plot_front(search: dict[str, Any], path: str | os.PathLike) -> Path | None:
     ax.axvline(search["budget_pct"], color="grey", linestyle="--", label=f"budget {search['budget_pct']:g}%")
     if search["fp32_p50_ms"]:
         ax.axhline(search["fp32_p50_ms"], color="black", linestyle=":", label="fp32")
-    ax.set_xlabel("held-out distance to fp32 (% of fp32 MPJPE)")
+    # The distance is relative to the budget's reference (`--budget-reference`).
+    ax.set_xlabel("held-out distance to fp32 (% of the lowest fp32 MPJPE of any sequence)" if reference == "lowest"
+                  else "held-out distance to fp32 (% of fp32 MPJPE)")
     ax.set_ylabel("p50 step latency (ms)")
     ax.set_title(f"quantisation candidates (objective: {search['objective']})")
     ax.legend(fontsize=7)
@@ -164,4 +198,4 @@ def write_search_outputs(report: dict[str, Any], folder: str | os.PathLike) -> N
     folder = Path(folder)
     write_text_atomic(folder / "report.md", markdown_report(report))
     if report.get("search"):
-        plot_front(report["search"], folder / "front.png")
+        plot_front(report["search"], folder / "front.png", (report.get("holdout") or {}).get("budget_reference", "holdout"))

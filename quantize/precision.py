@@ -29,8 +29,9 @@ from typing import Callable, Mapping, Sequence
 
 log = logging.getLogger(__name__)
 
-# Cheapest first: fewer bits, smaller graph, integer kernels.
-PRECISIONS: tuple[str, ...] = ("int8", "int16", "float")
+# Cheapest first: fewer bits, smaller graph, integer kernels. "int16": 16-bit activations,
+# 8-bit weights; "int16w16": 16-bit weights too.
+PRECISIONS: tuple[str, ...] = ("int8", "int16", "int16w16", "float")
 # Share of the all-float choice's slack under the budget that 16-bit nodes may spend (module doc).
 INT16_SLACK_SHARE = 0.5
 
@@ -80,9 +81,11 @@ class PrecisionPlan:
     trials: list[dict]
 
     target_pct: float | None = None
+    int16w16: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"target_pct": self.target_pct, "int16_nodes": self.int16, "float_nodes": self.float_nodes, "error_pct": self.error_pct,
+        return {"target_pct": self.target_pct, "int16_nodes": self.int16, "int16w16_nodes": self.int16w16,
+                "float_nodes": self.float_nodes, "error_pct": self.error_pct,
                 "choices": [c.to_dict() for c in self.choices], "trials": self.trials}
 
 
@@ -130,3 +133,56 @@ def demote_to_int16(out_of_int8: Sequence[str], float_error_pct: float, budget_p
             int16.append(node)
             floats, current = trial_floats, err
     return PrecisionPlan(int16, floats, current, [decided[n] for n in nodes], trials, budget_pct)
+
+
+def promote_to_int16w16(plan: PrecisionPlan,
+                        evaluate: Callable[[list[str], list[str], list[str], str], float]) -> PrecisionPlan:
+    """The nodes `demote_to_int16` left in float, tried with 16-bit weights as well as 16-bit
+    activations: all at once first, otherwise one at a time from the least sensitive, each
+    kept there when the graph still meets the plan's target. `evaluate(int16_nodes,
+    int16w16_nodes, float_nodes, label) -> error %`.
+
+    Why: a node stays in float because its 8-bit weights cost too much (on the committed
+    `small`, 8-bit weights alone take 0.8 of the 1% budget, the delta head's Gemm most of
+    all); at 16 bits a weight's rounding costs ~1/256 of that, so such a node computes what
+    float computes while the graph keeps integer weights everywhere (an integer-only target
+    with 16-bit support can run every Conv/MatMul/Gemm) and half the float bytes."""
+    floats = list(plan.float_nodes)
+    if not floats:
+        return plan
+    target = plan.target_pct if plan.target_pct is not None else plan.error_pct
+    trials = list(plan.trials)
+
+    def measure(w16: list[str], rest: list[str], label: str) -> float:
+        err = float(evaluate(list(plan.int16), w16, rest, label))
+        trials.append({"label": label, "int16_nodes": len(plan.int16), "int16w16_nodes": len(w16),
+                       "float_nodes": len(rest), "error_pct": err})
+        log.info("%s: %d node(s) int16, %d int16w16, %d float: %.3f%%", label, len(plan.int16), len(w16), len(rest), err)
+        return err
+
+    errors: dict[str, float] = {}
+    w16: list[str] = []
+    current = plan.error_pct
+    everything = measure(floats, [], "int16w16_all")
+    if everything <= target:
+        w16, current = floats, everything
+        errors = dict.fromkeys(floats, everything)
+    else:
+        for node in reversed(floats):  # least sensitive first
+            rest = [n for n in floats if n not in w16 and n != node]
+            err = measure(w16 + [node], rest, f"int16w16_{node}")
+            errors[node] = err
+            if err <= target:
+                w16.append(node)
+                current = err
+    choices = []
+    for choice in plan.choices:
+        if choice.node in w16:
+            choice = choose_precision(choice.node, {**choice.errors, "int16w16": errors[choice.node]}, target)
+        elif choice.node in errors:  # stays in float: its decision stands, the new trial recorded
+            choice = PrecisionChoice(choice.node, choice.precision,
+                                     f"{choice.reason}; int16w16 {errors[choice.node]:.3f}% over the {target:g}% target",
+                                     {**choice.errors, "int16w16": errors[choice.node]})
+        choices.append(choice)
+    return PrecisionPlan(list(plan.int16), [n for n in floats if n not in w16], current, choices, trials,
+                         plan.target_pct, [n for n in floats if n in w16])

@@ -168,7 +168,9 @@ def test_quantize_reports_the_front_and_builds_the_fastest_graph_within_budget(t
     assert report["quantization"]["float_groups"][-1] == fastest["float_groups"][-1]
     assert report["exclusion_search"]["chosen_groups"] == fastest["float_groups"]
     # the artifact is the chosen graph: its held-out distance is the candidate's
-    assert report["holdout"]["bound_pct"] == pytest.approx(fastest["distance_pct"], rel=1e-6)
+    # rel 1e-3: the artifact is written compacted (compact.py), and renaming can change the order
+    # ONNX Runtime's optimisers visit float nodes in (float32 round-off); another graph differs by more
+    assert report["holdout"]["bound_pct"] == pytest.approx(fastest["distance_pct"], rel=1e-3)
     timed = [c["p50_ms"] for c in search["candidates"] if c["p50_ms"] is not None]
     assert search["fp32_p50_ms"] is not None and search["front"][0]["p50_ms"] == min(timed)
     on_disk = json.loads((out / "report.json").read_text())

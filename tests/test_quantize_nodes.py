@@ -178,13 +178,15 @@ def test_nodes_search_end_to_end_on_the_trained_tiny(int8_dir, int8_test_budget_
     k = int(search["chosen_groups"][0][3:])
     assert 0 < k < len(ranked) and search["within_budget"]
     float_kept = set(report["excluded_nodes"])
-    # The prefix leaves 8 bits: to float, or to 16-bit activations (precision.py).
-    out_of_int8 = float_kept | set(report["quantization"]["int16_nodes"])
+    # The prefix leaves 8 bits: to float, or to 16-bit activations (and weights) (precision.py).
+    out_of_int8 = float_kept | set(report["quantization"]["int16_nodes"]) | set(report["quantization"]["int16w16_nodes"])
     assert {r["node"] for r in ranked[:k]} <= out_of_int8 and not {r["node"] for r in ranked[k:]} & out_of_int8
     # the written graph is the measured one: its held-out error is the search's (after the
     # int16 step), the largest distance over the pose outputs (what `golden check` holds each of them to)
     holdout = report["holdout"]
-    assert holdout["bound_pct"] == pytest.approx(report["precision_search"]["error_pct"], rel=1e-6)
+    # rel 1e-3: the artifact is written compacted (compact.py), and renaming can change the order
+    # ONNX Runtime's optimisers visit float nodes in (float32 round-off); another graph differs by more
+    assert holdout["bound_pct"] == pytest.approx(report["precision_search"]["error_pct"], rel=1e-3)
     assert set(holdout["deviation_by_output_mm"]) == {"pose", "pose_direct", "pose_delta"}
     assert holdout["bound_pct"] == pytest.approx(
         100 * max(holdout["deviation_by_output_mm"].values()) / holdout["fp32_mpjpe_mm"], rel=1e-9)
