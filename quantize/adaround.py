@@ -54,7 +54,6 @@ class AdaRoundConfig:
 @dataclass
 class _Layer:
     node: onnx.NodeProto
-    quantized: str  # the int8 initializer the graph's DequantizeLinear reads
     weight: np.ndarray  # float, [out, in_flat]
     scale: np.ndarray  # [out]
     to_graph: str  # "conv" (reshape to the kernel), "rows" (as is: Gemm transB) or "cols" (transpose: MatMul)
@@ -77,7 +76,7 @@ def find_layers(pre: onnx.ModelProto, qdq: onnx.ModelProto) -> dict[str, _Layer]
     for node in pre.graph.node:
         for tensor in node.input:
             readers[tensor] = readers.get(tensor, 0) + 1
-    layers: dict[str, _Layer] = {}
+    layers: dict[str, _Layer] = {}  # by the int8 initializer the graph's DequantizeLinear reads
     for node in pre.graph.node:
         qnode = qnodes.get(node.name)
         if node.op_type not in ("Conv", "MatMul", "Gemm") or qnode is None or len(node.input) < 2:
@@ -98,19 +97,19 @@ def find_layers(pre: onnx.ModelProto, qdq: onnx.ModelProto) -> dict[str, _Layer]
         if node.op_type == "Conv":
             if attrs.get("group", 1) != 1 or axis != 0:
                 continue
-            layer = _Layer(node, dq.input[0], weight.reshape(weight.shape[0], -1), scale, "conv", q.shape)
+            layer = _Layer(node, weight.reshape(weight.shape[0], -1), scale, "conv", q.shape)
         elif node.op_type == "Gemm":
             if attrs.get("transA", 0) or weight.ndim != 2:
                 continue
             rows = bool(attrs.get("transB", 0))
             if axis != (0 if rows else 1):
                 continue
-            layer = _Layer(node, dq.input[0], weight if rows else weight.T, scale, "rows" if rows else "cols",
+            layer = _Layer(node, weight if rows else weight.T, scale, "rows" if rows else "cols",
                            q.shape, float(attrs.get("alpha", 1.0)))
         else:
             if weight.ndim != 2 or axis != 1:
                 continue
-            layer = _Layer(node, dq.input[0], weight.T, scale, "cols", q.shape)
+            layer = _Layer(node, weight.T, scale, "cols", q.shape)
         if layer.weight.shape[0] != scale.size:
             continue
         layers[dq.input[0]] = layer
@@ -231,9 +230,9 @@ def adaround_weights(pre: onnx.ModelProto, qdq: onnx.ModelProto, feeds: Sequence
             nearest = np.round(layer.weight.astype(np.float32) / layer.scale[:, None].astype(np.float32))
             # Output channels are independent in the objective: keep nearest's row where the
             # relaxation ended worse (it can, for a row whose error is small against lambda).
-            worse = _row_errors(layer, q, gram) > _row_errors(layer, nearest, gram)
-            q = np.where(worse[:, None], nearest, q).astype(np.int8)
-            ratio = _row_errors(layer, q, gram).sum() / max(_row_errors(layer, nearest, gram).sum(), 1e-30)
+            baseline = _row_errors(layer, nearest, gram)
+            q = np.where((_row_errors(layer, q, gram) > baseline)[:, None], nearest, q).astype(np.int8)
+            ratio = _row_errors(layer, q, gram).sum() / max(baseline.sum(), 1e-30)
             out[key] = RoundedWeight(_to_graph(layer, q), layer.scale, float(ratio))
     finally:
         torch.set_num_threads(previous)

@@ -18,7 +18,7 @@ it reads), numbered in graph order.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Iterable
 
 import onnx
@@ -36,8 +36,7 @@ class Compaction:
     bytes_saved: int
 
     def to_dict(self) -> dict[str, int]:
-        return {"renamed": self.renamed, "value_info_dropped": self.value_info_dropped,
-                "initializers_shared": self.initializers_shared, "bytes_saved": self.bytes_saved}
+        return asdict(self)
 
 
 def compact_qdq(model: onnx.ModelProto, keep: Iterable[str] = ()) -> Compaction:

@@ -67,6 +67,25 @@ def trained_graph(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def calibrated_tiny(tmp_path_factory, trained_graph, quant_data) -> dict:  # noqa: F811
+    """The trained tiny pre-processed at opset 21 (16-bit Q/DQ possible) and calibrated with
+    min-max ranges on 16 `train` frames: {"pre", "cache", "feeds"}, for the tests that drive
+    `quantize_int8` directly (write outputs to a folder of your own)."""
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.quantize.calibration import record_calibration_set
+    from e3dpsm.quantize.static import StaticConfig, calibrate, ensure_opset, preprocess
+
+    work = tmp_path_factory.mktemp("calibrated_tiny")
+    pre = work / "pre.onnx"
+    preprocess(trained_graph, pre)
+    assert ensure_opset(pre)  # the export is at 17
+    calib = record_calibration_set(trained_graph, PreparedData.open(quant_data).split("train"), 16, 20.0, threads=1)
+    cache = work / "cache.json"
+    calibrate(pre, StaticConfig(), calib, cache)
+    return {"pre": pre, "cache": cache, "feeds": calib.feeds}
+
+
+@pytest.fixture(scope="session")
 def int8_recurrent_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
     """The trained tiny in INT8 with only the recurrence in float (no search)."""
     from e3dpsm.quantize import QuantizeOptions, quantize_graph

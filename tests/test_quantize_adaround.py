@@ -59,20 +59,12 @@ def test_adaround_keeps_the_symmetric_range_of_the_scale() -> None:
 # -- on the trained tiny's QDQ graph -------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def tiny_qdq(tmp_path_factory, trained_graph: Path, quant_data: Path) -> dict:
-    from e3dpsm.data.prepared import PreparedData
-    from e3dpsm.quantize.calibration import record_calibration_set
-    from e3dpsm.quantize.static import StaticConfig, calibrate, preprocess, quantize_int8
+def tiny_qdq(tmp_path_factory, calibrated_tiny: dict) -> dict:
+    from e3dpsm.quantize.static import StaticConfig, quantize_int8
 
-    work = tmp_path_factory.mktemp("adaround")
-    pre = work / "pre.onnx"
-    preprocess(trained_graph, pre)
-    calib = record_calibration_set(trained_graph, PreparedData.open(quant_data).split("train"), 16, 20.0, threads=1)
-    cache = work / "cache.json"
-    calibrate(pre, StaticConfig(), calib, cache)
-    out = work / "full.onnx"
-    quantize_int8(pre, out, StaticConfig(), exclude=[], cache=cache)
-    return {"pre": onnx.load(str(pre)), "qdq": onnx.load(str(out)), "feeds": calib.feeds}
+    out = tmp_path_factory.mktemp("adaround") / "full.onnx"
+    quantize_int8(calibrated_tiny["pre"], out, StaticConfig(), exclude=[], cache=calibrated_tiny["cache"])
+    return {"pre": onnx.load(str(calibrated_tiny["pre"])), "qdq": onnx.load(str(out)), "feeds": calibrated_tiny["feeds"]}
 
 
 def test_rounded_weights_lower_each_layers_output_error_and_go_into_the_graph(tiny_qdq) -> None:

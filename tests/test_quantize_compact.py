@@ -113,25 +113,19 @@ def test_compaction_leaves_graphs_with_subgraphs_named_as_they_are() -> None:
 # -- the trained tiny, full int8 and with 16-bit nodes ---------------------------------------
 
 @pytest.fixture(scope="module")
-def quantised_tiny(tmp_path_factory, trained_graph: Path, quant_data: Path) -> dict:
+def quantised_tiny(tmp_path_factory, trained_graph: Path, quant_data: Path, calibrated_tiny: dict) -> dict:
     from e3dpsm.data.prepared import PreparedData
-    from e3dpsm.quantize.calibration import record_calibration_set
-    from e3dpsm.quantize.static import StaticConfig, calibrate, ensure_opset, preprocess, quantize_int8
+    from e3dpsm.quantize.static import StaticConfig, quantize_int8
 
     work = tmp_path_factory.mktemp("compact")
-    data = PreparedData.open(quant_data)
-    pre = work / "pre.onnx"
-    preprocess(trained_graph, pre)
-    ensure_opset(pre)
-    cache = work / "cache.json"
-    calibrate(pre, StaticConfig(), record_calibration_set(trained_graph, data.split("train"), 16, 20.0, threads=1), cache)
+    pre, cache = calibrated_tiny["pre"], calibrated_tiny["cache"]
     convs = [n.name for n in onnx.load(str(pre)).graph.node if n.op_type == "Conv"][:6]
     graphs = {}
     for label, int16 in (("full_int8", []), ("int16", convs)):
         out = work / f"{label}.onnx"
         quantize_int8(pre, out, StaticConfig(), exclude=[], cache=cache, int16_nodes=int16)
         graphs[label] = out
-    lnes = np.asarray(data.split("val")[0].lnes[:24], dtype=np.float32)
+    lnes = np.asarray(PreparedData.open(quant_data).split("val")[0].lnes[:24], dtype=np.float32)
     return {"graphs": graphs, "lnes": lnes, "source": onnx.load(str(trained_graph)), "reference": trained_graph}
 
 

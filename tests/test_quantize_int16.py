@@ -96,28 +96,19 @@ def test_promotion_gives_float_nodes_16_bit_weights_where_the_graph_stays_within
 # -- on ONNX Runtime ------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def int16_setup(tmp_path_factory, trained_graph: Path, quant_data: Path) -> dict:
+def int16_setup(tmp_path_factory, trained_graph: Path, quant_data: Path, calibrated_tiny: dict) -> dict:
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.graph_metadata import GraphMetadata
-    from e3dpsm.quantize.calibration import record_calibration_set
     from e3dpsm.quantize.graph_groups import recurrent_groups
     from e3dpsm.quantize.holdout import make_holdout
-    from e3dpsm.quantize.static import StaticConfig, calibrate, ensure_opset, preprocess
 
-    work = tmp_path_factory.mktemp("int16")
-    data = PreparedData.open(quant_data)
-    pre = work / "pre.onnx"
-    preprocess(trained_graph, pre)
-    assert ensure_opset(pre)  # the export is at 17
-    model = onnx.load(str(pre))
+    model = onnx.load(str(calibrated_tiny["pre"]))
     keep = [n for g in recurrent_groups(model, GraphMetadata.from_onnx(model)) for n in g.nodes]
-    calib = record_calibration_set(trained_graph, data.split("train"), 16, 20.0, threads=1)
-    cache = work / "cache.json"
-    calibrate(pre, StaticConfig(), calib, cache)
-    holdout = make_holdout(trained_graph, data.split("val"), 20.0, 40, 1)
+    holdout = make_holdout(trained_graph, PreparedData.open(quant_data).split("val"), 20.0, 40, 1)
     kept = set(keep)
     compute = [n.name for n in model.graph.node if n.op_type in ("Conv", "MatMul", "Gemm") and n.name not in kept]
-    return {"work": work, "pre": pre, "keep": keep, "cache": cache, "holdout": holdout, "compute": compute,
+    return {"work": tmp_path_factory.mktemp("int16"), "pre": calibrated_tiny["pre"], "keep": keep,
+            "cache": calibrated_tiny["cache"], "holdout": holdout, "compute": compute,
             "meta": GraphMetadata.from_onnx(onnx.load(str(trained_graph)))}
 
 
