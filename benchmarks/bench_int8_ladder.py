@@ -10,9 +10,13 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
 - full integer (`--exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
   activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor), and
   `mse` after `--equalize` (GEGLU scales folded into the weights);
-- the default `--exclude auto` graph with `--calibration mse`, with and without int16, and
-  with AdaRound weights (`--weight-rounding adaround`, also on the full-integer graph);
-- the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units).
+- the default `--exclude auto` graph with `--calibration mse` (AdaRound weights, int16 before
+  float), without int16, with nearest weight rounding, and so without the search's margin;
+  full integer with AdaRound weights (`--weight-rounding adaround`);
+- the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units);
+- full integer, `mse`, with the other weight width than this host's default target gives
+  (`--target-isa`): 8-bit weights on a host without int8 dot-product units (where ONNX
+  Runtime's U8S8 kernels saturate), 7-bit on one with them.
 - with `--qat-checkpoint CKPT` (a `train --qat` fine-tune of --checkpoint): its export full
   integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
   calibrated min-max ranges; distances are to that checkpoint's own fp32 graph, and
@@ -20,9 +24,13 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
 `--rows` keeps only the rows whose label contains one of the given words, and `--append`
 adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
-how far a budget chosen on one split carries). Latency: all graphs stepped side by side in
+how far a budget chosen on one split carries), and on --holdout-split in the graph's exact
+arithmetic (ONNX Runtime with graph optimisations off: every Q/DQ pair computed in float, no
+fused integer kernel), which does not depend on the host: its gap to the first column is what
+the host's integer kernels add (16-bit sums saturating without VNNI). Latency: all graphs stepped side by side in
 rounds (`profiles.latency.measure_side_by_side`), states carried, on real frames.
-Writes benchmarks/results/int8_<variant>_ladder.md/.json.
+Writes benchmarks/results/int8_<variant>_ladder_<isa kind>.md/.json (one per kind of host: ratios
+compare only within one run on one host).
 """
 from __future__ import annotations
 
@@ -118,13 +126,20 @@ def main(argv: list[str] | None = None) -> int:
                                                                    equalize=True)))
         runs.append(("full int8, mse, adaround", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
                                                                   weight_rounding="adaround")))
+        host_target = detect_isa().kind
+        other = "vnni" if host_target in ("avx2", "other") else "avx2"
+        bits = {"vnni": 8, "avx2": 7}[other]
+        runs.append((f"full int8, mse, {bits}-bit weights (--target-isa {other})",
+                     QuantizeOptions(mode="int8", exclude="none", calibration="mse", target_isa=other)))
         if not args.no_search:
+            # "default search, mse, int16" is the INT8 default (AdaRound weights under the search);
+            # the nearest rows name their rounding, which the default no longer is.
             runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse", int16=False)))
             runs.append(("default search, mse, int16", QuantizeOptions(mode="int8", calibration="mse")))
-            runs.append(("default search, mse, int16, adaround", QuantizeOptions(mode="int8", calibration="mse",
-                                                                                  weight_rounding="adaround")))
-            runs.append(("default search, mse, int16, no search margin",
-                         QuantizeOptions(mode="int8", calibration="mse", search_margin=0.0)))
+            runs.append(("default search, mse, int16, nearest", QuantizeOptions(mode="int8", calibration="mse",
+                                                                                 weight_rounding="nearest")))
+            runs.append(("default search, mse, int16, nearest, no search margin",
+                         QuantizeOptions(mode="int8", calibration="mse", search_margin=0.0, weight_rounding="nearest")))
         sources = {label: fp32 for label, _ in runs}
         base_mpjpe = check.fp32_mpjpe
         if args.qat_checkpoint:
@@ -142,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.rows:
             runs = [(label, o) for label, o in runs if any(word in label for word in args.rows)]
         checks = {fp32: check}
+        exact_holdouts: dict[Path, object] = {}
         for label, options in runs:
             options = QuantizeOptions(**{**options.__dict__, "frames": args.frames, "holdout_frames": args.holdout_frames,
                                          "split": args.split, "holdout_split": args.holdout_split,
@@ -155,9 +171,14 @@ def main(argv: list[str] | None = None) -> int:
             graphs[label] = path
             measured = accuracy_of(path, checks[source], args.threads)
             independent = measured["bound_pct"]
+            if source not in exact_holdouts:
+                exact_holdouts[source] = make_holdout(source, data.split(args.holdout_split), window_ms,
+                                                      args.holdout_frames, args.threads)
+            exact = accuracy_of(path, exact_holdouts[source], args.threads, exact_arithmetic=True)["bound_pct"]
             ranked = q.get("exclusion_search") or {}
             kept = [n for n in q["excluded_nodes"] if n in {r["node"] for r in ranked.get("sensitivity", [])}]
             rows.append({"label": label, "distance_pct": q["holdout"]["bound_pct"], "check_distance_pct": independent,
+                         "exact_distance_pct": exact, "weight_bits": 7 if q["quantization"].get("reduce_range") else 8,
                          "check_frames": checks[source].frames,
                          "mpjpe_loss_pct": q["holdout"]["loss_pct"], "bytes": path.stat().st_size,
                          "compute_nodes_in_float": len(kept) if ranked else 0,
@@ -166,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                          "mpjpe_vs_base_pct": 100.0 * (measured["mpjpe_mm"] / base_mpjpe - 1.0),
                          "qat_ranges": {k: v for k, v in (q.get("qat_ranges") or {}).items() if k != "uncovered"},
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
-            print(f"{label}: {rows[-1]['distance_pct']:.3f}% ({args.holdout_split}), {independent:.3f}% "
-                  f"({args.check_split}), {rows[-1]['bytes'] / 1e6:.2f} MB", flush=True)
+            print(f"{label}: {rows[-1]['distance_pct']:.3f}% ({args.holdout_split}; exact arithmetic {exact:.3f}%), "
+                  f"{independent:.3f}% ({args.check_split}), {rows[-1]['bytes'] / 1e6:.2f} MB", flush=True)
         holdout = make_holdout(fp32, data.split(args.holdout_split), window_ms, args.holdout_frames, args.threads)
         bf16 = _bf16_distance(fp32, holdout, args.threads)
         lnes = np.concatenate(holdout.lnes)[: max(args.steps, 50)]
@@ -180,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
                  ort_fp32_ms=p50["ort fp32"], openvino_fp32_ms=p50["openvino fp32"], isa=detect_isa().kind)
     report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows,
                   bf16_distance_pct=bf16, p50_ms=p50, fp32_mpjpe_mm=holdout.fp32_mpjpe)
-    name = f"int8_{variant}_ladder"
+    name = f"int8_{variant}_ladder_{detect_isa().kind}"
     if args.append and (RESULTS / f"{name}.json").is_file():
         import json
 
@@ -202,14 +223,16 @@ def markdown(report: dict) -> str:
              f"Host: {report['machine'].get('cpu_model', '?')}, ISA {isa['kind']} ({' '.join(isa['flags'])}), "
              f"{cfg['threads']} threads. Distance to fp32: the largest mean joint distance over the fused, direct "
              f"and delta poses relative to the fp32 MPJPE ({report['fp32_mpjpe_mm']:.1f} mm), on "
-             f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched). "
+             f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched); "
+             f"'exact %': on `{cfg['holdout_split']}` in the graph's exact arithmetic (ONNX Runtime without graph "
+             "optimisations: Q/DQ in float, no integer kernel; the same on any host). "
              f"Step p50 side by side, {cfg['steps']} steps each.", "",
-             "| graph | distance % | independent % | compute nodes in float (+ 16-bit) | MB (x fp32) | ORT p50 ms (x fp32) "
-             "| OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|"]
+             "| graph | distance % | exact % | independent % | compute nodes in float (+ 16-bit) | MB (x fp32) "
+             "| ORT p50 ms (x fp32) | OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
-    lines.append(f"| fp32 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} (1x) | {ort32:.2f} | {ov32:.2f} |")
+    lines.append(f"| fp32 | 0 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} (1x) | {ort32:.2f} | {ov32:.2f} |")
     if "openvino bf16" in p50:
-        lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | "
+        lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | | "
                      f"{report['fp32_bytes'] / 1e6:.2f} | | {p50['openvino bf16']:.2f} ({ov32 / p50['openvino bf16']:.2f}x) |")
     for r in report["rows"]:
         ort, ov = r.get("ort_ms", p50.get(f"ort {r['label']}")), r.get("openvino_ms", p50.get(f"openvino {r['label']}"))
@@ -219,12 +242,13 @@ def markdown(report: dict) -> str:
         out8 = str(r["compute_nodes_in_float"]) + (f" ({', '.join(sixteen)})" if sixteen else "")
         size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"
-        lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {r['check_distance_pct']:.3f}{frames} | "
+        exact = f"{r['exact_distance_pct']:.3f}" if r.get("exact_distance_pct") is not None else ""
+        lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {exact} | {r['check_distance_pct']:.3f}{frames} | "
                      f"{out8} | {size} | {ort:.2f} ({o32 / ort:.2f}x) | {ov:.2f} ({v32 / ov:.2f}x) |")
     if any("mpjpe_vs_base_pct" in r for r in report["rows"]):
         lines += ["", "MPJPE on the independent check's frames against the base checkpoint's fp32 graph (a short "
                   "check; the QAT bar is judged on every held-out frame by benchmarks/bench_qat_mpjpe.py, "
-                  "results/qat_small_mpjpe.md):", ""]
+                  "results/qat_small_mpjpe_vnni.md):", ""]
         lines += [f"- {r['label']}: {r['mpjpe_vs_base_pct']:+.2f}%" for r in report["rows"] if "mpjpe_vs_base_pct" in r]
     appended = report.get("appended", [])
     if appended:

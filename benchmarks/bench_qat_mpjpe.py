@@ -13,7 +13,10 @@ activations; calibrated on --split, which the MPJPE never sees):
   (`--ranges-from-checkpoint`) and with calibrated min-max ranges.
 The bar: the QAT INT8 graph's MPJPE within +1% of the base fp32 graph's, on both runtimes.
 Distances to each graph's own fp32 poses are reported beside (the PTQ budget's measure).
-Writes benchmarks/results/qat_<variant>_mpjpe.md/.json.
+On a host without int8 dot-product units (ISA kind `avx2`) the graphs take 7-bit weights (the
+default target there) and one more row gives the QAT graph the 8-bit weights it trained with
+(`--target-isa vnni`), which ONNX Runtime's U8S8 kernels there sum with 16-bit saturation.
+Writes benchmarks/results/qat_<variant>_mpjpe_<isa kind>.md/.json.
 """
 from __future__ import annotations
 
@@ -79,11 +82,16 @@ def main(argv: list[str] | None = None) -> int:
                       holdout_split=args.eval_splits.split(",")[0], threads=args.threads)
         # label -> (graph, the label of the fp32 graph it was quantised from)
         graphs = {"base fp32": (base, "base fp32"), "qat fp32": (qat, "qat fp32")}
+        extra = []
+        if detect_isa().kind in ("avx2", "other"):
+            extra.append(("qat full int8, 8-bit weights as trained (--target-isa vnni), QAT ranges", "qat fp32",
+                          QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint, target_isa="vnni")))
         for label, reference, options in (
                 ("base full int8, minmax (PTQ)", "base fp32", QuantizeOptions(**common)),
                 ("qat full int8, QAT ranges", "qat fp32",
                  QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint)),
-                ("qat full int8, minmax", "qat fp32", QuantizeOptions(**common))):
+                ("qat full int8, minmax", "qat fp32", QuantizeOptions(**common)),
+                *extra):
             out = work / label.split(",")[0].replace(" ", "_") / label.split(", ")[1].split(" ")[0]
             q = quantize_graph(graphs[reference][0], args.data, out, options)
             graphs[label] = (out / q["artifact"], reference)
@@ -118,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     faithful = all(r[f"{rt}_bound_vs_base_pct"] <= ptq[f"{rt}_bound_vs_base_pct"] for r in qat_rows for rt in RUNTIMES)
     report.update(faithful=faithful, isa=detect_isa().to_dict(), frames=int(len(gt)), sequences=[s.name for s in sequences],
                   qat_steps=qat_payload.get("step"), rows=rows, bar_pct=QAT_BAR_PCT, bar_met=met)
-    name = f"qat_{base_model.config.variant}_mpjpe"
+    name = f"qat_{base_model.config.variant}_mpjpe_{detect_isa().kind}"
     write_json_atomic(RESULTS / f"{name}.json", report)
     write_text_atomic(RESULTS / f"{name}.md", markdown(report))
     print(markdown(report))

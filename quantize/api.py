@@ -32,7 +32,7 @@ from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16
-from e3dpsm.quantize.qat_ranges import learned_overrides, quantised_activations, read_ranges
+from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
                                    quantize_int8, quantised_node_count)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
@@ -319,6 +319,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         # too, and a search may; overrides for tensors a graph leaves float are not used.
         quantised = quantised_activations(pre, fixed if fixed is not None else [], config.op_types)
         learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised)
+        qat_report["weights"] = qat_weight_bits(config, target_isa)
     search = latency = precision = None
     int16_nodes: list[str] = []
     int16w16_nodes: list[str] = []

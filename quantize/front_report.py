@@ -83,10 +83,21 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
                 "(renamed since the checkpoint was trained): " + ", ".join(f"`{s}`" for s in stale)
                 + ". Tensors matched only through them keep calibrated ranges; repeat the QAT fine-tune with this "
                 "version for them to take learned ones.", ""] if stale else []),
+             *(_qat_weight_lines(block["weights"]) if block.get("weights") else []),
              "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
              "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
              "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`).", ""]
     return lines
+
+
+def _qat_weight_lines(weights: dict[str, Any]) -> list[str]:
+    trained, graph = weights["trained_bits"], weights["graph_bits"]
+    if graph == trained:
+        return [f"Weights: {graph}-bit, as the fine-tune simulated them.", ""]
+    return [f"Weights: **{graph}-bit, where the fine-tune simulated {trained}-bit**: the target "
+            f"(`--target-isa {weights['target_isa']}`) has no int8 dot-product units, and ONNX Runtime's U8S8 "
+            f"kernels saturate there with {trained}-bit weights, so this graph computes close to, not exactly, "
+            f"what training simulated. `--target-isa vnni` keeps {trained} bits.", ""]
 
 
 def size_lines(sizes: dict[str, Any]) -> list[str]:

@@ -13,6 +13,7 @@ import numpy as np
 from e3dpsm.data.prepared import PreparedSequence
 from e3dpsm.metrics import joint_errors, mpjpe
 from e3dpsm.runtime import StepSession
+from e3dpsm.runtime.session import exact_arithmetic_options
 from e3dpsm.validation.streams import onnx_stream_outputs
 
 
@@ -86,7 +87,8 @@ def make_holdout(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequ
     return HoldoutSet(lnes, gt, [onnx_stream_outputs(session, x, window_ms) for x in lnes], window_ms)
 
 
-def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | None = None) -> dict[str, float]:
+def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | None = None,
+                exact_arithmetic: bool = False) -> dict[str, float]:
     """MPJPE of `model` on the held-out streams, and how far it moved from FP32.
 
     `loss_pct` is the relative MPJPE increase over FP32. `deviation_from_fp32_mm` is the
@@ -96,8 +98,11 @@ def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | No
     every pose output (fused, direct, delta) relative to the FP32 MPJPE (`budget_mpjpe_mm`:
     the pooled one, or a lower reference, `HoldoutSet.with_lowest_reference`): `golden check`
     holds a compressed graph to its budget on each of them.
+
+    `exact_arithmetic`: the graph's own numbers, the same on any host
+    (`runtime.session.exact_arithmetic_options`), instead of ONNX Runtime's fused kernels.
     """
-    session = StepSession(model, threads=threads)
+    session = StepSession(model, threads=threads, options=exact_arithmetic_options() if exact_arithmetic else None)
     outputs = [onnx_stream_outputs(session, x, holdout.window_ms) for x in holdout.lnes]
     base = holdout.fp32_mpjpe
     value = _pooled_mpjpe([o["pose"] for o in outputs], holdout.gt)

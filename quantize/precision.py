@@ -18,7 +18,7 @@ The target is not the budget itself: the demotion may spend only `INT16_SLACK_SH
 slack the all-float choice left (target = float error + share x (budget - float error)). On
 the committed trained `small`, demoting up to the budget's edge took the search's own error
 from 0.854% to 0.996% of MPJPE (18 of 32 nodes at int16) and the split the search never saw
-from 0.943% to 1.135%, over the budget (benchmarks/results/int8_small_ladder.md): a choice
+from 0.943% to 1.135%, over the budget (benchmarks/results/int8_small_ladder_vnni.md): a choice
 fitted to the last hundredth of a percent on one split does not carry to another.
 """
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """CPU ISA detection (e3dpsm/utils/isa.py): the flags reports record and tests branch on."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from e3dpsm.utils.env import machine_info
@@ -67,3 +68,53 @@ def test_every_kind_is_a_target_quantize_accepts() -> None:
     for kind in ISA_KINDS:
         assert build_parser().parse_args(["quantize", "--model", "m", "--data", "d", "--out", "o",
                                           "--target-isa", kind]).target_isa == kind
+
+
+def _int8_matmul(weight_max: int):
+    """A QDQ MatMul (u8 activations, s8 weights) whose every 4 weights along K are
+    (w, w, -w, 0): with the activations at 255, a pair (w, w) sums to 510 w, beyond int16 for
+    w = 127 (64,770) and inside it for 7-bit weights (32,640 at w = 64)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    k, n = 64, 8
+    weights = np.tile(np.array([weight_max, weight_max, -weight_max, 0])[:, None], (k // 4, n)).astype(np.int8)
+    consts = {"x.s": np.float32(1.0), "x.z": np.uint8(0), "w.q": weights, "w.s": np.float32(1.0), "w.z": np.int8(0),
+              "y.s": np.float32(4096.0), "y.z": np.uint8(0)}
+    nodes = [helper.make_node("QuantizeLinear", ["x", "x.s", "x.z"], ["x.q"]),
+             helper.make_node("DequantizeLinear", ["x.q", "x.s", "x.z"], ["x.d"]),
+             helper.make_node("DequantizeLinear", ["w.q", "w.s", "w.z"], ["w.d"]),
+             helper.make_node("MatMul", ["x.d", "w.d"], ["m"]),
+             helper.make_node("QuantizeLinear", ["m", "y.s", "y.z"], ["m.q"]),
+             helper.make_node("DequantizeLinear", ["m.q", "y.s", "y.z"], ["y"])]
+    graph = helper.make_graph(nodes, "int8_matmul", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, k])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, n])],
+                              [numpy_helper.from_array(np.asarray(v), name) for name, v in consts.items()])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9)
+    x = np.full((1, k), 255.0, np.float32)
+    exact = np.clip(np.round(x @ weights.astype(np.float32) / 4096.0), 0, 255) * 4096.0
+    return model.SerializeToString(), x, exact
+
+
+@pytest.mark.parametrize("weight_max", [127, 64])
+def test_int8_kernels_saturate_without_dot_product_units_and_7_bit_weights_do_not(weight_max: int) -> None:
+    """Why `--target-isa avx2` gives 7-bit weights. The graph's own arithmetic (no fused
+    kernel) equals numpy on any host; ONNX Runtime's fused kernel equals it with 7-bit
+    weights on any x86 host, and with 8-bit weights only where int8 products accumulate in
+    32 bits: on an AVX2-only host the 16-bit pair sums saturate (measured there: 4,096
+    against 520,192)."""
+    import onnxruntime as ort
+
+    from e3dpsm.runtime.session import exact_arithmetic_options
+    from e3dpsm.utils.isa import detect_isa
+
+    model, x, exact = _int8_matmul(weight_max)
+    as_defined = ort.InferenceSession(model, exact_arithmetic_options(), providers=["CPUExecutionProvider"])
+    np.testing.assert_array_equal(as_defined.run(None, {"x": x})[0], exact)
+    fused = ort.InferenceSession(model, providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+    kind = detect_isa().kind
+    if weight_max == 64 or kind == "vnni":
+        np.testing.assert_array_equal(fused, exact)
+    elif kind == "avx2":
+        assert np.abs(fused - exact).max() > 0.5 * exact.max(), fused
+    else:
+        pytest.skip(f"8-bit weights on a {kind!r} host: ONNX Runtime's kernels there are not x86's U8S8")

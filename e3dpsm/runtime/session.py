@@ -17,6 +17,19 @@ from e3dpsm.runtime.stepping import StateArrays, Stepper
 from e3dpsm.state import check_state_shapes, initial_states
 
 
+def exact_arithmetic_options() -> Any:
+    """ONNX Runtime session options that run a graph as its operators define it: graph
+    optimisations off, so a QuantizeLinear / DequantizeLinear pair is computed in float
+    instead of being fused into an integer kernel. An INT8 graph then gives the same numbers
+    on any host; with fusion, ONNX Runtime's x86 U8S8 kernels without VNNI add pairs of
+    u8 x s8 products in saturating 16-bit sums (utils/isa.py, tests/test_isa.py)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    return options
+
+
 def make_session(
     path: str | os.PathLike, *, threads: int | None = None, providers: Sequence[str] | None = None,
     options: Any = None, spin: bool = True,
