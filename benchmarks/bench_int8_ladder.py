@@ -219,20 +219,25 @@ def main(argv: list[str] | None = None) -> int:
 def markdown(report: dict) -> str:
     isa, p50 = report["isa"], report["p50_ms"]
     cfg = report["config"]
+    # Runs before 2026-12-01 10:27 did not measure the exact arithmetic: their tables keep
+    # the columns they had.
+    has_exact = any(r.get("exact_distance_pct") is not None for r in report["rows"])
     lines = [f"# INT8 ladder, `{report['variant']}` ({report['created']})", "",
              f"Host: {report['machine'].get('cpu_model', '?')}, ISA {isa['kind']} ({' '.join(isa['flags'])}), "
              f"{cfg['threads']} threads. Distance to fp32: the largest mean joint distance over the fused, direct "
              f"and delta poses relative to the fp32 MPJPE ({report['fp32_mpjpe_mm']:.1f} mm), on "
-             f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched); "
-             f"'exact %': on `{cfg['holdout_split']}` in the graph's exact arithmetic (ONNX Runtime without graph "
-             "optimisations: Q/DQ in float, no integer kernel; the same on any host). "
-             f"Step p50 side by side, {cfg['steps']} steps each.", "",
-             "| graph | distance % | exact % | independent % | compute nodes in float (+ 16-bit) | MB (x fp32) "
-             "| ORT p50 ms (x fp32) | OpenVINO p50 ms (x fp32) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+             f"`{cfg['holdout_split']}` (quantize's own check) and on `{cfg['check_split']}` (never searched)"
+             + (f"; 'exact %': on `{cfg['holdout_split']}` in the graph's exact arithmetic (ONNX Runtime without "
+                "graph optimisations: Q/DQ in float, no integer kernel; the same on any host)" if has_exact else "")
+             + f". Step p50 side by side, {cfg['steps']} steps each.", "",
+             "| graph | distance % | " + ("exact % | " if has_exact else "") + "independent % | compute nodes in "
+             "float (+ 16-bit) | MB (x fp32) | ORT p50 ms (x fp32) | OpenVINO p50 ms (x fp32) |",
+             "|---|---:|---:|---:|---:|---:|---:|" + ("---:|" if has_exact else "")]
+    exact_cell = (lambda text: f" {text} |") if has_exact else (lambda text: "")
     ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
-    lines.append(f"| fp32 | 0 | 0 | 0 | all | {report['fp32_bytes'] / 1e6:.2f} (1x) | {ort32:.2f} | {ov32:.2f} |")
+    lines.append(f"| fp32 | 0 |{exact_cell('0')} 0 | all | {report['fp32_bytes'] / 1e6:.2f} (1x) | {ort32:.2f} | {ov32:.2f} |")
     if "openvino bf16" in p50:
-        lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} | | | | "
+        lines.append(f"| fp32 in bf16 (OpenVINO) | {report['bf16_distance_pct']:.3f} |{exact_cell('')} | | "
                      f"{report['fp32_bytes'] / 1e6:.2f} | | {p50['openvino bf16']:.2f} ({ov32 / p50['openvino bf16']:.2f}x) |")
     for r in report["rows"]:
         ort, ov = r.get("ort_ms", p50.get(f"ort {r['label']}")), r.get("openvino_ms", p50.get(f"openvino {r['label']}"))
@@ -243,13 +248,14 @@ def markdown(report: dict) -> str:
         size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"
         exact = f"{r['exact_distance_pct']:.3f}" if r.get("exact_distance_pct") is not None else ""
-        lines.append(f"| {r['label']} | {r['distance_pct']:.3f} | {exact} | {r['check_distance_pct']:.3f}{frames} | "
+        lines.append(f"| {r['label']} | {r['distance_pct']:.3f} |{exact_cell(exact)} {r['check_distance_pct']:.3f}{frames} | "
                      f"{out8} | {size} | {ort:.2f} ({o32 / ort:.2f}x) | {ov:.2f} ({v32 / ov:.2f}x) |")
     if any("mpjpe_vs_base_pct" in r for r in report["rows"]):
         lines += ["", "MPJPE on the independent check's frames against the base checkpoint's fp32 graph (a short "
                   "check; the QAT bar is judged on every held-out frame by benchmarks/bench_qat_mpjpe.py, "
-                  "results/qat_small_mpjpe_vnni.md):", ""]
+                  f"results/qat_{report['variant']}_mpjpe_{report['isa']['kind']}.md):", ""]
         lines += [f"- {r['label']}: {r['mpjpe_vs_base_pct']:+.2f}%" for r in report["rows"] if "mpjpe_vs_base_pct" in r]
+    lines += [f"\nNote: {note}" for note in report.get("notes", [])]
     appended = report.get("appended", [])
     if appended:
         runs = ", ".join(f"{extra['created']} (ISA {extra['isa']['kind']})" for extra in appended)

@@ -245,7 +245,10 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         else:
             keep = [n for g in recurrent_groups(source, meta) for n in g.nodes]
             dyn = work / "dynamic.onnx"
-            info.update(quantize_dynamic_int8(model_path, dyn, exclude=keep))
+            target_isa = options.target_isa or detect_isa().kind
+            info.update(quantize_dynamic_int8(model_path, dyn, exclude=keep,
+                                              reduce_range=StaticConfig.for_target(target_isa).reduce_range),
+                        target_isa=target_isa)
             model = onnx.load(str(dyn))
             info["excluded_nodes"] = keep
             info["mode"] = options.mode

@@ -253,3 +253,21 @@ def test_greedy_search_adds_the_most_helpful_groups_until_within_budget():
     stuck = greedy_exclusions(["r1"], groups, budget_pct=0.1, evaluate=lambda ex, label: 2.0)
     assert stuck.chosen == [] and stuck.error_pct == 2.0
     assert result.to_dict()["within_budget"] and not stuck.to_dict()["within_budget"]
+
+
+@pytest.mark.parametrize("target_isa", ["avx2", "vnni"])
+def test_dynamic_int8_takes_7_bit_weights_for_targets_without_dot_product_units(target_isa, tiny_graph, quant_data,
+                                                                                tmp_path) -> None:
+    """Dynamic INT8's MatMulInteger runs ONNX Runtime's U8S8 kernels, which saturate with 8-bit
+    weights without VNNI (tests/test_isa.py): an AVX2 target gets 7-bit weights, as static INT8
+    does (a fresh clone's pipeline on an AVX2 host failed its golden check before)."""
+    from onnx import numpy_helper
+
+    report = quantize_graph(tiny_graph, quant_data, tmp_path / "q", QuantizeOptions(
+        mode="int8-dynamic", target_isa=target_isa, **{k: v for k, v in FAST.items() if k != "frames"}))
+    info = report["quantization"]
+    assert (info["target_isa"], info["reduce_range"]) == (target_isa, target_isa == "avx2")
+    model = onnx.load(str(tmp_path / "q" / report["artifact"]))
+    weights = [numpy_helper.to_array(i) for i in model.graph.initializer if i.data_type == onnx.TensorProto.INT8]
+    largest = max(int(np.abs(w.astype(np.int32)).max()) for w in weights)
+    assert largest == 127 if target_isa == "vnni" else 60 <= largest <= 64
