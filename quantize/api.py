@@ -34,7 +34,7 @@ from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16
 from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
-                                   quantize_int8, quantised_node_count)
+                                   quantize_int8, quantised_node_count, saturates_u8s8)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.isa import detect_isa
@@ -247,7 +247,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             dyn = work / "dynamic.onnx"
             target_isa = options.target_isa or detect_isa().kind
             info.update(quantize_dynamic_int8(model_path, dyn, exclude=keep,
-                                              reduce_range=StaticConfig.for_target(target_isa).reduce_range),
+                                              saturating_target=saturates_u8s8(target_isa)),
                         target_isa=target_isa)
             model = onnx.load(str(dyn))
             info["excluded_nodes"] = keep

@@ -52,6 +52,14 @@ INT16_OPSET = 21
 INT16_RANGE_MARGIN = 2.0
 
 
+def saturates_u8s8(target_isa: str) -> bool:
+    """Whether ONNX Runtime's U8S8 kernels on this kind of target add pairs of u8 x s8
+    products in saturating 16-bit sums (x86 without int8 dot-product units: utils/isa.py)."""
+    if target_isa not in TARGET_ISAS:
+        raise ConfigError(f"unknown --target-isa {target_isa!r}; choose from {list(TARGET_ISAS)}")
+    return target_isa in ("avx2", "other")
+
+
 @dataclass(frozen=True)
 class StaticConfig:
     """How the INT8 graph is quantised; recorded in the graph's metadata and the report.
@@ -83,7 +91,7 @@ class StaticConfig:
         target has no int8 dot-product units (AVX2 and other x86), 8-bit elsewhere."""
         if target_isa not in TARGET_ISAS:
             raise ConfigError(f"unknown --target-isa {target_isa!r}; choose from {list(TARGET_ISAS)}")
-        return cls(reduce_range=target_isa in ("avx2", "other"), **fields)
+        return cls(reduce_range=saturates_u8s8(target_isa), **fields)
 
     def to_dict(self) -> dict:
         return {**asdict(self), "format": "QDQ", "op_types": list(self.op_types)}

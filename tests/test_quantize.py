@@ -256,18 +256,25 @@ def test_greedy_search_adds_the_most_helpful_groups_until_within_budget():
 
 
 @pytest.mark.parametrize("target_isa", ["avx2", "vnni"])
-def test_dynamic_int8_takes_7_bit_weights_for_targets_without_dot_product_units(target_isa, tiny_graph, quant_data,
-                                                                                tmp_path) -> None:
-    """Dynamic INT8's MatMulInteger runs ONNX Runtime's U8S8 kernels, which saturate with 8-bit
-    weights without VNNI (tests/test_isa.py): an AVX2 target gets 7-bit weights, as static INT8
-    does (a fresh clone's pipeline on an AVX2 host failed its golden check before)."""
+def test_dynamic_int8_takes_u8_weights_for_targets_without_dot_product_units(target_isa, tiny_graph, quant_data,
+                                                                             tmp_path) -> None:
+    """Dynamic INT8's MatMulInteger runs ONNX Runtime's U8S8 kernels, which saturate with S8
+    weights without VNNI (tests/test_isa.py): an AVX2 target gets U8 weights (U8U8 kernels,
+    no saturation; a fresh clone's pipeline on an AVX2 host failed its golden check with S8)."""
     from onnx import numpy_helper
 
     report = quantize_graph(tiny_graph, quant_data, tmp_path / "q", QuantizeOptions(
         mode="int8-dynamic", target_isa=target_isa, **{k: v for k, v in FAST.items() if k != "frames"}))
     info = report["quantization"]
-    assert (info["target_isa"], info["reduce_range"]) == (target_isa, target_isa == "avx2")
+    assert (info["target_isa"], info["weight_type"]) == (target_isa, "QUInt8" if target_isa == "avx2" else "QInt8")
     model = onnx.load(str(tmp_path / "q" / report["artifact"]))
-    weights = [numpy_helper.to_array(i) for i in model.graph.initializer if i.data_type == onnx.TensorProto.INT8]
-    largest = max(int(np.abs(w.astype(np.int32)).max()) for w in weights)
-    assert largest == 127 if target_isa == "vnni" else 60 <= largest <= 64
+    integer = {onnx.TensorProto.INT8: [], onnx.TensorProto.UINT8: []}
+    for init in model.graph.initializer:
+        if init.data_type in integer and len(init.dims) == 2:  # the weights (zero points are 0-d or 1-d)
+            integer[init.data_type].append(numpy_helper.to_array(init))
+    signed, unsigned = integer[onnx.TensorProto.INT8], integer[onnx.TensorProto.UINT8]
+    if target_isa == "vnni":
+        assert signed and not unsigned and max(int(np.abs(w.astype(np.int32)).max()) for w in signed) == 127
+    else:
+        assert unsigned and not signed
+        assert min(int(w.min()) for w in unsigned) == 0 and max(int(w.max()) for w in unsigned) == 255

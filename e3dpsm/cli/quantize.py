@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--target-isa", choices=ISA_KINDS, default=None,
                    help="int8, int8-dynamic: the CPU kind the graph is for (default: this host's; see "
                    "machine.isa in any report); avx2 and other targets without int8 dot-product units get 7-bit "
-                   "weights, as ONNX Runtime recommends for non-VNNI CPUs")
+                   "weights (int8-dynamic: U8 weights), as ONNX Runtime recommends for non-VNNI CPUs")
     p.add_argument("--equalize", action="store_true",
                    help="int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating "
                    "(the fp32 function is unchanged; only the INT8 graph moves)")
