@@ -43,6 +43,7 @@ import numpy as np
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
 from e3dpsm.quantize.holdout import accuracy_of, make_holdout
+from e3dpsm.quantize.static import saturates_u8s8
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 from e3dpsm.utils.isa import detect_isa
@@ -126,8 +127,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                    equalize=True)))
         runs.append(("full int8, mse, adaround", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
                                                                   weight_rounding="adaround")))
-        host_target = detect_isa().kind
-        other = "vnni" if host_target in ("avx2", "other") else "avx2"
+        other = "vnni" if saturates_u8s8(detect_isa().kind) else "avx2"
         bits = {"vnni": 8, "avx2": 7}[other]
         runs.append((f"full int8, mse, {bits}-bit weights (--target-isa {other})",
                      QuantizeOptions(mode="int8", exclude="none", calibration="mse", target_isa=other)))
@@ -189,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
             print(f"{label}: {rows[-1]['distance_pct']:.3f}% ({args.holdout_split}; exact arithmetic {exact:.3f}%), "
                   f"{independent:.3f}% ({args.check_split}), {rows[-1]['bytes'] / 1e6:.2f} MB", flush=True)
-        holdout = make_holdout(fp32, data.split(args.holdout_split), window_ms, args.holdout_frames, args.threads)
+        holdout = exact_holdouts.get(fp32) or make_holdout(fp32, data.split(args.holdout_split), window_ms,
+                                                           args.holdout_frames, args.threads)
         bf16 = _bf16_distance(fp32, holdout, args.threads)
         lnes = np.concatenate(holdout.lnes)[: max(args.steps, 50)]
         runners = _runners(graphs, fp32, args.threads, window_ms)

@@ -29,6 +29,7 @@ import numpy as np
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.metrics import joint_errors, mpjpe
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize.static import saturates_u8s8
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 from e3dpsm.utils.isa import detect_isa
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         # label -> (graph, the label of the fp32 graph it was quantised from)
         graphs = {"base fp32": (base, "base fp32"), "qat fp32": (qat, "qat fp32")}
         extra = []
-        if detect_isa().kind in ("avx2", "other"):
+        if saturates_u8s8(detect_isa().kind):
             extra.append(("qat full int8, 8-bit weights as trained (--target-isa vnni), QAT ranges", "qat fp32",
                           QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint, target_isa="vnni")))
         for label, reference, options in (

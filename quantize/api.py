@@ -141,6 +141,11 @@ class QuantizeOptions:
             raise ConfigError(f"--search nodes ranks INT8 nodes; {self.mode} searches groups (drop --search)")
 
     @property
+    def target(self) -> str:
+        """The CPU kind the INT8 graph is for (`target_isa`, else this host's)."""
+        return self.target_isa or detect_isa().kind
+
+    @property
     def strategy(self) -> str:
         return self.search or ("nodes" if self.mode == "int8" else "groups")
 
@@ -245,10 +250,9 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         else:
             keep = [n for g in recurrent_groups(source, meta) for n in g.nodes]
             dyn = work / "dynamic.onnx"
-            target_isa = options.target_isa or detect_isa().kind
             info.update(quantize_dynamic_int8(model_path, dyn, exclude=keep,
-                                              saturating_target=saturates_u8s8(target_isa)),
-                        target_isa=target_isa)
+                                              saturating_target=saturates_u8s8(options.target)),
+                        target_isa=options.target)
             model = onnx.load(str(dyn))
             info["excluded_nodes"] = keep
             info["mode"] = options.mode
@@ -293,7 +297,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             timing: _Timing):
     overrides = {k: v for k, v in (("op_types", options.op_types), ("batchnorm_as_conv", options.batchnorm_as_conv))
                  if v is not None}
-    target_isa = options.target_isa or detect_isa().kind
+    target_isa = options.target
     config = StaticConfig.for_target(target_isa, calibration=options.calibration, **overrides)
     pre = work / "pre.onnx"
     preprocess(model_path, pre, config)

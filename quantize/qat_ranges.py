@@ -124,8 +124,6 @@ def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
     steps from the initial ones (so no state is trivially zero)."""
     import torch
 
-    from e3dpsm.quantize.static import StaticConfig
-
     cfg = model.config
     rng = np.random.default_rng(seed)
     window = float(cfg.train_window_ms)
