@@ -184,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
                          "compute_nodes_in_float": len(kept) if ranked else 0,
                          "compute_nodes_int16": len(q["quantization"].get("int16_nodes") or []),
                          "compute_nodes_int16w16": len(q["quantization"].get("int16w16_nodes") or []),
+                         # read off the graph, recurrent groups included (quantize/census.py)
+                         "compute_precision": q["quantization"].get("compute_precision"),
                          "mpjpe_vs_base_pct": 100.0 * (measured["mpjpe_mm"] / base_mpjpe - 1.0),
                          "qat_ranges": {k: v for k, v in (q.get("qat_ranges") or {}).items() if k != "uncovered"},
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
@@ -231,8 +233,9 @@ def markdown(report: dict) -> str:
              + (f"; 'exact %': on `{cfg['holdout_split']}` in the graph's exact arithmetic (ONNX Runtime without "
                 "graph optimisations: Q/DQ in float, no integer kernel; the same on any host)" if has_exact else "")
              + f". Step p50 side by side, {cfg['steps']} steps each.", "",
-             "| graph | distance % | " + ("exact % | " if has_exact else "") + "independent % | compute nodes in "
-             "float (+ 16-bit) | MB (x fp32) | ORT p50 ms (x fp32) | OpenVINO p50 ms (x fp32) |",
+             "| graph | distance % | " + ("exact % | " if has_exact else "") + "independent % | compute nodes "
+             + ("out of 8 bits (read off the graph)" if any(r.get("compute_precision") for r in report["rows"])
+                else "in float (+ 16-bit)") + " | MB (x fp32) | ORT p50 ms (x fp32) | OpenVINO p50 ms (x fp32) |",
              "|---|---:|---:|---:|---:|---:|---:|" + ("---:|" if has_exact else "")]
     exact_cell = (lambda text: f" {text} |") if has_exact else (lambda text: "")
     ort32, ov32 = p50["ort fp32"], p50["openvino fp32"]
@@ -246,6 +249,11 @@ def markdown(report: dict) -> str:
         sixteen = [f"+{r[key]} {kind}" for key, kind in (("compute_nodes_int16", "int16"),
                                                          ("compute_nodes_int16w16", "int16w16")) if r.get(key)]
         out8 = str(r["compute_nodes_in_float"]) + (f" ({', '.join(sixteen)})" if sixteen else "")
+        census = r.get("compute_precision")
+        if census:  # the graph's own count, recurrent projections included
+            out = sum(n for label, n in census.items() if label != "int8")
+            out8 = f"{out} of {sum(census.values())}" + "".join(
+                f", {n} {label}" for label, n in census.items() if label != "int8" and n)
         size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"
         exact = f"{r['exact_distance_pct']:.3f}" if r.get("exact_distance_pct") is not None else ""

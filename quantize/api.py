@@ -28,10 +28,11 @@ from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclus
 from e3dpsm.quantize.fp16 import convert_fp16
 from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
 from e3dpsm.quantize.front_report import write_search_outputs
-from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
+from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
+from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, isolate_state_reads, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
-from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16
+from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16, quantise_recurrent_compute
 from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
                                    quantize_int8, quantised_node_count, saturates_u8s8)
@@ -87,7 +88,9 @@ class QuantizeOptions:
     threads: int | None = None
     seed: int = 0
     # `--exclude auto`: among the candidates within the budget, the fastest (latency) or the
-    # search's own choice (accuracy); timing costs `timing_steps` steps per candidate.
+    # search's own choice (accuracy); timing costs `timing_steps` steps per candidate. Under
+    # int16 the candidates are timed with their nodes in float, not as shipped: the artifact
+    # is timed again at the end (`artifact_timing`, the verdict's figure).
     objective: str = "latency"
     timing_steps: int = 30
     max_timed: int = 6
@@ -150,12 +153,17 @@ class QuantizeOptions:
         return self.search or ("nodes" if self.mode == "int8" else "groups")
 
     @property
+    def searches_int16(self) -> bool:
+        """Whether nodes the search keeps out of 8 bits are tried at 16 bits (precision.py)."""
+        return self.mode == "int8" and self.exclude == "auto" and self.strategy == "nodes" and self.int16
+
+    @property
     def rounding(self) -> str:
         """The weight rounding this run uses (`weight_rounding`, resolved)."""
         if self.weight_rounding is not None:
             return self.weight_rounding
-        searches_int16 = self.mode == "int8" and self.exclude == "auto" and self.strategy == "nodes" and self.int16
-        return "adaround" if searches_int16 else "nearest"
+        return "adaround" if self.searches_int16 else "nearest"
+
 
     @property
     def budget(self) -> float:
@@ -266,6 +274,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         out_path = tmp / artifact_name(options.mode)
         size = save_model(model, out_path)
         accuracy = accuracy_of(out_path, holdout, options.threads)
+        artifact_timing = _time_artifact(timing, out_path)
         report.update({
             "mode": options.mode,
             "artifact": artifact_name(options.mode),
@@ -278,6 +287,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             "nodes": {"source": len(source.graph.node), "output": len(model.graph.node),
                       "source_ops": op_histogram(source), "output_ops": op_histogram(model)},
             **extra,
+            **({"artifact_timing": artifact_timing} if artifact_timing else {}),
             "seconds": round(time.perf_counter() - started, 2),
         })
         write_json_atomic(tmp / REPORT_FILE, report)
@@ -291,6 +301,24 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
 class _Timing:
     timer: StepTimer
     reference: Path  # the fp32 graph, timed beside the candidates
+
+
+ARTIFACT_LABEL = "artifact"
+
+
+def _time_artifact(timing: _Timing, artifact: Path) -> dict[str, Any] | None:
+    """The written artifact timed beside the fp32 graph: what the verdict speaks of. The
+    search's candidates are not the artifact where a later stage changes the graph (its
+    16-bit nodes, precision.py, run in float behind a DequantizeLinear on ONNX Runtime)."""
+    from e3dpsm.quantize.front import FP32_LABEL
+
+    ms = timing.timer({ARTIFACT_LABEL: artifact, FP32_LABEL: timing.reference})
+    p50, fp32 = ms.get(ARTIFACT_LABEL), ms.get(FP32_LABEL)
+    if not p50 or not fp32:
+        return None
+    describe = getattr(timing.timer, "describe", lambda: {"kind": "injected"})
+    return {"p50_ms": float(p50), "fp32_p50_ms": float(fp32), "speedup_vs_fp32": float(fp32) / float(p50),
+            "timer": describe()}
 
 
 def _static(model_path, source, calib_seqs, holdout, window_ms, options: QuantizeOptions, work: Path,
@@ -314,6 +342,17 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     if options.equalize:
         pre_model, equalized = equalize_geglu(pre_model, calib.feeds)
         onnx.save(pre_model, str(pre))
+    state_reads: list[str] = []
+    if options.searches_int16 and fixed is None:
+        # The recurrent projections may take 16 bits (precision.quantise_recurrent_compute):
+        # S5's readouts then read a copy of the state, so that its Q/DQ never rounds the
+        # state the graph outputs (graph_groups.isolate_state_reads). Before calibrating, so
+        # every trial graph and the cache name the copies.
+        kept = set(keep)
+        state_reads = isolate_state_reads(pre_model, [n.name for n in pre_model.graph.node if n.name in kept
+                                                      and n.op_type in DEFAULT_OP_TYPES])
+        if state_reads:
+            onnx.save(pre_model, str(pre))
     cache = work / "calibration.json"
     out = work / "int8.onnx"
     started = time.perf_counter()
@@ -334,6 +373,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
 
     def build(excluded: list[str], int16: Sequence[str] = (), int16w16: Sequence[str] = ()) -> onnx.ModelProto:
         path = scratch_model_path(work, "int8")
+        sixteen = {*int16, *int16w16}  # a recurrent node at 16 bits leaves the float-kept groups
+        excluded = [n for n in excluded if n not in sixteen]
         # The cache: no re-calibration per trial. 16-bit nodes need the opset-21 copy.
         quantize_int8(pre16 if int16 or int16w16 else pre, path, config, exclude=excluded, cache=cache,
                       learned=learned, int16_nodes=int16, int16w16_nodes=int16w16)
@@ -363,20 +404,34 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             precision = promote_to_int16w16(
                 precision, lambda int16, w16, floats, label: _evaluator(
                     pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
-            fixed = list(dict.fromkeys(keep + precision.float_nodes))
+            # Not a node that reads or writes a graph output (a state; S5's readouts read a copy,
+            # above): ONNX Runtime's quantiser would put the Q/DQ pair on the graph output
+            # itself and round the state carried to the next step.
+            outputs = {o.name for o in pre_model.graph.output}
+            recurrent_compute = [n.name for n in pre_model.graph.node
+                                 if n.name in kept and not {*n.input, *n.output} & outputs
+                                 and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
+            precision = quantise_recurrent_compute(
+                precision, recurrent_compute, lambda int16, w16, floats, label: _evaluator(
+                    pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
             int16_nodes, int16w16_nodes = precision.int16, precision.int16w16
+            sixteen = {*int16_nodes, *int16w16_nodes}
+            fixed = [n for n in dict.fromkeys(keep + precision.float_nodes) if n not in sixteen]
     quantize_int8(pre16 if int16_nodes or int16w16_nodes else pre, out, config, exclude=fixed, cache=cache,
                   learned=learned, int16_nodes=int16_nodes, int16w16_nodes=int16w16_nodes)
     model = onnx.load(str(out))
     if rounding_report is not None:
         rounding_report["applied"] = apply_rounding(model, rounded)
+    census = compute_precisions(model)
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),
         "calibration_frames": len(calib),
         "calibration_split": options.split, "state_source": calib.state_source,
-        "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search),
+        "exclude": options.exclude, "float_groups": _float_group_names(recurrent, search), "state_reads": state_reads,
         "excluded_nodes": fixed, "int16_nodes": int16_nodes, "int16w16_nodes": int16w16_nodes,
         **quantised_node_count(model),
+        # Read off the artifact (census.py): what its Conv/MatMul/Gemm compute in, recurrent groups included.
+        "compute_precision": precision_counts(census), "compute_nodes_out_of_8_bits": out_of_8_bits(census),
         "ranges_from_checkpoint": options.ranges_from_checkpoint, "weight_rounding": options.rounding,
     }
     extra = {
@@ -387,6 +442,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         **_search_report(search, [*recurrent, *groups], latency),
         **({"equalization": equalized} if options.equalize else {}),
         **({"precision_search": precision.to_dict()} if precision else {}),
+        "compute_precision": census,
         **({"qat_ranges": qat_report} if qat_report else {}),
         **({"weight_rounding": rounding_report} if rounding_report is not None else {}),
     }

@@ -15,7 +15,8 @@ import onnx
 
 from e3dpsm.onnx_groups import OTHER, NodeGroup, module_scopes, recurrent_groups, require_named_nodes
 
-__all__ = ["NodeGroup", "OP_TYPE_CANDIDATES", "QUANTISABLE", "candidate_groups", "recurrent_groups"]
+__all__ = ["NodeGroup", "OP_TYPE_CANDIDATES", "QUANTISABLE", "candidate_groups", "isolate_state_reads",
+           "recurrent_groups"]
 
 # Ops the INT8 quantiser would touch: only these make a candidate group worth trying.
 QUANTISABLE = frozenset({"Conv", "MatMul", "Gemm", "Add", "Mul", "Sigmoid", "Softmax",
@@ -41,3 +42,36 @@ def candidate_groups(model: onnx.ModelProto, keep_float: Iterable[str] = ()) -> 
     groups = [NodeGroup(s, "module", tuple(v)) for s, v in by_scope.items()]
     groups += [NodeGroup(f"op:{op}", "op_type", tuple(by_op[op])) for op in OP_TYPE_CANDIDATES if by_op.get(op)]
     return [g for g in groups if any(op_of[n] in QUANTISABLE for n in g.nodes)]
+
+
+STATE_READ_SUFFIX = "/state_read"
+
+
+def isolate_state_reads(model: onnx.ModelProto, nodes: Iterable[str]) -> list[str]:
+    """Give each of `nodes` that reads a graph output (a recurrent state an S5 readout reads
+    in the step that writes it) its own copy of that tensor, through an Identity, in place;
+    returns the names of the nodes rewired.
+
+    Why: ONNX Runtime's quantiser puts a quantised tensor's Q/DQ pair on the tensor itself;
+    on a graph output it then outputs the rounded value, and the state carried to the next
+    step would be rounded. On the copy only the reading node sees it. The fp32 function is
+    unchanged, and ONNX Runtime's optimiser removes the Identity when it loads the graph."""
+    outputs = {o.name for o in model.graph.output}
+    wanted = set(nodes)
+    rewired: list[str] = []
+    index = 0
+    while index < len(model.graph.node):
+        node = model.graph.node[index]
+        reads = [t for t in node.input if t in outputs] if node.name in wanted else []
+        for tensor in dict.fromkeys(reads):
+            copy = f"{node.name}/{tensor}{STATE_READ_SUFFIX}"
+            model.graph.node.insert(index, onnx.helper.make_node("Identity", [tensor], [copy],
+                                                                name=f"{node.name}{STATE_READ_SUFFIX}"))
+            index += 1
+            for i, name in enumerate(node.input):
+                if name == tensor:
+                    node.input[i] = copy
+        if reads:
+            rewired.append(node.name)
+        index += 1
+    return rewired

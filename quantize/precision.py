@@ -186,3 +186,68 @@ def promote_to_int16w16(plan: PrecisionPlan,
         choices.append(choice)
     return PrecisionPlan(list(plan.int16), [n for n in floats if n not in w16], current, choices, trials,
                          plan.target_pct, [n for n in floats if n in w16])
+
+
+def quantise_recurrent_compute(plan: PrecisionPlan, nodes: Sequence[str],
+                               evaluate: Callable[[list[str], list[str], list[str], str], float]) -> PrecisionPlan:
+    """The recurrent groups' Conv/MatMul/Gemm (`nodes`: S5's input and readout projections,
+    the Kalman fusion's Gemms), which the ranked search leaves in float with the rest of the
+    recurrent groups, given the lowest precision above int8 that keeps the graph within the
+    plan's target: all at int16 at once, else all at int16w16, else one at a time (int16,
+    then int16w16, else float). The recurrences themselves (the state update's elementwise
+    ops) stay float; these nodes project into and out of the state, so 16-bit activations
+    round the drive added to the state and what a readout reads, never the state carried to
+    the next step (S5's readouts read a copy of the new state, graph_groups.
+    isolate_state_reads; the caller leaves out any node that still reads or writes a graph
+    output, which ONNX Runtime's quantiser would round where the graph outputs it).
+    `evaluate(int16_nodes, int16w16_nodes, float_nodes, label) -> error %` over the whole
+    graph's lists.
+
+    Why not int8: the search ranks and prices only the other compute nodes; a recurrent
+    projection at 8 bits rounds every step's drive into a state that integrates it."""
+    nodes = list(dict.fromkeys(nodes))
+    target = plan.target_pct if plan.target_pct is not None else plan.error_pct
+    if not nodes or plan.error_pct > target:  # no slack to spend: they stay in float, undecided
+        return plan
+    trials = list(plan.trials)
+    int16, w16, floats = list(plan.int16), list(plan.int16w16), list(plan.float_nodes)
+
+    def measure(r16: list[str], rw16: list[str], rest: list[str], label: str) -> float:
+        err = float(evaluate(int16 + r16, w16 + rw16, floats + rest, label))
+        trials.append({"label": label, "int16_nodes": len(int16 + r16), "int16w16_nodes": len(w16 + rw16),
+                       "float_nodes": len(floats + rest), "error_pct": err})
+        log.info("%s: %d recurrent node(s) int16, %d int16w16, %d float: %.3f%%", label, len(r16), len(rw16),
+                 len(rest), err)
+        return err
+
+    current = plan.error_pct
+    errors: dict[str, dict[str, float]] = {n: {} for n in nodes}
+    r16: list[str] = []
+    rw16: list[str] = []
+    for precision, label in (("int16", "recurrent_int16_all"), ("int16w16", "recurrent_int16w16_all")):
+        err = measure(nodes if precision == "int16" else [], nodes if precision == "int16w16" else [], [], label)
+        for node in nodes:
+            errors[node][precision] = err
+        if err <= target:
+            (r16 if precision == "int16" else rw16).extend(nodes)
+            current = err
+            break
+    else:
+        for node in nodes:
+            errors[node] = {}
+            rest = [n for n in nodes if n not in r16 and n not in rw16 and n != node]
+            for precision in ("int16", "int16w16"):
+                err = measure(r16 + ([node] if precision == "int16" else []),
+                              rw16 + ([node] if precision == "int16w16" else []), rest, f"recurrent_{precision}_{node}")
+                errors[node][precision] = err
+                if err <= target:
+                    (r16 if precision == "int16" else rw16).append(node)
+                    current = err
+                    break
+    # plan.error_pct (every recurrent node in float) is within the target (checked above), so
+    # each node's choice is the first precision its trials found within it, float last.
+    choices = list(plan.choices) + [
+        PrecisionChoice(c.node, c.precision, f"recurrent group: {c.reason}", c.errors)
+        for c in (choose_precision(n, {**errors[n], "float": plan.error_pct}, target) for n in nodes)]
+    rest = [n for n in nodes if n not in r16 and n not in rw16]
+    return PrecisionPlan(int16 + r16, floats + rest, current, choices, trials, plan.target_pct, w16 + rw16)

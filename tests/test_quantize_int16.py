@@ -214,6 +214,37 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
     producer = {o: n for n in model.graph.node for o in n.output}
     for node in (n for n in model.graph.node if n.name in set(plan["int16w16_nodes"])):
         assert inits[producer[node.input[1]].input[0]].dtype == np.int16  # its weight, through its DequantizeLinear
+    # The census read off the artifact agrees with the plan: each planned node computes at its
+    # precision; an unplanned one is int8, or int16 where it reads a tensor a 16-bit node widened.
+    from e3dpsm.quantize.census import compute_precisions, precision_counts
+
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.quantize.graph_groups import recurrent_groups
+
+    source = onnx.load(report["config"]["model"])
+    recurrent = {n for g in recurrent_groups(source, GraphMetadata.from_onnx(source)) for n in g.nodes}
+    census = compute_precisions(model)
+    assert any(n in recurrent for n in census)  # S5's projections, the fusion's Gemms
+    # The recurrent groups' projections are decided (int16, int16w16 or float, each with its
+    # reason) unless the plan had no slack left; undecided, they stay in float.
+    decided = [c["node"] for c in plan["choices"] if c["reason"].startswith("recurrent group: ")]
+    assert set(decided) <= recurrent and (decided or plan["error_pct"] > plan["target_pct"])
+    # S5's readouts read the state the step outputs: decided too, through a copy of it
+    states = {o.name for o in source.graph.output}
+    readouts = {n.name for n in source.graph.node if n.name in recurrent and n.op_type in ("MatMul", "Gemm")
+                and set(n.input) & states}
+    assert readouts and (not decided or readouts <= set(decided)) and set(q["state_reads"]) == readouts
+    planned = {**dict.fromkeys(plan["int16_nodes"], "int16"), **dict.fromkeys(plan["int16w16_nodes"], "int16w16"),
+               **dict.fromkeys(plan["float_nodes"], "float")}
+    for node, label in census.items():
+        if node in planned:
+            assert label == planned[node], (node, label)
+        elif node in recurrent:
+            assert not decided and label == "float", (node, label)
+        else:  # int16 where it reads a tensor a 16-bit node widened
+            assert label in ("int8", "int16"), (node, label)
+    assert q["compute_precision"] == precision_counts(census)
+    assert q["compute_nodes_out_of_8_bits"] == sum(1 for label in census.values() if label != "int8")
     if out_of_int8:  # the artifact is the graph the last decision measured
         # rel 1e-3: the artifact is written compacted (compact.py), and renaming can change the order
         # ONNX Runtime's optimisers visit float nodes in (float32 round-off); another graph differs by more

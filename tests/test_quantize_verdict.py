@@ -64,3 +64,19 @@ def test_reports_name_the_search_target_and_its_margin(target, budget, phrase) -
     from e3dpsm.quantize.front_report import search_target_phrase
 
     assert search_target_phrase({"search": {"budget_pct": target}, "config": {"budget_pct": budget}}) == phrase
+
+
+def test_the_verdict_speaks_of_the_artifact_timed_last_not_the_search_candidate() -> None:
+    """A fresh clone's default search on an AVX2 host (2026-12-01): the candidate with 48 nodes in
+    float ran 1.08x fp32, the artifact with those 48 at 16 bits 0.61x; the verdict said 1.08x."""
+    report = _report(8.0, 10.0, bf16=False)  # the search's candidate: 1.25x
+    report["search"]["candidates"][0]["within_budget"] = True
+    assert speed_verdict(report).startswith("Verdict: the chosen int8 graph (within budget) runs 1.25x")
+    report["artifact_timing"] = {"p50_ms": 16.0, "fp32_p50_ms": 11.0, "speedup_vs_fp32": 11.0 / 16.0}
+    verdict = speed_verdict(report)
+    assert "does not beat fp32" in verdict and "0.69x fp32 (16.00 against 11.00 ms" in verdict
+    assert "A timed candidate within budget runs 1.25x" in verdict  # its own fp32 run: 10.0 / 8.0
+    report["precision_search"] = {"int16_nodes": ["a", "b"], "int16w16_nodes": ["c"], "float_nodes": []}
+    verdict = speed_verdict(report)
+    assert "Its 3 nodes at 16 bits run in float" in verdict and "--no-int16 --objective latency" in verdict
+

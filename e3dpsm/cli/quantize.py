@@ -46,8 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "trial per node); 'groups' adds whole module / op-type groups greedily (fp16 default)")
     p.add_argument("--objective", choices=("latency", "accuracy"), default="latency",
                    help="--exclude auto: among the candidate graphs within the budget pick the fastest "
-                   "(latency, default; candidates are timed side by side with the fp32 graph) or the "
-                   "search's own choice, the fewest nodes or groups in float (accuracy)")
+                   "(latency, default; candidates are timed side by side with the fp32 graph, with the nodes "
+                   "they keep out of 8 bits in float) or the search's own choice, the fewest nodes out of 8 "
+                   "bits (accuracy). The graph written is timed beside fp32 either way: report.md's verdict")
     p.add_argument("--timing-steps", type=positive_int, default=30,
                    help="--exclude auto: timed steps per candidate graph (default 30)")
     p.add_argument("--target-isa", choices=ISA_KINDS, default=None,
