@@ -164,7 +164,6 @@ class QuantizeOptions:
             return self.weight_rounding
         return "adaround" if self.searches_int16 else "nearest"
 
-
     @property
     def budget(self) -> float:
         return DEFAULT_BUDGET_PCT[self.mode] if self.budget_pct is None else self.budget_pct
