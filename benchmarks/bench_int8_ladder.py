@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                          "compute_nodes_int16w16": len(q["quantization"].get("int16w16_nodes") or []),
                          # read off the graph, recurrent groups included (quantize/census.py)
                          "compute_precision": q["quantization"].get("compute_precision"),
+                         "compute_nodes_out_of_8_bits": q["quantization"].get("compute_nodes_out_of_8_bits"),
                          "mpjpe_vs_base_pct": 100.0 * (measured["mpjpe_mm"] / base_mpjpe - 1.0),
                          "qat_ranges": {k: v for k, v in (q.get("qat_ranges") or {}).items() if k != "uncovered"},
                          "ranges_won_by": (q["calibration"].get("ranges") or {}).get("won_by")})
@@ -251,8 +252,7 @@ def markdown(report: dict) -> str:
         out8 = str(r["compute_nodes_in_float"]) + (f" ({', '.join(sixteen)})" if sixteen else "")
         census = r.get("compute_precision")
         if census:  # the graph's own count, recurrent projections included
-            out = sum(n for label, n in census.items() if label != "int8")
-            out8 = f"{out} of {sum(census.values())}" + "".join(
+            out8 = f"{r['compute_nodes_out_of_8_bits']} of {sum(census.values())}" + "".join(
                 f", {n} {label}" for label, n in census.items() if label != "int8" and n)
         size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"

@@ -26,7 +26,7 @@ from e3dpsm.quantize.equalize import equalize_geglu
 from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclusions, node_sensitivity,
                                         ranked_prefix_exclusions, scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
-from e3dpsm.quantize.front import OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
+from e3dpsm.quantize.front import FP32_LABEL, OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, isolate_state_reads, recurrent_groups
@@ -301,6 +301,10 @@ class _Timing:
     timer: StepTimer
     reference: Path  # the fp32 graph, timed beside the candidates
 
+    def describe(self) -> dict:
+        """The timer's settings for the report (an injected timer has none)."""
+        return getattr(self.timer, "describe", lambda: {"kind": "injected"})()
+
 
 ARTIFACT_LABEL = "artifact"
 
@@ -309,15 +313,12 @@ def _time_artifact(timing: _Timing, artifact: Path) -> dict[str, Any] | None:
     """The written artifact timed beside the fp32 graph: what the verdict speaks of. The
     search's candidates are not the artifact where a later stage changes the graph (its
     16-bit nodes, precision.py, run in float behind a DequantizeLinear on ONNX Runtime)."""
-    from e3dpsm.quantize.front import FP32_LABEL
-
     ms = timing.timer({ARTIFACT_LABEL: artifact, FP32_LABEL: timing.reference})
     p50, fp32 = ms.get(ARTIFACT_LABEL), ms.get(FP32_LABEL)
     if not p50 or not fp32:
         return None
-    describe = getattr(timing.timer, "describe", lambda: {"kind": "injected"})
     return {"p50_ms": float(p50), "fp32_p50_ms": float(fp32), "speedup_vs_fp32": float(fp32) / float(p50),
-            "timer": describe()}
+            "timer": timing.describe()}
 
 
 def _static(model_path, source, calib_seqs, holdout, window_ms, options: QuantizeOptions, work: Path,
@@ -342,16 +343,24 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         pre_model, equalized = equalize_geglu(pre_model, calib.feeds)
         onnx.save(pre_model, str(pre))
     state_reads: list[str] = []
+    recurrent_compute: list[str] = []
     if options.searches_int16 and fixed is None:
         # The recurrent projections may take 16 bits (precision.quantise_recurrent_compute):
         # S5's readouts then read a copy of the state, so that its Q/DQ never rounds the
         # state the graph outputs (graph_groups.isolate_state_reads). Before calibrating, so
         # every trial graph and the cache name the copies.
         kept = set(keep)
-        state_reads = isolate_state_reads(pre_model, [n.name for n in pre_model.graph.node if n.name in kept
-                                                      and n.op_type in DEFAULT_OP_TYPES])
+        projections = [n.name for n in pre_model.graph.node
+                       if n.name in kept and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
+        state_reads = isolate_state_reads(pre_model, projections)
         if state_reads:
             onnx.save(pre_model, str(pre))
+        # Any that still reads or writes a graph output (a state) stays float: ONNX Runtime's
+        # quantiser would put the Q/DQ pair on the graph output and round the state carried.
+        outputs = {o.name for o in pre_model.graph.output}
+        wanted = set(projections)
+        recurrent_compute = [n.name for n in pre_model.graph.node
+                             if n.name in wanted and not {*n.input, *n.output} & outputs]
     cache = work / "calibration.json"
     out = work / "int8.onnx"
     started = time.perf_counter()
@@ -372,8 +381,6 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
 
     def build(excluded: list[str], int16: Sequence[str] = (), int16w16: Sequence[str] = ()) -> onnx.ModelProto:
         path = scratch_model_path(work, "int8")
-        sixteen = {*int16, *int16w16}  # a recurrent node at 16 bits leaves the float-kept groups
-        excluded = [n for n in excluded if n not in sixteen]
         # The cache: no re-calibration per trial. 16-bit nodes need the opset-21 copy.
         quantize_int8(pre16 if int16 or int16w16 else pre, path, config, exclude=excluded, cache=cache,
                       learned=learned, int16_nodes=int16, int16w16_nodes=int16w16)
@@ -403,19 +410,11 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             precision = promote_to_int16w16(
                 precision, lambda int16, w16, floats, label: _evaluator(
                     pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
-            # Not a node that reads or writes a graph output (a state; S5's readouts read a copy,
-            # above): ONNX Runtime's quantiser would put the Q/DQ pair on the graph output
-            # itself and round the state carried to the next step.
-            outputs = {o.name for o in pre_model.graph.output}
-            recurrent_compute = [n.name for n in pre_model.graph.node
-                                 if n.name in kept and not {*n.input, *n.output} & outputs
-                                 and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
             precision = quantise_recurrent_compute(
                 precision, recurrent_compute, lambda int16, w16, floats, label: _evaluator(
                     pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
             int16_nodes, int16w16_nodes = precision.int16, precision.int16w16
-            sixteen = {*int16_nodes, *int16w16_nodes}
-            fixed = [n for n in dict.fromkeys(keep + precision.float_nodes) if n not in sixteen]
+            fixed = list(dict.fromkeys(keep + precision.float_nodes))  # 16-bit nodes leave it (quantize_int8)
     quantize_int8(pre16 if int16_nodes or int16w16_nodes else pre, out, config, exclude=fixed, cache=cache,
                   learned=learned, int16_nodes=int16_nodes, int16w16_nodes=int16w16_nodes)
     model = onnx.load(str(out))
@@ -575,7 +574,7 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
     try:
         searched = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
         candidates = candidates_from_search(searched, built)
-        info = getattr(timing.timer, "describe", lambda: {"kind": "injected"})()
+        info = timing.describe()
         latency = latency_aware_choice(searched, candidates, timing.timer, options.objective, options.search_target,
                                        max_timed=options.max_timed, reference=timing.reference, timer_info=info)
     finally:

@@ -210,38 +210,36 @@ def quantise_recurrent_compute(plan: PrecisionPlan, nodes: Sequence[str],
     if not nodes or plan.error_pct > target:  # no slack to spend: they stay in float, undecided
         return plan
     trials = list(plan.trials)
-    int16, w16, floats = list(plan.int16), list(plan.int16w16), list(plan.float_nodes)
+    placed: dict[str, list[str]] = {"int16": [], "int16w16": []}  # recurrent nodes kept at each precision
 
-    def measure(r16: list[str], rw16: list[str], rest: list[str], label: str) -> float:
-        err = float(evaluate(int16 + r16, w16 + rw16, floats + rest, label))
-        trials.append({"label": label, "int16_nodes": len(int16 + r16), "int16w16_nodes": len(w16 + rw16),
-                       "float_nodes": len(floats + rest), "error_pct": err})
+    def measure(trial: dict[str, list[str]], label: str) -> float:
+        """The graph with `placed` and `trial` at 16 bits, every other recurrent node in float."""
+        r16, rw16 = placed["int16"] + trial.get("int16", []), placed["int16w16"] + trial.get("int16w16", [])
+        rest = [n for n in nodes if n not in r16 and n not in rw16]
+        err = float(evaluate(plan.int16 + r16, plan.int16w16 + rw16, plan.float_nodes + rest, label))
+        trials.append({"label": label, "int16_nodes": len(plan.int16 + r16),
+                       "int16w16_nodes": len(plan.int16w16 + rw16), "float_nodes": len(plan.float_nodes + rest),
+                       "error_pct": err})
         log.info("%s: %d recurrent node(s) int16, %d int16w16, %d float: %.3f%%", label, len(r16), len(rw16),
                  len(rest), err)
         return err
 
     current = plan.error_pct
     errors: dict[str, dict[str, float]] = {n: {} for n in nodes}
-    r16: list[str] = []
-    rw16: list[str] = []
-    for precision, label in (("int16", "recurrent_int16_all"), ("int16w16", "recurrent_int16w16_all")):
-        err = measure(nodes if precision == "int16" else [], nodes if precision == "int16w16" else [], [], label)
+    for precision in ("int16", "int16w16"):  # all at once
+        err = measure({precision: nodes}, f"recurrent_{precision}_all")
         for node in nodes:
             errors[node][precision] = err
         if err <= target:
-            (r16 if precision == "int16" else rw16).extend(nodes)
-            current = err
+            placed[precision], current = list(nodes), err
             break
-    else:
+    else:  # one at a time, each at the first precision that fits
         for node in nodes:
             errors[node] = {}
-            rest = [n for n in nodes if n not in r16 and n not in rw16 and n != node]
             for precision in ("int16", "int16w16"):
-                err = measure(r16 + ([node] if precision == "int16" else []),
-                              rw16 + ([node] if precision == "int16w16" else []), rest, f"recurrent_{precision}_{node}")
-                errors[node][precision] = err
+                err = errors[node][precision] = measure({precision: [node]}, f"recurrent_{precision}_{node}")
                 if err <= target:
-                    (r16 if precision == "int16" else rw16).append(node)
+                    placed[precision].append(node)
                     current = err
                     break
     # plan.error_pct (every recurrent node in float) is within the target (checked above), so
@@ -249,5 +247,6 @@ def quantise_recurrent_compute(plan: PrecisionPlan, nodes: Sequence[str],
     choices = list(plan.choices) + [
         PrecisionChoice(c.node, c.precision, f"recurrent group: {c.reason}", c.errors)
         for c in (choose_precision(n, {**errors[n], "float": plan.error_pct}, target) for n in nodes)]
-    rest = [n for n in nodes if n not in r16 and n not in rw16]
-    return PrecisionPlan(int16 + r16, floats + rest, current, choices, trials, plan.target_pct, w16 + rw16)
+    rest = [n for n in nodes if n not in placed["int16"] and n not in placed["int16w16"]]
+    return PrecisionPlan(plan.int16 + placed["int16"], plan.float_nodes + rest, current, choices, trials,
+                         plan.target_pct, plan.int16w16 + placed["int16w16"])

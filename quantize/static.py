@@ -242,7 +242,8 @@ def quantize_int8(
     qat_ranges.py); `int16_nodes`: nodes whose activations are quantised to 16 bits (QUInt16;
     the graph must be at opset 21 already, `ensure_opset`); `int16w16_nodes`: the same, and
     their weights 16-bit too (`int16_weight_overrides`). All go through ONNX Runtime's
-    TensorQuantOverrides."""
+    TensorQuantOverrides. A node named at 16 bits is quantised even where `exclude` names it
+    too (a recurrent group's projection, kept in float with its group otherwise)."""
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
 
     from e3dpsm.quantize.qat_ranges import ort_overrides
@@ -271,7 +272,7 @@ def quantize_int8(
         reduce_range=config.reduce_range,
         activation_type=getattr(QuantType, config.activation_type),
         weight_type=getattr(QuantType, config.weight_type),
-        nodes_to_exclude=sorted(set(exclude)),
+        nodes_to_exclude=sorted(set(exclude) - set(sixteen_bit)),
         calibrate_method=_method(config.calibration),
         # Weights symmetric around 0 (per channel); activations asymmetric U8.
         extra_options={"WeightSymmetric": True, "ActivationSymmetric": False,

@@ -245,6 +245,12 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
             assert label in ("int8", "int16"), (node, label)
     assert q["compute_precision"] == precision_counts(census)
     assert q["compute_nodes_out_of_8_bits"] == sum(1 for label in census.values() if label != "int8")
+    # The artifact itself was timed beside fp32, and the verdict speaks of that timing.
+    from e3dpsm.quantize.front_report import speed_verdict
+
+    timing = report["artifact_timing"]
+    assert timing["p50_ms"] > 0 and timing["speedup_vs_fp32"] == pytest.approx(timing["fp32_p50_ms"] / timing["p50_ms"])
+    assert f"{timing['fp32_p50_ms'] / timing['p50_ms']:.2f}x" in speed_verdict(report)
     if out_of_int8:  # the artifact is the graph the last decision measured
         # rel 1e-3: the artifact is written compacted (compact.py), and renaming can change the order
         # ONNX Runtime's optimisers visit float nodes in (float32 round-off); another graph differs by more
