@@ -135,7 +135,7 @@ def bench_changes(args: argparse.Namespace) -> int:
                            "dequantize_linear": report["quantization"]["DequantizeLinear"]}
             print(f"{label}: distance {rows[label]['distance_pct']:.3f}%", flush=True)
         if args.with_search:
-            label = "defaults (--exclude auto, objective latency)"
+            label = "defaults (--exclude auto, the default objective)"
             report = quantize_graph(graph, args.data, work / "auto", QuantizeOptions(
                 mode="int8", frames=args.frames, holdout_frames=args.holdout_frames, threads=args.threads))
             paths[label] = work / "auto" / artifact_name("int8")

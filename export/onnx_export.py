@@ -21,7 +21,7 @@ import os
 import tempfile
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ from e3dpsm.export.wrapper import StepGraph
 from e3dpsm.layers.deform_conv_sampling import DEFORM_CONV_MIN_OPSET
 from e3dpsm.layers.deformable import SAMPLERS, export_attention_form
 from e3dpsm.models import E3DPSM
+from e3dpsm.onnx_constants import retile_constants
 from e3dpsm.state import BATCH_AXIS, StateSpec, initial_states
 from e3dpsm.utils.io import atomic_path
 
@@ -70,6 +71,7 @@ class ExportResult:
     op_types: dict[str, int]
     attention_form: str = "grid_sample"
     static_batch: bool = False
+    retiled_constants: dict[str, int] = field(default_factory=dict)  # onnx_constants.Retiled
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -191,6 +193,8 @@ def export_step_with_report(
     if simplify:
         graph = _simplify(graph, spec, model.state_spec(), model.config.train_window_ms)
     seconds_simplify = time.perf_counter() - t1
+    # After simplifying: onnxsim would fold the Tiles back. Exact (onnx_constants.py).
+    retiled = retile_constants(graph)
 
     graph.ir_version = _IR_FOR_OPSET[opset]
     graph_metadata(model, {"attention_form": attention_form, **(metadata_extra or {})}, batch).write_to(graph)
@@ -212,6 +216,7 @@ def export_step_with_report(
         nodes_final=len(graph.graph.node), simplified=simplify, bytes=size,
         seconds_export=round(seconds_export, 3), seconds_simplify=round(seconds_simplify, 3),
         op_types=op_histogram(graph), attention_form=attention_form, static_batch=static_batch,
+        retiled_constants=retiled.to_dict(),
     )
 
 

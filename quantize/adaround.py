@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import onnx
@@ -210,13 +210,19 @@ class RoundedWeight:
 
 
 def adaround_weights(pre: onnx.ModelProto, qdq: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarray]],
-                     config: AdaRoundConfig = AdaRoundConfig(), threads: int | None = None
-                     ) -> dict[str, RoundedWeight]:
+                     config: AdaRoundConfig = AdaRoundConfig(), threads: int | None = None,
+                     nodes: Iterable[str] | None = None) -> dict[str, RoundedWeight]:
     """{quantised weight initializer: AdaRound's integers} for every layer `find_layers` finds
-    in `qdq` (a QDQ graph of `pre` with every Conv/MatMul/Gemm quantised)."""
+    in `qdq` (a QDQ graph of `pre` with every Conv/MatMul/Gemm quantised), or for those of
+    the nodes named in `nodes`."""
     import torch
 
     layers = find_layers(pre, qdq)
+    if nodes is not None:
+        wanted = set(nodes)
+        layers = {key: layer for key, layer in layers.items() if layer.node.name in wanted}
+    if not layers:
+        return {}
     grams = input_grams(pre, layers, feeds, threads)
     out: dict[str, RoundedWeight] = {}
     previous = torch.get_num_threads()

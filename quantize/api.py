@@ -6,7 +6,7 @@ import logging
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -19,6 +19,7 @@ from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.quantize.adaround import WEIGHT_ROUNDINGS, AdaRoundConfig, adaround_weights, apply_rounding
 from e3dpsm.quantize.artifact import finalize, save_model
+from e3dpsm.onnx_constants import retile_constants
 from e3dpsm.quantize.compact import compact_qdq, graph_names
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
@@ -26,13 +27,15 @@ from e3dpsm.quantize.equalize import equalize_geglu
 from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclusions, node_sensitivity,
                                         ranked_prefix_exclusions, scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
-from e3dpsm.quantize.front import FP32_LABEL, OBJECTIVES, LatencySearch, candidates_from_search, latency_aware_choice
+from e3dpsm.quantize.front import (FP32_LABEL, OBJECTIVES, Candidate, LatencySearch, candidates_from_search,
+                                   latency_aware_choice)
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
 from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, isolate_state_reads, recurrent_groups
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
-from e3dpsm.quantize.precision import demote_to_int16, promote_to_int16w16, quantise_recurrent_compute
+from e3dpsm.quantize.precision import (SizeProbe, demote_to_int16, promote_to_int16w16, quantise_recurrent_compute,
+                                       smallest_int16_plan)
 from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
                                    quantize_int8, quantised_node_count, saturates_u8s8)
@@ -87,11 +90,14 @@ class QuantizeOptions:
     state_source: str = "rollout"
     threads: int | None = None
     seed: int = 0
-    # `--exclude auto`: among the candidates within the budget, the fastest (latency) or the
-    # search's own choice (accuracy); timing costs `timing_steps` steps per candidate. Under
-    # int16 the candidates are timed with their nodes in float, not as shipped: the artifact
-    # is timed again at the end (`artifact_timing`, the verdict's figure).
-    objective: str = "latency"
+    # `--exclude auto`: among the candidates within the budget, the fastest (latency), the
+    # search's own choice (accuracy), or under int16 the smallest graph (size: the fewest
+    # nodes out of 8 bits whose nodes all fit at int16, precision.smallest_int16_plan).
+    # None: size where the search tries int16, latency elsewhere (`search_objective`).
+    # Timing costs `timing_steps` steps per candidate; under int16 the candidates are timed
+    # with their nodes in float, not as shipped: the artifact is timed again at the end
+    # (`artifact_timing`, the verdict's figure).
+    objective: str | None = None
     timing_steps: int = 30
     max_timed: int = 6
     # INT8 graph choices; None: StaticConfig's defaults (benchmarks/bench_quantize.py `changes`).
@@ -118,8 +124,11 @@ class QuantizeOptions:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"unknown mode {self.mode!r}; choose from {list(MODES)}")
-        if self.objective not in OBJECTIVES:
+        if self.objective not in (None, *OBJECTIVES):
             raise ConfigError(f"unknown objective {self.objective!r}; choose from {list(OBJECTIVES)}")
+        if self.objective == "size" and not self.searches_int16:
+            raise ConfigError("--objective size picks among 16-bit plans: it needs --mode int8, --exclude auto, "
+                              "--search nodes and int16 (drop --no-int16); use latency or accuracy otherwise")
         if self.timing_steps < 1 or self.max_timed < 1:
             raise ConfigError("timing_steps and max_timed must be positive")
         if self.rank_frames < 0:
@@ -156,6 +165,16 @@ class QuantizeOptions:
     def searches_int16(self) -> bool:
         """Whether nodes the search keeps out of 8 bits are tried at 16 bits (precision.py)."""
         return self.mode == "int8" and self.exclude == "auto" and self.strategy == "nodes" and self.int16
+
+    @property
+    def search_objective(self) -> str:
+        """The objective this run uses (`objective`, resolved). Under int16 the candidates'
+        timings describe graphs with their nodes in float, not the graph written, and the
+        latency objective's pick moved between identical runs (docs/quantize.md): size is
+        the default there, and it needs no timing to choose."""
+        if self.objective is not None:
+            return self.objective
+        return "size" if self.searches_int16 else "latency"
 
     @property
     def rounding(self) -> str:
@@ -270,6 +289,8 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         info["budget_reference"] = options.budget_reference
         finalize(model, meta, info)
         compaction = compact_qdq(model, keep=graph_names(source))
+        # The pre-pass folded the export's Tiles of repeating constants back (onnx_constants.py).
+        retiled = retile_constants(model)
         out_path = tmp / artifact_name(options.mode)
         size = save_model(model, out_path)
         accuracy = accuracy_of(out_path, holdout, options.threads)
@@ -282,7 +303,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
             "holdout": {"split": options.holdout_split, "frames": holdout.frames,
                         "budget_reference": options.budget_reference, **accuracy},
             "sizes": {"source_bytes": Path(model_path).stat().st_size, "output_bytes": size,
-                      "compaction": compaction.to_dict()},
+                      "compaction": compaction.to_dict(), "retiled_constants": retiled.to_dict()},
             "nodes": {"source": len(source.graph.node), "output": len(model.graph.node),
                       "source_ops": op_histogram(source), "output_ops": op_histogram(model)},
             **extra,
@@ -367,6 +388,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     ranges = calibrate(pre, config, calib, cache)
     calib_seconds = time.perf_counter() - started
     rounded, rounding_report = _adaround(options, config, pre, pre_model, cache, calib, work)
+    roundings = [rounded]
     learned, qat_report = {}, None
     if options.ranges_from_checkpoint:
         # Every tensor the graph may quantise: `--exclude none` quantises the recurrent groups
@@ -375,6 +397,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised)
         qat_report["weights"] = qat_weight_bits(config, target_isa)
     search = latency = precision = None
+    size_probes: list[SizeProbe] = []
     int16_nodes: list[str] = []
     int16w16_nodes: list[str] = []
     pre16 = _opset21_copy(pre, work) if options.int16 and fixed is None and options.strategy == "nodes" else None
@@ -385,7 +408,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         quantize_int8(pre16 if int16 or int16w16 else pre, path, config, exclude=excluded, cache=cache,
                       learned=learned, int16_nodes=int16, int16w16_nodes=int16w16)
         model = onnx.load(str(path))
-        apply_rounding(model, rounded)
+        for chosen in roundings:  # each applies where the graph's weight scale is its own
+            apply_rounding(model, chosen)
         path.unlink()
         return model
 
@@ -403,10 +427,33 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         fixed = search.excluded_nodes
         if pre16 is not None:
             kept = set(keep)
+
+            def ranked_nodes(excluded: Sequence[str]) -> list[str]:
+                return [n for n in excluded if n not in kept]
+
+            sized = options.search_objective == "size"
+            probed = [c for c in latency.candidates if c.error_pct <= options.search_target] if sized else []
+            # The nodes the 16-bit stages may place: their 8-bit weights take the full range
+            # where the config reduces it (static.full_range_weight_overrides), rounded anew.
+            placeable = dict.fromkeys(n for excluded in [fixed, *(c.excluded_nodes for c in probed)]
+                                      for n in ranked_nodes(excluded))
+            roundings.append(_adaround_full_range(options, config, [*placeable, *recurrent_compute],
+                                                  pre, pre_model, cache, calib, work, rounding_report))
+            all_int16 = None
+            if sized:
+                index, size_probes = smallest_int16_plan(
+                    [(c.label, ranked_nodes(c.excluded_nodes), c.error_pct) for c in probed], options.search_target,
+                    lambda int16, label: _evaluator(pre_meta, holdout, options, work,
+                                                    lambda excl: build(excl, int16))(keep, label))
+                if index is not None:
+                    latency.chosen = probed[index]
+                    search, all_int16 = _with_choice(search, probed[index]), size_probes[-1].int16_error_pct
+                    fixed = search.excluded_nodes
             precision = demote_to_int16(
-                [n for n in fixed if n not in kept], search.error_pct, options.search_target,
+                ranked_nodes(fixed), search.error_pct, options.search_target,
                 lambda int16, floats, label: _evaluator(pre_meta, holdout, options, work,
-                                                        lambda excl: build(excl, int16))(keep + floats, label))
+                                                        lambda excl: build(excl, int16))(keep + floats, label),
+                all_int16_error_pct=all_int16)
             precision = promote_to_int16w16(
                 precision, lambda int16, w16, floats, label: _evaluator(
                     pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
@@ -419,7 +466,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                   learned=learned, int16_nodes=int16_nodes, int16w16_nodes=int16w16_nodes)
     model = onnx.load(str(out))
     if rounding_report is not None:
-        rounding_report["applied"] = apply_rounding(model, rounded)
+        rounding_report["applied"] = sum(apply_rounding(model, chosen) for chosen in roundings)
     census = compute_precisions(model)
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),
@@ -439,7 +486,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                             "range_per_tensor": {n: asdict(c) for n, c in ranges.items()}} if ranges else {})},
         **_search_report(search, [*recurrent, *groups], latency),
         **({"equalization": equalized} if options.equalize else {}),
-        **({"precision_search": precision.to_dict()} if precision else {}),
+        **({"precision_search": {**precision.to_dict(), "size_probes": [p.to_dict() for p in size_probes]}}
+           if precision else {}),
         "compute_precision": census,
         **({"qat_ranges": qat_report} if qat_report else {}),
         **({"weight_rounding": rounding_report} if rounding_report is not None else {}),
@@ -454,14 +502,32 @@ def _adaround(options: QuantizeOptions, config: StaticConfig, pre: Path, pre_mod
     trial graph and the artifact; ({}, None) for nearest rounding."""
     if options.rounding != "adaround":
         return {}, None
+    rounded, summary = _adaround_at(config, pre, pre_model, cache, calib, work, options.threads)
+    return rounded, {"method": "adaround", **asdict(AdaRoundConfig()), **summary}
+
+
+def _adaround_full_range(options: QuantizeOptions, config: StaticConfig, nodes: Sequence[str], pre: Path,
+                         pre_model: onnx.ModelProto, cache: Path, calib, work: Path, report: dict | None) -> dict:
+    """AdaRound's integers for the 8-bit weights of `nodes` at the full 8-bit range, where
+    `config` reduces it: the 16-bit stages' candidates get such weights
+    (static.full_range_weight_overrides), at scales the first pass never saw. Recorded in
+    the first pass's `report` under "full_range"; {} where nothing needs them."""
+    if report is None or not config.reduce_range or not nodes:
+        return {}
+    rounded, report["full_range"] = _adaround_at(replace(config, reduce_range=False), pre, pre_model, cache, calib,
+                                                 work, options.threads, nodes)
+    return rounded
+
+
+def _adaround_at(config: StaticConfig, pre: Path, pre_model: onnx.ModelProto, cache: Path, calib, work: Path,
+                 threads: int | None, nodes: Sequence[str] | None = None) -> tuple[dict, dict]:
     started = time.perf_counter()
     probe = work / "adaround_probe.onnx"
     quantize_int8(pre, probe, config, exclude=[], cache=cache)
-    rounded = adaround_weights(pre_model, onnx.load(str(probe)), calib.feeds, threads=options.threads)
+    rounded = adaround_weights(pre_model, onnx.load(str(probe)), calib.feeds, threads=threads, nodes=nodes)
     probe.unlink()
     ratios = [r.output_error_ratio for r in rounded.values()]
-    return rounded, {"method": "adaround", **asdict(AdaRoundConfig()), "weights": len(rounded),
-                     "median_output_error_ratio": float(np.median(ratios)) if ratios else None,
+    return rounded, {"weights": len(rounded), "median_output_error_ratio": float(np.median(ratios)) if ratios else None,
                      "seconds": round(time.perf_counter() - started, 2)}
 
 
@@ -575,17 +641,20 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         searched = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
         candidates = candidates_from_search(searched, built)
         info = timing.describe()
-        latency = latency_aware_choice(searched, candidates, timing.timer, options.objective, options.search_target,
+        latency = latency_aware_choice(searched, candidates, timing.timer, options.search_objective, options.search_target,
                                        max_timed=options.max_timed, reference=timing.reference, timer_info=info)
     finally:
         for _, path in built:
             path.unlink(missing_ok=True)
     for cand in latency.candidates:
         cand.path = None
-    chosen = latency.chosen
-    final = SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, options.search_target,
-                         searched.trials, searched.strategy, searched.sensitivity, searched.rank_frames)
-    return final, latency
+    return _with_choice(searched, latency.chosen), latency
+
+
+def _with_choice(searched: SearchResult, chosen: Candidate) -> SearchResult:
+    """The search's result with `chosen` as its final choice (its trials unchanged)."""
+    return SearchResult(list(chosen.groups), list(chosen.excluded_nodes), chosen.error_pct, searched.budget_pct,
+                        searched.trials, searched.strategy, searched.sensitivity, searched.rank_frames)
 
 
 def _float_group_names(recurrent: Sequence[NodeGroup], search: SearchResult | None) -> list[str]:

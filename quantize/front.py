@@ -15,7 +15,9 @@ different time, so the trial graphs are also timed (side by side with fp32, step
 - objective "latency" (default): the fastest candidate within the accuracy budget (within
   LATENCY_TIE of the fastest counts as a tie, which the lower distance breaks);
 - objective "accuracy": the search's own result (the fewest nodes or groups in float that
-  reach the budget, or the most accurate graph found when none does).
+  reach the budget, or the most accurate graph found when none does);
+- objective "size" (the default under int16): the accuracy objective's choice here; then the
+  16-bit plan moves it to the smallest graph (precision.smallest_int16_plan).
 
 No candidate outside the budget is chosen while one within it exists. The report holds
 every timed candidate and the Pareto front of (distance to fp32, p50 step latency).
@@ -33,7 +35,9 @@ from e3dpsm.quantize.step_timer import StepTimer
 
 log = logging.getLogger(__name__)
 
-OBJECTIVES: tuple[str, ...] = ("latency", "accuracy")
+# "size" chooses here as "accuracy" does; under int16 the 16-bit plan's probes then move the
+# choice to the smallest graph (precision.smallest_int16_plan, quantize/api.py).
+OBJECTIVES: tuple[str, ...] = ("latency", "accuracy", "size")
 # Candidates whose p50 is within this share of the fastest one count as equally fast (a few
 # dozen steps on a shared CPU do not resolve less); among them the most accurate is chosen.
 LATENCY_TIE = 0.03
@@ -141,7 +145,7 @@ def choose(candidates: Sequence[Candidate], search: SearchResult, objective: str
     if objective not in OBJECTIVES:
         raise ConfigError(f"unknown objective {objective!r}; choose from {list(OBJECTIVES)}")
     greedy = greedy_choice(search, candidates)
-    if objective == "accuracy":
+    if objective in ("accuracy", "size"):
         return greedy
     inside = [c for c in candidates if c.error_pct <= budget_pct and c.p50_ms is not None]
     if not inside:

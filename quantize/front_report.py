@@ -114,15 +114,23 @@ def _qat_weight_lines(weights: dict[str, Any]) -> list[str]:
 
 
 def size_lines(sizes: dict[str, Any]) -> list[str]:
-    """The artifact's size against the fp32 graph's, and what compaction (compact.py) saved."""
+    """The artifact's size against the fp32 graph's, and what compaction (compact.py) and
+    retiling (onnx_constants.py) saved."""
     if not sizes.get("source_bytes"):
         return []
     out, src = sizes["output_bytes"], sizes["source_bytes"]
     line = f"Size: {out / 1e6:.3f} MB against the fp32 graph's {src / 1e6:.3f} MB ({out / src:.3f}x)"
     compaction = sizes.get("compaction") or {}
+    retiled = sizes.get("retiled_constants") or {}  # onnx_constants.py
+    parts = []
     if compaction.get("bytes_saved"):
-        line += (f", {compaction['bytes_saved'] / 1e3:.0f} kB less than the quantiser wrote it (its added names "
-                 f"shortened, {compaction['initializers_shared']} repeated constants shared, stored shapes dropped)")
+        parts += ["its added names shortened", f"{compaction['initializers_shared']} repeated constants shared",
+                  "stored shapes dropped"]
+    if retiled.get("bytes_saved"):
+        parts.append(f"{retiled['constants']} repeating constants stored as a block and a Tile")
+    if parts:
+        saved = compaction.get("bytes_saved", 0) + retiled.get("bytes_saved", 0)
+        line += f", {saved / 1e3:.0f} kB less than the quantiser wrote it ({', '.join(parts)})"
     return [line + ".", ""]
 
 
@@ -168,7 +176,7 @@ def census_lines(quantization: dict[str, Any]) -> list[str]:
     if not counts:
         return []
     total = sum(counts.values())
-    return [f"Compute nodes (Conv/MatMul/Gemm, recurrent groups included), read off the graph: "
+    return ["Compute nodes (Conv/MatMul/Gemm, recurrent groups included), read off the graph: "
             + ", ".join(f"{n} {label}" for label, n in counts.items() if n)
             + f"; {quantization['compute_nodes_out_of_8_bits']} of {total} out of 8 bits.", ""]
 
@@ -185,6 +193,15 @@ def precision_lines(plan: dict[str, Any] | None) -> list[str]:
              f"takes the first that keeps the graph within the {plan['target_pct']:.3f}% target; graph error "
              f"after the decisions {plan['error_pct']:.3f}%.", "",
              "| node | precision | graph error % per precision tried | why |", "|---|---|---|---|"]
+    probes = plan.get("size_probes") or []
+    if probes:  # objective size (precision.smallest_int16_plan): before the table
+        tried = "; ".join(f"{p['label']} ({p['nodes']} nodes) {p['int16_error_pct']:.3f}% against "
+                          f"{p['target_pct']:.3f}%{', fits' if p['fits'] else ''}" for p in probes)
+        chosen = next((p["label"] for p in probes if p["fits"]), None)
+        lines[2:2] = [f"Objective size: each candidate within the target with all its nodes at int16, fewest nodes "
+                      f"first: {tried}. "
+                      + (f"Chosen: {chosen}, the smallest graph." if chosen else
+                         "None fits: the search's own choice, its nodes placed one at a time."), ""]
     for choice in plan["choices"]:
         tried = ", ".join(f"{p} {e:.3f}" for p, e in choice["errors"].items())
         lines.append(f"| `{choice['node']}` | {choice['precision']} | {tried} | {choice['reason']} |")

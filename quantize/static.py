@@ -195,18 +195,56 @@ def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.
     return sorted(set(found))
 
 
-def int16_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str]) -> dict[str, list[dict]]:
-    """TensorQuantOverrides giving the weights (initializer inputs) of `nodes` 16 bits,
-    symmetric per tensor: at 65,535 levels one scale per tensor rounds finer than 8 bits per
-    channel by two orders of magnitude, and ONNX Runtime then widens a weight scale where the
-    int32 bias would overflow (its QDQ quantiser's bias check)."""
-    from onnxruntime.quantization import QuantType
-
+def weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], override: Mapping[str, Any]) -> dict[str, list[dict]]:
+    """TensorQuantOverrides giving the weights (initializer inputs) of `nodes` the settings
+    `override` (one dict for the whole tensor: a per-channel weight keeps its axis)."""
     initializers = {init.name for init in model.graph.initializer}
     wanted = set(nodes)
-    return {tensor: [{"quant_type": QuantType.QInt16, "symmetric": True}]
+    return {tensor: [dict(override)]
             for node in model.graph.node if node.name in wanted
             for tensor in node.input[:2] if tensor in initializers}
+
+
+def int16_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str]) -> dict[str, list[dict]]:
+    """TensorQuantOverrides giving the weights of `nodes` 16 bits, symmetric per tensor: at
+    65,535 levels one scale per tensor rounds finer than 8 bits per channel by two orders of
+    magnitude, and ONNX Runtime then widens a weight scale where the int32 bias would overflow
+    (its QDQ quantiser's bias check). Full range: ONNX Runtime's reduce_range would make them
+    15-bit, for kernels that never read them (`full_range_weight_overrides`)."""
+    from onnxruntime.quantization import QuantType
+
+    return weight_overrides(model, nodes, {"quant_type": QuantType.QInt16, "symmetric": True, "reduce_range": False})
+
+
+def full_range_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], per_channel: bool) -> dict[str, list[dict]]:
+    """TensorQuantOverrides giving the 8-bit weights of 16-bit-activation `nodes` the full
+    8-bit range where the config reduces it (`StaticConfig.reduce_range`). The 7-bit range
+    guards the U8S8 kernels' 16-bit pair sums, and only a node whose activations are 8-bit
+    reaches those kernels: with a 16-bit input, ONNX Runtime and OpenVINO run the node in
+    float behind its DequantizeLinear, and a 7-bit weight would double its rounding step for
+    nothing. An override without an axis makes ONNX Runtime quantise the weight per tensor,
+    so a per-channel config names each weight's channel axis (`weight_channel_axis`)."""
+    initializers = {init.name for init in model.graph.initializer}
+    wanted = set(nodes)
+    overrides: dict[str, list[dict]] = {}
+    for node in model.graph.node:
+        if node.name in wanted and len(node.input) > 1 and node.input[1] in initializers:
+            axis = weight_channel_axis(node) if per_channel else None
+            overrides[node.input[1]] = [{"reduce_range": False, **({"axis": axis} if axis is not None else {})}]
+    return overrides
+
+
+def weight_channel_axis(node: onnx.NodeProto) -> int | None:
+    """The output-channel axis of a Conv/MatMul/Gemm weight (input 1), as ONNX Runtime's QDQ
+    quantiser chooses it per channel (its operators' default axes); None for other ops."""
+    if node.op_type == "Conv":
+        return 0
+    if node.op_type == "MatMul":
+        return 1
+    if node.op_type == "Gemm":
+        trans_b = next((a.i for a in node.attribute if a.name == "transB"), 0)
+        return 0 if trans_b else 1
+    return None
 
 
 def graph_opset(model: onnx.ModelProto) -> int:
@@ -240,7 +278,8 @@ def quantize_int8(
 
     `learned`: {tensor: {"scale", "zero_point"}} written as they are (QAT ranges,
     qat_ranges.py); `int16_nodes`: nodes whose activations are quantised to 16 bits (QUInt16;
-    the graph must be at opset 21 already, `ensure_opset`); `int16w16_nodes`: the same, and
+    the graph must be at opset 21 already, `ensure_opset`), their 8-bit weights at the full
+    range where the config reduces it (`full_range_weight_overrides`); `int16w16_nodes`: the same, and
     their weights 16-bit too (`int16_weight_overrides`). All go through ONNX Runtime's
     TensorQuantOverrides. A node named at 16 bits is quantised even where `exclude` names it
     too (a recurrent group's projection, kept in float with its group otherwise)."""
@@ -262,6 +301,8 @@ def quantize_int8(
             raise ValueError(f"{src} is below opset {INT16_OPSET}: convert it with ensure_opset before calibrating")
         int16 = int16_tensors(model, sixteen_bit, cache)
         weights16 = int16_weight_overrides(model, int16w16_nodes)
+        if config.reduce_range:
+            weights16.update(full_range_weight_overrides(model, int16_nodes, config.per_channel))
     overrides = {**ort_overrides(learned or {}, int16, int16_ranges(cache, int16)), **weights16}
     quantize_static(
         str(src), str(dst),

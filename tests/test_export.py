@@ -35,6 +35,10 @@ def test_graph_contract(tiny_graph, tiny_model) -> None:
     assert all(n.domain in ("", "ai.onnx") for n in graph.graph.node)
     assert "GridSample" in result.op_types, "deformable attention must export as GridSample"
     assert result.nodes_final < result.nodes_traced
+    # The attention origins repeat per (head, point) slot: a block and a Tile each (onnx_constants.py).
+    tiles = [n for n in graph.graph.node if n.op_type == "Tile" and n.name.endswith("::tile")]
+    assert result.retiled_constants["constants"] == len(tiles) >= 1
+    assert all("/attn/" in n.output[0] for n in tiles)
     meta = GraphMetadata.from_onnx(graph)
     names_in = [i.name for i in graph.graph.input]
     names_out = [o.name for o in graph.graph.output]

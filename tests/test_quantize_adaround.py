@@ -119,6 +119,40 @@ def test_rounded_weights_lower_each_layers_output_error_and_go_into_the_graph(ti
     assert apply_rounding(model, shifted) == 0
 
 
+def test_reduced_range_graphs_take_each_rounding_where_its_scale_is_the_graphs(calibrated_tiny: dict, tmp_path) -> None:
+    """An AVX2 target's graph (reduce_range) carries 7-bit weights on its 8-bit nodes and full
+    8-bit weights on its 16-bit nodes (static.full_range_weight_overrides): AdaRound's
+    integers chosen at each range (`nodes` limits the second pass to the 16-bit nodes) go in
+    where the graph's scale is theirs, and nowhere else."""
+    from e3dpsm.quantize.adaround import adaround_weights
+    from e3dpsm.quantize.static import StaticConfig, quantize_int8
+
+    reduced, full = StaticConfig(reduce_range=True), StaticConfig()
+    pre = onnx.load(str(calibrated_tiny["pre"]))
+    config = AdaRoundConfig(iterations=30)
+
+    def probe(cfg: StaticConfig, name: str) -> onnx.ModelProto:
+        quantize_int8(calibrated_tiny["pre"], tmp_path / name, cfg, exclude=[], cache=calibrated_tiny["cache"])
+        return onnx.load(str(tmp_path / name))
+
+    narrow = adaround_weights(pre, probe(reduced, "narrow.onnx"), calibrated_tiny["feeds"][:8], config, threads=1)
+    convs = [n.name for n in pre.graph.node if n.op_type == "Conv" and "/stages." in n.name][:4]
+    full_probe = probe(full, "wide.onnx")
+    wide = adaround_weights(pre, full_probe, calibrated_tiny["feeds"][:8], config, threads=1, nodes=convs)
+    layers = find_layers(pre, full_probe)
+    assert sorted(layers[key].node.name for key in wide) == sorted(convs)
+    assert all(np.abs(r.integers).max() > 64 for r in wide.values())  # the full range
+    assert all(np.abs(r.integers).max() <= 64 for r in narrow.values())  # 7-bit
+
+    quantize_int8(calibrated_tiny["pre"], tmp_path / "mixed.onnx", reduced, exclude=[], cache=calibrated_tiny["cache"],
+                  int16_nodes=convs)
+    model = onnx.load(str(tmp_path / "mixed.onnx"))
+    assert apply_rounding(model, wide) == len(convs)
+    assert apply_rounding(model, narrow) == len(narrow) - len(convs)  # every other weight, none twice
+    written = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    assert all(np.array_equal(written[k], r.integers) for k, r in wide.items())
+
+
 def test_weight_rounding_refuses_what_it_cannot_do() -> None:
     from e3dpsm.errors import ConfigError
     from e3dpsm.quantize import QuantizeOptions

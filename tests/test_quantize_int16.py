@@ -64,6 +64,66 @@ def test_demotion_keeps_each_node_at_int16_where_the_graph_stays_within_budget()
     assert cheap.int16 == ["a", "b"] and len(cheap.trials) == 1  # one trial when all fit at once
 
 
+def test_demotion_reuses_a_measured_all_int16_error() -> None:
+    calls: list[str] = []
+
+    def evaluate(int16: list[str], floats: list[str], label: str) -> float:
+        calls.append(label)
+        return 0.4 + 0.2 * len(int16)
+
+    plan = demote_to_int16(["a", "b"], 0.4, 1.0, evaluate, all_int16_error_pct=0.55)
+    assert calls == [] and plan.int16 == ["a", "b"] and plan.error_pct == 0.55
+    assert plan.trials == [{"label": "int16_all", "int16_nodes": 2, "float_nodes": 0, "error_pct": 0.55}]
+    over = demote_to_int16(["a", "b"], 0.4, 1.0, evaluate, all_int16_error_pct=0.9)  # 0.9 > 0.7: one at a time
+    assert calls == ["int16_b", "int16_a"] and over.int16 == ["b"]  # b 0.6, then a 0.8 > 0.7
+
+
+def test_size_objective_takes_the_fewest_nodes_that_all_fit_at_int16() -> None:
+    from e3dpsm.quantize.precision import smallest_int16_plan
+
+    # Injected: a candidate's all-int16 error is its float error plus 0.01 per node at int16
+    # times a per-node cost that falls with the candidate's size (the most sensitive nodes
+    # are in every candidate; a larger one leaves more slack).
+    candidates = [("top64", [f"n{i}" for i in range(64)], 0.30), ("top37", [f"n{i}" for i in range(37)], 0.736),
+                  ("top48", [f"n{i}" for i in range(48)], 0.48), ("top40", [f"n{i}" for i in range(40)], 0.69),
+                  ("top32", [f"n{i}" for i in range(32)], 0.87)]  # over the 0.75 target: never probed
+    measured = {"top37": 0.784, "top40": 0.76, "top48": 0.588, "top64": 0.35}
+    asked: list[str] = []
+
+    def evaluate(int16: list[str], label: str) -> float:
+        name = label.removeprefix("int16_all_")
+        asked.append(name)
+        assert int16 == next(nodes for lab, nodes, _ in candidates if lab == name)
+        return measured[name]
+
+    index, probes = smallest_int16_plan(candidates, 0.75, evaluate)
+    # targets 0.736 + 0.5 x 0.014 = 0.743 (0.784: no), 0.69 + 0.03 = 0.72 (0.76: no), 0.48 + 0.135 = 0.615 (0.588: yes)
+    assert candidates[index][0] == "top48" and asked == ["top37", "top40", "top48"]
+    assert [p.fits for p in probes] == [False, False, True]
+    assert probes[0].target_pct == pytest.approx(0.743) and probes[-1].to_dict()["fits"] is True
+    # Near the threshold: top48 at exactly its target fits, a hair over does not (then top64)
+    measured["top48"] = 0.48 + 0.5 * (0.75 - 0.48)
+    assert candidates[smallest_int16_plan(candidates, 0.75, evaluate)[0]][0] == "top48"
+    measured["top48"] += 1e-6
+    assert candidates[smallest_int16_plan(candidates, 0.75, evaluate)[0]][0] == "top64"
+    measured.update(top64=0.9)  # none fits: no choice, every probe reported
+    index, probes = smallest_int16_plan(candidates, 0.75, evaluate)
+    assert index is None and [p.label for p in probes] == ["top37", "top40", "top48", "top64"]
+
+
+def test_size_objective_needs_an_int16_search() -> None:
+    from e3dpsm.errors import ConfigError
+    from e3dpsm.quantize import QuantizeOptions
+
+    assert QuantizeOptions(mode="int8").search_objective == "size"
+    assert QuantizeOptions(mode="int8", int16=False).search_objective == "latency"
+    assert QuantizeOptions(mode="fp16").search_objective == "latency"
+    assert QuantizeOptions(mode="int8", objective="accuracy").search_objective == "accuracy"
+    for kwargs in ({"int16": False}, {"mode": "fp16"}, {"exclude": "recurrent"}, {"search": "groups"}):
+        with pytest.raises(ConfigError, match="--objective size"):
+            QuantizeOptions(**{"mode": "int8", **kwargs, "objective": "size"})
+
+
 def test_promotion_gives_float_nodes_16_bit_weights_where_the_graph_stays_within_target() -> None:
     from e3dpsm.quantize.precision import PrecisionChoice, PrecisionPlan, promote_to_int16w16
 
@@ -190,6 +250,44 @@ def test_int16w16_nodes_read_16_bit_weights_rounded_to_their_own_scale(int16_set
     assert err <= 1.05 * err16, (err, err16)
 
 
+def test_reduced_range_targets_give_16_bit_nodes_full_range_weights(int16_setup) -> None:
+    """Under reduce_range (an AVX2 target) only nodes with 8-bit activations reach the U8S8
+    kernels the 7-bit range guards: 16-bit nodes' weights take the full range (8-bit weights
+    +-127 per channel, 16-bit weights +-32767), the others stay within +-64."""
+    from e3dpsm.quantize.static import StaticConfig, quantize_int8
+
+    convs = [n for n in int16_setup["compute"] if "/stages." in n or "/stem/" in n]
+    int16, w16, int8 = convs[:3], convs[3:5], convs[5:8]
+    out = int16_setup["work"] / "reduced.onnx"
+    quantize_int8(int16_setup["pre"], out, StaticConfig(reduce_range=True), exclude=int16_setup["keep"],
+                  cache=int16_setup["cache"], int16_nodes=int16, int16w16_nodes=w16)
+    model = onnx.load(str(out))
+    pre = {n.name: n for n in onnx.load(str(int16_setup["pre"])).graph.node}
+    floats = {i.name: numpy_helper.to_array(i) for i in onnx.load(str(int16_setup["pre"])).graph.initializer}
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    node_of = {n.name: n for n in model.graph.node}
+    producer = {o: n for n in model.graph.node for o in n.output}
+
+    def weight(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        dq = producer[node_of[name].input[1]]
+        return inits[dq.input[0]], np.asarray(inits[dq.input[1]], np.float32), floats[pre[name].input[1]]
+
+    for name in int16:
+        q, scale, w = weight(name)
+        assert q.dtype == np.int8
+        channel_max = np.abs(q.reshape(q.shape[0], -1)).max(axis=1)
+        assert channel_max.max() == 127, (name, channel_max.max())
+        # numpy: symmetric per-channel scale max|w| / 127 (ONNX Runtime's full 8-bit range)
+        expected = (np.abs(w.reshape(w.shape[0], -1)).max(axis=1) / 127).astype(np.float32)
+        np.testing.assert_allclose(scale, expected, rtol=1e-6)
+    for name in w16:
+        q, scale, w = weight(name)
+        assert q.dtype == np.int16 and np.abs(q).max() > 16384, (name, np.abs(q).max())
+    for name in int8:
+        q, _, _ = weight(name)
+        assert q.dtype == np.int8 and np.abs(q).max() <= 64, (name, np.abs(q).max())
+
+
 def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
     report = json.loads((int8_dir / "report.json").read_text())
     q = report["quantization"]
@@ -202,12 +300,27 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
         assert choice["precision"] in ("int16", "int16w16", "float") and choice["reason"] and choice["errors"]
         if choice["precision"] != "float":  # kept at 16 bits only where the graph met the target so
             assert choice["errors"][choice["precision"]] <= plan["target_pct"] <= budget
+    # The default objective under int16 is size (precision.smallest_int16_plan): candidates
+    # within the target probed fewest nodes first, up to the first whose nodes all fit at int16.
+    assert report["search"]["objective"] == "size"
+    probes = plan["size_probes"]
+    assert [p["nodes"] for p in probes] == sorted(p["nodes"] for p in probes)
+    assert all(p["fits"] == (p["int16_error_pct"] <= p["target_pct"]) for p in probes)
+    assert not any(p["fits"] for p in probes[:-1])
+    ranked_choices = [c for c in plan["choices"] if not c["reason"].startswith("recurrent group: ")]
+    if probes and probes[-1]["fits"]:
+        assert report["search"]["chosen"]["label"] == probes[-1]["label"]
+        assert len(ranked_choices) == probes[-1]["nodes"] and all(c["precision"] == "int16" for c in ranked_choices)
+        assert "Objective size: " in (int8_dir / "report.md").read_text()
     if out_of_int8:  # report.md says where each went
         text = (int8_dir / "report.md").read_text()
         assert f"## Precision per node ({len(out_of_int8)} nodes out of 8 bits" in text
         assert all(f"| `{c['node']}` | {c['precision']} |" in text for c in plan["choices"])
     model = onnx.load(str(int8_dir / report["artifact"]))
     opset = next(o.version for o in model.opset_import if o.domain == "")
+    # The attention origins the pre-pass folded back are stored as a block and a Tile again.
+    retiled = report["sizes"]["retiled_constants"]
+    assert retiled["constants"] == sum(n.op_type == "Tile" and n.name.endswith("::tile") for n in model.graph.node) >= 1
     assert {n.domain for n in model.graph.node} == {""}
     assert (opset >= 21) == bool(plan["int16_nodes"])  # only graphs with 16-bit nodes leave the export's opset
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
@@ -245,6 +358,29 @@ def test_default_search_reports_each_node_precision(int8_dir: Path) -> None:
             assert label in ("int8", "int16"), (node, label)
     assert q["compute_precision"] == precision_counts(census)
     assert q["compute_nodes_out_of_8_bits"] == sum(1 for label in census.values() if label != "int8")
+    # 16-bit nodes' 8-bit weights take the full range even where the target reduces it (an
+    # AVX2 target; static.full_range_weight_overrides), rounded by AdaRound at that range.
+    source_weights = {i.name: numpy_helper.to_array(i) for i in source.graph.initializer}
+    source_nodes = {n.name: n for n in source.graph.node}
+    adarounded = 0
+    for node in (n for n in model.graph.node if n.name in set(plan["int16_nodes"])):
+        dq = producer[node.input[1]]
+        ints, scale = inits[dq.input[0]], inits[dq.input[1]]
+        if ints.dtype != np.int8:
+            continue
+        assert np.abs(ints).max() == 127, (node.name, np.abs(ints).max())
+        w = source_weights.get(source_nodes[node.name].input[1]) if node.name in source_nodes else None
+        if w is not None and w.shape == ints.shape and np.ndim(scale) == 1:
+            shape = (-1,) + (1,) * (w.ndim - 1) if node.op_type == "Conv" else (1, -1)
+            nearest = np.round(w.astype(np.float32) / scale.astype(np.float32).reshape(shape))
+            adarounded += not np.array_equal(ints, nearest)
+    if q["reduce_range"]:  # the 8-bit nodes' weights stay 7-bit
+        for node in (n for n in model.graph.node if census.get(n.name) == "int8"):
+            dq = producer.get(node.input[1])
+            if dq is not None and dq.input[0] in inits:
+                assert np.abs(inits[dq.input[0]]).max() <= 64, node.name
+    if plan["int16_nodes"] and report.get("weight_rounding", {}).get("method") == "adaround":
+        assert adarounded >= 1  # not left at nearest rounding
     # The artifact itself was timed beside fp32, and the verdict speaks of that timing.
     from e3dpsm.quantize.front_report import speed_verdict
 

@@ -44,11 +44,13 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="--exclude auto: 'nodes' quantises each Conv/MatMul/Gemm alone to rank them by held-out "
                    "error, then keeps the fewest top-ranked in float that meet the budget (int8 default; one "
                    "trial per node); 'groups' adds whole module / op-type groups greedily (fp16 default)")
-    p.add_argument("--objective", choices=("latency", "accuracy"), default="latency",
-                   help="--exclude auto: among the candidate graphs within the budget pick the fastest "
-                   "(latency, default; candidates are timed side by side with the fp32 graph, with the nodes "
-                   "they keep out of 8 bits in float) or the search's own choice, the fewest nodes out of 8 "
-                   "bits (accuracy). The graph written is timed beside fp32 either way: report.md's verdict")
+    p.add_argument("--objective", choices=("size", "latency", "accuracy"), default=None,  # quantize.front.OBJECTIVES
+                   help="--exclude auto: among the candidate graphs within the budget pick the smallest (size, "
+                   "the int8 default: the fewest nodes out of 8 bits whose nodes all fit at 16-bit activations "
+                   "with 8-bit weights, one trial each), the fastest (latency, the default without int16; "
+                   "candidates are timed side by side with the fp32 graph, with the nodes they keep out of 8 bits "
+                   "in float) or the search's own choice, the fewest nodes out of 8 bits (accuracy). The graph "
+                   "written is timed beside fp32 either way: report.md's verdict")
     p.add_argument("--timing-steps", type=positive_int, default=30,
                    help="--exclude auto: timed steps per candidate graph (default 30)")
     p.add_argument("--target-isa", choices=ISA_KINDS, default=None,
