@@ -13,10 +13,12 @@ import onnx
 # onnxconverter-common's own default block list, plus ops seen in the E-3DPSM graph that
 # ORT 1.31 CPU cannot run in fp16 or runs inaccurately: GridSample and DeformConv (no fp16
 # CPU kernels; deformable sampling offsets need float32 anyway), InstanceNormalization / LayerNormalization
-# (mean/variance over many values), Erf (GELU), Pow/Exp (discretisation, Kalman gains).
+# (mean/variance over many values), Erf (GELU), Pow/Exp (discretisation, Kalman gains), Tile
+# (no fp16 CPU kernel: ORT could not fold the export's tiled constants, onnx_constants.py, on
+# load, and ran them every step behind casts; in float32 they fold, the cast after them too).
 FP16_OP_BLOCK_LIST: tuple[str, ...] = (
     "GridSample", "DeformConv", "InstanceNormalization", "LayerNormalization", "Erf", "Pow", "Exp", "Softmax",
-    "Resize", "Range", "ConstantOfShape", "Where",
+    "Resize", "Range", "ConstantOfShape", "Where", "Tile",
 )
 
 

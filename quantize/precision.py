@@ -181,7 +181,8 @@ def smallest_int16_plan(candidates: Sequence[tuple[str, Sequence[str], float]], 
     for index in order:
         label, nodes, float_error = candidates[index]
         target = int16_target(float_error, budget_pct, slack_share)
-        err = float(evaluate(list(nodes), f"int16_all_{label}"))
+        # No node out of 8 bits: the graph at "all int16" is the one already measured.
+        err = float(evaluate(list(nodes), f"int16_all_{label}")) if nodes else float(float_error)
         probe = SizeProbe(label, len(nodes), float(float_error), target, err)
         probes.append(probe)
         log.info("%s: %d node(s) at int16: %.3f%% (target %.3f%%)%s", label, len(nodes), err, target,

@@ -88,3 +88,12 @@ def test_retile_constants_skips_small_gains_and_graph_outputs() -> None:
     model = _graph(big, np.eye(32, dtype=np.float32))
     model.graph.output.append(helper.make_tensor_value_info("origin", TensorProto.FLOAT, list(big.shape)))
     assert retile_constants(model).constants == 0
+
+
+def test_retile_constants_leaves_float16_constants_alone() -> None:
+    """ONNX Runtime 1.31's CPU Tile has no float16 kernel: such a Tile would be neither folded
+    on load nor run without casts, so float16 constants stay as they are."""
+    origin = np.tile(np.float32([[1.0, 2.0]]), (64, 16))
+    model = _graph(origin, np.eye(32, dtype=np.float32))
+    model.graph.initializer[0].CopyFrom(numpy_helper.from_array(origin.astype(np.float16), "origin"))
+    assert retile_constants(model).constants == 0

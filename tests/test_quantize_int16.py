@@ -106,6 +106,10 @@ def test_size_objective_takes_the_fewest_nodes_that_all_fit_at_int16() -> None:
     assert candidates[smallest_int16_plan(candidates, 0.75, evaluate)[0]][0] == "top48"
     measured["top48"] += 1e-6
     assert candidates[smallest_int16_plan(candidates, 0.75, evaluate)[0]][0] == "top64"
+    base = [("base", [], 0.5), *candidates]  # nothing out of 8 bits: fits without a graph built
+    asked.clear()
+    index, probes = smallest_int16_plan(base, 0.75, evaluate)
+    assert index == 0 and asked == [] and probes[0].int16_error_pct == 0.5 and probes[0].fits
     measured.update(top64=0.9)  # none fits: no choice, every probe reported
     index, probes = smallest_int16_plan(candidates, 0.75, evaluate)
     assert index is None and [p.label for p in probes] == ["top37", "top40", "top48", "top64"]
