@@ -431,6 +431,11 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             def ranked_nodes(excluded: Sequence[str]) -> list[str]:
                 return [n for n in excluded if n not in kept]
 
+            def measure(int16: Sequence[str], w16: Sequence[str], floats: Sequence[str], label: str) -> float:
+                """One 16-bit plan's graph error: the recurrent groups and `floats` in float."""
+                return _evaluator(pre_meta, holdout, options, work,
+                                  lambda excl: build(excl, int16, w16))([*keep, *floats], label)
+
             sized = options.search_objective == "size"
             probed = [c for c in latency.candidates if c.error_pct <= options.search_target] if sized else []
             # The nodes the 16-bit stages may place: their 8-bit weights take the full range
@@ -443,23 +448,16 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             if sized:
                 index, size_probes = smallest_int16_plan(
                     [(c.label, ranked_nodes(c.excluded_nodes), c.error_pct) for c in probed], options.search_target,
-                    lambda int16, label: _evaluator(pre_meta, holdout, options, work,
-                                                    lambda excl: build(excl, int16))(keep, label))
+                    lambda int16, label: measure(int16, (), (), label))
                 if index is not None:
                     latency.chosen = probed[index]
                     search, all_int16 = _with_choice(search, probed[index]), size_probes[-1].int16_error_pct
                     fixed = search.excluded_nodes
-            precision = demote_to_int16(
-                ranked_nodes(fixed), search.error_pct, options.search_target,
-                lambda int16, floats, label: _evaluator(pre_meta, holdout, options, work,
-                                                        lambda excl: build(excl, int16))(keep + floats, label),
-                all_int16_error_pct=all_int16)
-            precision = promote_to_int16w16(
-                precision, lambda int16, w16, floats, label: _evaluator(
-                    pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
-            precision = quantise_recurrent_compute(
-                precision, recurrent_compute, lambda int16, w16, floats, label: _evaluator(
-                    pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(keep + floats, label))
+            precision = demote_to_int16(ranked_nodes(fixed), search.error_pct, options.search_target,
+                                        lambda int16, floats, label: measure(int16, (), floats, label),
+                                        all_int16_error_pct=all_int16)
+            precision = promote_to_int16w16(precision, measure)
+            precision = quantise_recurrent_compute(precision, recurrent_compute, measure)
             int16_nodes, int16w16_nodes = precision.int16, precision.int16w16
             fixed = list(dict.fromkeys(keep + precision.float_nodes))  # 16-bit nodes leave it (quantize_int8)
     quantize_int8(pre16 if int16_nodes or int16w16_nodes else pre, out, config, exclude=fixed, cache=cache,
