@@ -35,6 +35,7 @@ import onnx
 from onnx import numpy_helper
 
 from e3dpsm.onnx_graph import with_outputs
+from e3dpsm.quantize.static import weight_channel_axis
 
 log = logging.getLogger(__name__)
 
@@ -91,23 +92,22 @@ def find_layers(pre: onnx.ModelProto, qdq: onnx.ModelProto) -> dict[str, _Layer]
         zero = ints.get(dq.input[2]) if len(dq.input) > 2 else None
         if q.dtype != np.int8 or scale is None or scale.ndim != 1 or (zero is not None and np.any(zero)):
             continue
-        axis = _attrs(dq).get("axis", 1)
+        if _attrs(dq).get("axis", 1) != weight_channel_axis(node):  # per output channel, as ORT lays it out
+            continue
         weight = numpy_helper.to_array(floats[node.input[1]]).astype(np.float64)
         attrs = _attrs(node)
         if node.op_type == "Conv":
-            if attrs.get("group", 1) != 1 or axis != 0:
+            if attrs.get("group", 1) != 1:
                 continue
             layer = _Layer(node, weight.reshape(weight.shape[0], -1), scale, "conv", q.shape)
         elif node.op_type == "Gemm":
             if attrs.get("transA", 0) or weight.ndim != 2:
                 continue
             rows = bool(attrs.get("transB", 0))
-            if axis != (0 if rows else 1):
-                continue
             layer = _Layer(node, weight if rows else weight.T, scale, "rows" if rows else "cols",
                            q.shape, float(attrs.get("alpha", 1.0)))
         else:
-            if weight.ndim != 2 or axis != 1:
+            if weight.ndim != 2:
                 continue
             layer = _Layer(node, weight.T, scale, "cols", q.shape)
         if layer.weight.shape[0] != scale.size:

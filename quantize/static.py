@@ -11,7 +11,7 @@ import os
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
 
 import numpy as np
 import onnx
@@ -195,14 +195,15 @@ def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.
     return sorted(set(found))
 
 
-def weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], override: Mapping[str, Any]) -> dict[str, list[dict]]:
-    """TensorQuantOverrides giving the weights (initializer inputs) of `nodes` the settings
-    `override` (one dict for the whole tensor: a per-channel weight keeps its axis)."""
+def _weight_inputs(model: onnx.ModelProto, nodes: Iterable[str]) -> Iterator[tuple[onnx.NodeProto, int, str]]:
+    """(node, input index, tensor) for each initializer among the first two inputs of `nodes`."""
     initializers = {init.name for init in model.graph.initializer}
     wanted = set(nodes)
-    return {tensor: [dict(override)]
-            for node in model.graph.node if node.name in wanted
-            for tensor in node.input[:2] if tensor in initializers}
+    for node in model.graph.node:
+        if node.name in wanted:
+            for index, tensor in enumerate(node.input[:2]):
+                if tensor in initializers:
+                    yield node, index, tensor
 
 
 def int16_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str]) -> dict[str, list[dict]]:
@@ -213,7 +214,8 @@ def int16_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str]) -> dict
     15-bit, for kernels that never read them (`full_range_weight_overrides`)."""
     from onnxruntime.quantization import QuantType
 
-    return weight_overrides(model, nodes, {"quant_type": QuantType.QInt16, "symmetric": True, "reduce_range": False})
+    return {tensor: [{"quant_type": QuantType.QInt16, "symmetric": True, "reduce_range": False}]
+            for _, _, tensor in _weight_inputs(model, nodes)}
 
 
 def full_range_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], per_channel: bool) -> dict[str, list[dict]]:
@@ -224,19 +226,19 @@ def full_range_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], pe
     float behind its DequantizeLinear, and a 7-bit weight would double its rounding step for
     nothing. An override without an axis makes ONNX Runtime quantise the weight per tensor,
     so a per-channel config names each weight's channel axis (`weight_channel_axis`)."""
-    initializers = {init.name for init in model.graph.initializer}
-    wanted = set(nodes)
     overrides: dict[str, list[dict]] = {}
-    for node in model.graph.node:
-        if node.name in wanted and len(node.input) > 1 and node.input[1] in initializers:
-            axis = weight_channel_axis(node) if per_channel else None
-            overrides[node.input[1]] = [{"reduce_range": False, **({"axis": axis} if axis is not None else {})}]
+    for node, index, tensor in _weight_inputs(model, nodes):
+        if index != 1:
+            continue
+        axis = weight_channel_axis(node) if per_channel else None
+        overrides[tensor] = [{"reduce_range": False, **({"axis": axis} if axis is not None else {})}]
     return overrides
 
 
 def weight_channel_axis(node: onnx.NodeProto) -> int | None:
     """The output-channel axis of a Conv/MatMul/Gemm weight (input 1), as ONNX Runtime's QDQ
-    quantiser chooses it per channel (its operators' default axes); None for other ops."""
+    quantiser chooses it per channel (its operators' default axes); None for other ops.
+    AdaRound reads per-channel weights at this axis too (adaround.find_layers)."""
     if node.op_type == "Conv":
         return 0
     if node.op_type == "MatMul":

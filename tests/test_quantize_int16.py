@@ -460,3 +460,32 @@ def test_int16_tensors_are_widened_under_minmax_calibration_too(tmp_path: Path) 
     ranges = int16_ranges(cache, ["a", "b", "missing"])
     assert ranges == {"a": pytest.approx((-0.5 * INT16_RANGE_MARGIN, 2.0 * INT16_RANGE_MARGIN)),
                       "b": pytest.approx((0.0, 3.0 * INT16_RANGE_MARGIN))}
+
+
+def test_weight_overrides_name_each_weight_input_and_its_channel_axis() -> None:
+    """Hand-made graph: a Conv (weight axis 0), a Gemm with and without transB (0 / 1), a
+    MatMul whose initializer is input 0 (no channel axis of a weight there: full range
+    leaves it alone, 16 bits take it as they take any initializer input) and one whose
+    initializer is input 1 (axis 1)."""
+    from onnx import helper
+
+    from e3dpsm.quantize.static import full_range_weight_overrides, int16_weight_overrides
+
+    def init(name: str, *shape: int) -> onnx.TensorProto:
+        return numpy_helper.from_array(np.ones(shape, np.float32), name)
+
+    nodes = [helper.make_node("Conv", ["x", "wc"], ["c"], name="conv"),
+             helper.make_node("Gemm", ["g", "wg"], ["g1"], name="gemm_t", transB=1),
+             helper.make_node("Gemm", ["g", "wh"], ["g2"], name="gemm"),
+             helper.make_node("MatMul", ["a0", "m"], ["m1"], name="matmul_left"),
+             helper.make_node("MatMul", ["m", "wm"], ["m2"], name="matmul")]
+    graph = helper.make_graph(nodes, "g", [], [], [init("wc", 4, 2, 3, 3), init("wg", 5, 4), init("wh", 4, 5),
+                                                   init("a0", 3, 4), init("wm", 4, 6)])
+    model = helper.make_model(graph)
+    names = [n.name for n in nodes]
+    full = full_range_weight_overrides(model, names, per_channel=True)
+    assert full == {"wc": [{"reduce_range": False, "axis": 0}], "wg": [{"reduce_range": False, "axis": 0}],
+                    "wh": [{"reduce_range": False, "axis": 1}], "wm": [{"reduce_range": False, "axis": 1}]}
+    assert full_range_weight_overrides(model, names, per_channel=False)["wc"] == [{"reduce_range": False}]
+    assert full_range_weight_overrides(model, ["conv"], per_channel=True).keys() == {"wc"}
+    assert int16_weight_overrides(model, names).keys() == {"wc", "wg", "wh", "a0", "wm"}
