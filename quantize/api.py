@@ -31,14 +31,15 @@ from e3dpsm.quantize.front import (FP32_LABEL, OBJECTIVES, Candidate, LatencySea
                                    latency_aware_choice)
 from e3dpsm.quantize.front_report import write_search_outputs
 from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
-from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, isolate_state_reads, recurrent_groups
+from e3dpsm.quantize.graph_groups import (NodeGroup, candidate_groups, isolate_state_reads, recurrent_groups,
+                                         shared_input_units)
 from e3dpsm.quantize.holdout import HoldoutSet, accuracy_of, make_holdout
 from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.precision import (SizeProbe, demote_to_int16, promote_to_int16w16, quantise_recurrent_compute,
                                        smallest_int16_plan)
 from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
-from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, preprocess,
-                                   quantize_int8, quantised_node_count, saturates_u8s8)
+from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, int16_tensors,
+                                   preprocess, quantize_int8, quantised_node_count, saturates_u8s8)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.isa import detect_isa
@@ -431,10 +432,12 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
             def ranked_nodes(excluded: Sequence[str]) -> list[str]:
                 return [n for n in excluded if n not in kept]
 
-            def measure(int16: Sequence[str], w16: Sequence[str], floats: Sequence[str], label: str) -> float:
-                """One 16-bit plan's graph error: the recurrent groups and `floats` in float."""
-                return _evaluator(pre_meta, holdout, options, work,
-                                  lambda excl: build(excl, int16, w16))([*keep, *floats], label)
+            def measure(int16: Sequence[str], w16: Sequence[str], floats: Sequence[str], label: str,
+                        int8: Sequence[str] = ()) -> float:
+                """One plan's graph error: the recurrent groups (less their nodes in `int8`) and
+                `floats` in float."""
+                return _evaluator(pre_meta, holdout, options, work, lambda excl: build(excl, int16, w16))(
+                    _kept_float(keep, floats, int8), label)
 
             sized = options.search_objective == "size"
             probed = [c for c in latency.candidates if c.error_pct <= options.search_target] if sized else []
@@ -457,9 +460,13 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                         lambda int16, floats, label: measure(int16, (), floats, label),
                                         all_int16_error_pct=all_int16)
             precision = promote_to_int16w16(precision, measure)
-            precision = quantise_recurrent_compute(precision, recurrent_compute, measure)
+            # A recurrent node reading a tensor the 16-bit nodes widen reads 16 bits whatever it is given.
+            widened = set(int16_tensors(pre_model, precision.int16 + precision.int16w16, cache))
+            precision = quantise_recurrent_compute(
+                precision, shared_input_units(pre_model, recurrent_compute), measure,
+                no_int8=[n.name for n in pre_model.graph.node if n.name in recurrent_compute and widened & {*n.input}])
             int16_nodes, int16w16_nodes = precision.int16, precision.int16w16
-            fixed = list(dict.fromkeys(keep + precision.float_nodes))  # 16-bit nodes leave it (quantize_int8)
+            fixed = _kept_float(keep, precision.float_nodes, precision.int8)  # 16-bit nodes leave it (quantize_int8)
     quantize_int8(pre16 if int16_nodes or int16w16_nodes else pre, out, config, exclude=fixed, cache=cache,
                   learned=learned, int16_nodes=int16_nodes, int16w16_nodes=int16w16_nodes)
     model = onnx.load(str(out))
@@ -491,6 +498,13 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         **({"weight_rounding": rounding_report} if rounding_report is not None else {}),
     }
     return model, info, extra
+
+
+def _kept_float(recurrent: Sequence[str], floats: Sequence[str], int8: Sequence[str]) -> list[str]:
+    """The nodes a plan keeps in float: the recurrent groups' and `floats`, less the recurrent
+    projections it placed at 8 bits (`int8`)."""
+    placed = set(int8)
+    return [n for n in dict.fromkeys([*recurrent, *floats]) if n not in placed]
 
 
 def _adaround(options: QuantizeOptions, config: StaticConfig, pre: Path, pre_model: onnx.ModelProto, cache: Path,

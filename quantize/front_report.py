@@ -187,8 +187,10 @@ def precision_lines(plan: dict[str, Any] | None) -> list[str]:
         return []
     counts = {kind: len(plan.get(key) or []) for kind, key in
               (("int16", "int16_nodes"), ("int16w16", "int16w16_nodes"), ("float", "float_nodes"))}
-    lines = [f"## Precision per node ({len(plan['choices'])} nodes out of 8 bits: "
-             + ", ".join(f"{n} {kind}" for kind, n in counts.items()) + ")", "",
+    int8 = len(plan.get("int8_recurrent_nodes") or [])
+    lines = [f"## Precision per node ({len(plan['choices']) - int8} nodes out of 8 bits: "
+             + ", ".join(f"{n} {kind}" for kind, n in counts.items())
+             + (f"; {int8} recurrent projections at int8" if int8 else "") + ")", "",
              f"int16: 16-bit activations, 8-bit weights; int16w16: 16-bit weights too; float: neither. Each node "
              f"takes the first that keeps the graph within the {plan['target_pct']:.3f}% target; graph error "
              f"after the decisions {plan['error_pct']:.3f}%.", "",

@@ -25,13 +25,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Collection, Mapping, Sequence
 
 log = logging.getLogger(__name__)
 
 # Cheapest first: fewer bits, smaller graph, integer kernels. "int16": 16-bit activations,
 # 8-bit weights; "int16w16": 16-bit weights too.
 PRECISIONS: tuple[str, ...] = ("int8", "int16", "int16w16", "float")
+# What the recurrent groups' projections are tried at, before float (quantise_recurrent_compute).
+RECURRENT_PRECISIONS: tuple[str, ...] = PRECISIONS[:-1]
 # Share of the all-float choice's slack under the budget that 16-bit nodes may spend (module doc).
 INT16_SLACK_SHARE = 0.5
 
@@ -82,9 +84,12 @@ class PrecisionPlan:
 
     target_pct: float | None = None
     int16w16: list[str] = field(default_factory=list)
+    # Recurrent groups' projections placed at 8 bits (the groups stay float otherwise).
+    int8: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"target_pct": self.target_pct, "int16_nodes": self.int16, "int16w16_nodes": self.int16w16,
+                "int8_recurrent_nodes": self.int8,
                 "float_nodes": self.float_nodes, "error_pct": self.error_pct,
                 "choices": [c.to_dict() for c in self.choices], "trials": self.trials}
 
@@ -242,68 +247,100 @@ def promote_to_int16w16(plan: PrecisionPlan,
                                      {**choice.errors, "int16w16": errors[choice.node]})
         choices.append(choice)
     return PrecisionPlan(list(plan.int16), [n for n in floats if n not in w16], current, choices, trials,
-                         plan.target_pct, [n for n in floats if n in w16])
+                         plan.target_pct, [n for n in floats if n in w16], list(plan.int8))
 
 
-def quantise_recurrent_compute(plan: PrecisionPlan, nodes: Sequence[str],
-                               evaluate: Callable[[list[str], list[str], list[str], str], float]) -> PrecisionPlan:
-    """The recurrent groups' Conv/MatMul/Gemm (`nodes`: S5's input and readout projections,
-    the Kalman fusion's Gemms), which the ranked search leaves in float with the rest of the
-    recurrent groups, given the lowest precision above int8 that keeps the graph within the
-    plan's target: all at int16 at once, else all at int16w16, else one at a time (int16,
-    then int16w16, else float). The recurrences themselves (the state update's elementwise
-    ops) stay float; these nodes project into and out of the state, so 16-bit activations
-    round the drive added to the state and what a readout reads, never the state carried to
-    the next step (S5's readouts read a copy of the new state, graph_groups.
-    isolate_state_reads; the caller leaves out any node that still reads or writes a graph
-    output, which ONNX Runtime's quantiser would round where the graph outputs it).
-    `evaluate(int16_nodes, int16w16_nodes, float_nodes, label) -> error %` over the whole
-    graph's lists.
+def quantise_recurrent_compute(plan: PrecisionPlan, units: Sequence[Sequence[str]],
+                               evaluate: Callable[..., float], no_int8: Collection[str] = ()) -> PrecisionPlan:
+    """The recurrent groups' Conv/MatMul/Gemm (S5's input and readout projections, the Kalman
+    fusion's Gemms), which the ranked search leaves in float with the rest of the recurrent
+    groups, given the lowest precision that keeps the graph within the plan's target: all at
+    int8 at once, else all at int16, else all at int16w16, else one unit at a time (int8,
+    int16, int16w16, else float); where all fitted at once above int8, each unit is then
+    tried back at int8, one at a time, and kept there where the graph still fits. A unit is
+    the nodes that read one activation tensor (graph_groups.shared_input_units): one of them
+    at 16 bits makes the tensor 16-bit for all. `no_int8`: nodes that read a tensor the
+    plan's 16-bit nodes already widen; their units are not tried at int8 (nor is the
+    all-at-once int8 graph, which could not be what it says).
 
-    Why not int8: the search ranks and prices only the other compute nodes; a recurrent
-    projection at 8 bits rounds every step's drive into a state that integrates it."""
-    nodes = list(dict.fromkeys(nodes))
+    The recurrences themselves (the state update's elementwise ops) stay float; these nodes
+    project into and out of the state, so their activations' rounding reaches the drive
+    added to the state and what a readout reads, never the state carried to the next step
+    (S5's readouts read a copy of the new state, graph_groups.isolate_state_reads; the
+    caller leaves out any node that still reads or writes a graph output, which ONNX
+    Runtime's quantiser would round where the graph outputs it).
+    `evaluate(int16_nodes, int16w16_nodes, float_nodes, label, int8=recurrent_nodes_at_int8)
+    -> error %` over the whole graph's lists; `plan.int8` lists the recurrent nodes placed at
+    8 bits (the caller takes them out of the recurrent groups it keeps in float).
+
+    Why int8 first: a drive projection rounds every step's input to a state that integrates
+    it and a readout reads a state whose channels span decades, so most of them need 16 bits
+    (on the committed `small`: all 11 at int8 1.090% against 0.589% at int16; back at int8
+    one unit at a time, two of the fusion's three Gemms fitted); but the search never priced
+    them, and each that fits at 8 bits is one node fewer out of 8 bits, on the integer
+    kernels."""
+    if any(isinstance(u, str) for u in units):
+        raise TypeError("units are sequences of node names (graph_groups.shared_input_units), not names")
+    units = [list(u) for u in units if u]
+    nodes = [n for u in units for n in u]
     target = plan.target_pct if plan.target_pct is not None else plan.error_pct
     if not nodes or plan.error_pct > target:  # no slack to spend: they stay in float, undecided
         return plan
+    blocked = set(no_int8)
     trials = list(plan.trials)
-    placed: dict[str, list[str]] = {"int16": [], "int16w16": []}  # recurrent nodes kept at each precision
+    assigned: dict[str, str] = {}  # recurrent node -> the precision it keeps
 
-    def measure(trial: dict[str, list[str]], label: str) -> float:
-        """The graph with `placed` and `trial` at 16 bits, every other recurrent node in float."""
-        r16, rw16 = placed["int16"] + trial.get("int16", []), placed["int16w16"] + trial.get("int16w16", [])
-        rest = [n for n in nodes if n not in r16 and n not in rw16]
-        err = float(evaluate(plan.int16 + r16, plan.int16w16 + rw16, plan.float_nodes + rest, label))
-        trials.append({"label": label, "int16_nodes": len(plan.int16 + r16),
-                       "int16w16_nodes": len(plan.int16w16 + rw16), "float_nodes": len(plan.float_nodes + rest),
-                       "error_pct": err})
-        log.info("%s: %d recurrent node(s) int16, %d int16w16, %d float: %.3f%%", label, len(r16), len(rw16),
-                 len(rest), err)
+    def measure(unit: Sequence[str], precision: str, label: str) -> float:
+        """The graph with `unit` at `precision` and the others as `assigned` (float if not)."""
+        now = {**assigned, **dict.fromkeys(unit, precision)}
+        at = {p: [n for n in nodes if now.get(n) == p] for p in RECURRENT_PRECISIONS}
+        rest = [n for n in nodes if n not in now]
+        err = float(evaluate(plan.int16 + at["int16"], plan.int16w16 + at["int16w16"], plan.float_nodes + rest,
+                             label, int8=plan.int8 + at["int8"]))
+        trials.append({"label": label, "int8_recurrent_nodes": len(plan.int8 + at["int8"]),
+                       "int16_nodes": len(plan.int16 + at["int16"]),
+                       "int16w16_nodes": len(plan.int16w16 + at["int16w16"]),
+                       "float_nodes": len(plan.float_nodes + rest), "error_pct": err})
+        log.info("%s: recurrent nodes %d int8, %d int16, %d int16w16, %d float: %.3f%%", label, len(at["int8"]),
+                 len(at["int16"]), len(at["int16w16"]), len(rest), err)
         return err
+
+    def precisions(unit: Sequence[str]) -> tuple[str, ...]:
+        return RECURRENT_PRECISIONS if not blocked & set(unit) else RECURRENT_PRECISIONS[1:]
 
     current = plan.error_pct
     errors: dict[str, dict[str, float]] = {n: {} for n in nodes}
-    for precision in ("int16", "int16w16"):  # all at once
-        err = measure({precision: nodes}, f"recurrent_{precision}_all")
+    together = None
+    for precision in precisions(nodes):  # all at once, cheapest first
+        err = measure(nodes, precision, f"recurrent_{precision}_all")
         for node in nodes:
             errors[node][precision] = err
         if err <= target:
-            placed[precision], current = list(nodes), err
+            assigned, current, together = dict.fromkeys(nodes, precision), err, precision
             break
-    else:  # one at a time, each at the first precision that fits
-        for node in nodes:
-            errors[node] = {}
-            for precision in ("int16", "int16w16"):
-                err = errors[node][precision] = measure({precision: [node]}, f"recurrent_{precision}_{node}")
+    if together is None:  # one unit at a time, each at the first precision that fits
+        for unit in units:
+            errors.update({n: {} for n in unit})
+            for precision in precisions(unit):
+                err = measure(unit, precision, f"recurrent_{precision}_{'+'.join(unit)}")
+                errors.update({n: {**errors[n], precision: err} for n in unit})
                 if err <= target:
-                    placed[precision].append(node)
+                    assigned.update(dict.fromkeys(unit, precision))
                     current = err
                     break
+    elif together != "int8":  # each unit back at 8 bits where the graph still fits
+        for unit in (u for u in units if "int8" in precisions(u)):
+            err = measure(unit, "int8", f"recurrent_int8_{'+'.join(unit)}")
+            errors.update({n: {**errors[n], "int8": err} for n in unit})
+            if err <= target:
+                assigned.update(dict.fromkeys(unit, "int8"))
+                current = err
     # plan.error_pct (every recurrent node in float) is within the target (checked above), so
     # each node's choice is the first precision its trials found within it, float last.
     choices = list(plan.choices) + [
         PrecisionChoice(c.node, c.precision, f"recurrent group: {c.reason}", c.errors)
         for c in (choose_precision(n, {**errors[n], "float": plan.error_pct}, target) for n in nodes)]
-    rest = [n for n in nodes if n not in placed["int16"] and n not in placed["int16w16"]]
-    return PrecisionPlan(plan.int16 + placed["int16"], plan.float_nodes + rest, current, choices, trials,
-                         plan.target_pct, plan.int16w16 + placed["int16w16"])
+    at = {p: [n for n in nodes if assigned.get(n) == p] for p in RECURRENT_PRECISIONS}
+    rest = [n for n in nodes if n not in assigned]
+    return PrecisionPlan(plan.int16 + at["int16"], plan.float_nodes + rest, current, choices, trials,
+                         plan.target_pct, plan.int16w16 + at["int16w16"], plan.int8 + at["int8"])
