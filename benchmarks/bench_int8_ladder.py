@@ -11,7 +11,8 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
   activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor), and
   `mse` after `--equalize` (GEGLU scales folded into the weights);
 - the default `--exclude auto` graph with `--calibration mse` (AdaRound weights, int16 before
-  float), without int16, with nearest weight rounding, and so without the search's margin;
+  float, `--objective size`), with `--objective latency`, without int16, with nearest weight
+  rounding, and so without the search's margin;
   full integer with AdaRound weights (`--weight-rounding adaround`);
 - the fp32 graph run in bf16 on OpenVINO (where the CPU has bf16 units);
 - full integer, `mse`, with the other weight width than this host's default target gives
@@ -21,8 +22,8 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
   integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
   calibrated min-max ranges; distances are to that checkpoint's own fp32 graph, and
   `mpjpe_vs_base_pct` compares its INT8 poses' MPJPE with --checkpoint's fp32 one.
-`--rows` keeps only the rows whose label contains one of the given words, and `--append`
-adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
+`--rows` keeps only the rows whose label contains one of the given words, `--only` those with
+exactly the given labels, and `--append` adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
 how far a budget chosen on one split carries), and on --holdout-split in the graph's exact
 arithmetic (ONNX Runtime with graph optimisations off: every Q/DQ pair computed in float, no
@@ -104,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-search", action="store_true", help="skip the default --exclude auto row")
     parser.add_argument("--qat-checkpoint", default=None, help="a `train --qat` fine-tune of --checkpoint")
     parser.add_argument("--rows", nargs="*", default=None, help="only rows whose label contains one of these")
+    parser.add_argument("--only", nargs="*", default=None, help="only the rows with exactly these labels")
     parser.add_argument("--append", action="store_true", help="add the rows to the existing results")
     args = parser.parse_args(argv)
 
@@ -136,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
             # the nearest rows name their rounding, which the default no longer is.
             runs.append(("default search, mse", QuantizeOptions(mode="int8", calibration="mse", int16=False)))
             runs.append(("default search, mse, int16", QuantizeOptions(mode="int8", calibration="mse")))
+            runs.append(("default search, mse, int16, latency objective",
+                         QuantizeOptions(mode="int8", calibration="mse", objective="latency")))
             runs.append(("default search, mse, int16, nearest", QuantizeOptions(mode="int8", calibration="mse",
                                                                                  weight_rounding="nearest")))
             runs.append(("default search, mse, int16, nearest, no search margin",
@@ -156,8 +160,14 @@ def main(argv: list[str] | None = None) -> int:
                 sources[label] = qat_fp32
         if args.rows:
             runs = [(label, o) for label, o in runs if any(word in label for word in args.rows)]
+        if args.only:
+            unknown = sorted(set(args.only) - {label for label, _ in runs})
+            if unknown:
+                parser.error(f"no row labelled {unknown}; the rows: {[label for label, _ in runs]}")
+            runs = [(label, o) for label, o in runs if label in args.only]
         checks = {fp32: check}
         exact_holdouts: dict[Path, object] = {}
+        failed: list[dict] = []
         for label, options in runs:
             options = QuantizeOptions(**{**options.__dict__, "frames": args.frames, "holdout_frames": args.holdout_frames,
                                          "split": args.split, "holdout_split": args.holdout_split,
@@ -166,7 +176,12 @@ def main(argv: list[str] | None = None) -> int:
             if source not in checks:
                 checks[source] = make_holdout(source, data.split(args.check_split), window_ms, args.check_frames,
                                               args.threads)
-            q = quantize_graph(source, args.data, work / label.replace(" ", "_").replace(",", ""), options)
+            try:
+                q = quantize_graph(source, args.data, work / label.replace(" ", "_").replace(",", ""), options)
+            except Exception as error:  # noqa: BLE001 - one row's failure must not lose the hour's other rows
+                failed.append({"label": label, "error": f"{type(error).__name__}: {error}"})
+                print(f"{label}: FAILED ({failed[-1]['error']})", flush=True)
+                continue
             path = work / label.replace(" ", "_").replace(",", "") / q["artifact"]
             graphs[label] = path
             measured = accuracy_of(path, checks[source], args.threads)
@@ -203,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:  # each row keeps the fp32 timed beside it (rows appended later come from another run)
         r.update(ort_ms=p50[f"ort {r['label']}"], openvino_ms=p50[f"openvino {r['label']}"],
                  ort_fp32_ms=p50["ort fp32"], openvino_fp32_ms=p50["openvino fp32"], isa=detect_isa().kind)
-    report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows,
+    report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows, failed_rows=failed,
                   bf16_distance_pct=bf16, p50_ms=p50, fp32_mpjpe_mm=holdout.fp32_mpjpe)
     name = f"int8_{variant}_ladder_{detect_isa().kind}"
     if args.append and (RESULTS / f"{name}.json").is_file():
@@ -213,11 +228,12 @@ def main(argv: list[str] | None = None) -> int:
         old.setdefault("appended", []).append({k: report[k] for k in ("created", "config", "machine", "isa")})
         labels = {r["label"] for r in rows}
         old["rows"] = [r for r in old["rows"] if r["label"] not in labels] + rows
+        old["failed_rows"] = failed
         report = old
     write_json_atomic(RESULTS / f"{name}.json", report)
     write_text_atomic(RESULTS / f"{name}.md", markdown(report))
     print(markdown(report))
-    return 0
+    return 1 if failed else 0
 
 
 def markdown(report: dict) -> str:
@@ -265,6 +281,7 @@ def markdown(report: dict) -> str:
                   f"results/qat_{report['variant']}_mpjpe_{report['isa']['kind']}.md):", ""]
         lines += [f"- {r['label']}: {r['mpjpe_vs_base_pct']:+.2f}%" for r in report["rows"] if "mpjpe_vs_base_pct" in r]
     lines += [f"\nNote: {note}" for note in report.get("notes", [])]
+    lines += [f"\nFailed in the last run (no row): {f['label']}: {f['error']}" for f in report.get("failed_rows", [])]
     appended = report.get("appended", [])
     if appended:
         runs = ", ".join(f"{extra['created']} (ISA {extra['isa']['kind']})" for extra in appended)

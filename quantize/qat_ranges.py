@@ -54,7 +54,10 @@ def _placeholder_qdq(pre_path: str | os.PathLike, exclude: Sequence[str], op_typ
 
     with tempfile.TemporaryDirectory(prefix="e3dpsm-qsites-") as work:
         calibrator = create_calibrator(Path(pre_path), list(op_types), augmented_model_path=str(Path(work) / "aug.onnx"))
-        names = calibrator.select_tensors_to_calibrate(onnx.load(str(pre_path)))[0]
+        # The calibrator's own copy of the graph carries inferred shapes: a tensor without a
+        # value_info (the Identity copies graph_groups.isolate_state_reads adds after the
+        # pre-pass) is never selected, and quantize_static then fails for want of its range.
+        names = calibrator.select_tensors_to_calibrate(calibrator.model)[0]
         del calibrator
         cache = Path(work) / "cache.json"
         save_tensors_data(TensorsData(CalibrationMethod.MinMax, {n: (np.float32(-1), np.float32(1)) for n in names}), cache)

@@ -260,6 +260,29 @@ def test_ranges_from_a_checkpoint_without_them_is_one_clear_line(trained_graph: 
     assert not out.exists()
 
 
+def test_quantised_activations_include_the_state_read_copies(trained_graph: Path, tmp_path: Path) -> None:
+    """The default search with --ranges-from-checkpoint lists the tensors its graphs may
+    quantise on the pre-processed graph whose S5 readouts read a copy of the state (an
+    Identity added after the pre-pass, without a value_info): ONNX Runtime failed with
+    "Quantization parameters are not specified for param .../state_read" before the copies
+    were found (the ladder's QAT default-search row, 2026-12-01)."""
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.quantize.graph_groups import STATE_READ_SUFFIX, isolate_state_reads, recurrent_groups
+    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
+
+    pre = tmp_path / "pre.onnx"
+    preprocess(trained_graph, pre)
+    model = onnx.load(str(pre))
+    recurrent = {n for g in recurrent_groups(model, GraphMetadata.from_onnx(model)) for n in g.nodes}
+    projections = [n.name for n in model.graph.node if n.name in recurrent and n.op_type in DEFAULT_OP_TYPES]
+    assert isolate_state_reads(model, projections)
+    onnx.save(model, str(pre))
+    copies = {t for n in model.graph.node if n.name.endswith(STATE_READ_SUFFIX) for t in n.output}
+    quantised = set(quantised_activations(pre, [], DEFAULT_OP_TYPES))
+    assert len(copies) == 4 and copies <= quantised  # two S5 stages, a real and an imaginary readout each
+
+
 @pytest.mark.parametrize("fixture", ["qat_tiny", "qat_tiny_full_integer"])
 def test_qat_covers_every_tensor_the_graph_quantises(fixture: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:
     """Catches: products written inline (attention scores and mixing, the deformable offsets)
