@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         p50 = {name: 1e3 * float(np.median(t)) for name, t in times.items()}
         fp32_bytes = fp32.stat().st_size
     for r in rows:  # each row keeps the fp32 timed beside it (rows appended later come from another run)
-        r.update(ort_ms=p50[f"ort {r['label']}"], openvino_ms=p50[f"openvino {r['label']}"],
+        r.update(ort_ms=p50[f"ort {r['label']}"], openvino_ms=p50[f"openvino {r['label']}"], fp32_bytes=fp32_bytes,
                  ort_fp32_ms=p50["ort fp32"], openvino_fp32_ms=p50["openvino fp32"], isa=detect_isa().kind)
     report.update(variant=variant, isa=detect_isa().to_dict(), fp32_bytes=fp32_bytes, rows=rows, failed_rows=failed,
                   bf16_distance_pct=bf16, p50_ms=p50, fp32_mpjpe_mm=holdout.fp32_mpjpe)
@@ -270,7 +270,8 @@ def markdown(report: dict) -> str:
         if census:  # the graph's own count, recurrent projections included
             out8 = f"{r['compute_nodes_out_of_8_bits']} of {sum(census.values())}" + "".join(
                 f", {n} {label}" for label, n in census.items() if label != "int8" and n)
-        size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / report['fp32_bytes']:.3f}x)"
+        # against the fp32 graph of the row's own run (appended rows may come from another export)
+        size = f"{r['bytes'] / 1e6:.2f} ({r['bytes'] / r.get('fp32_bytes', report['fp32_bytes']):.3f}x)"
         frames = f" ({r['check_frames']} f)" if r.get("check_frames") else " (200 f)"
         exact = f"{r['exact_distance_pct']:.3f}" if r.get("exact_distance_pct") is not None else ""
         lines.append(f"| {r['label']} | {r['distance_pct']:.3f} |{exact_cell(exact)} {r['check_distance_pct']:.3f}{frames} | "
