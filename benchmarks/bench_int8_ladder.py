@@ -176,13 +176,14 @@ def main(argv: list[str] | None = None) -> int:
             if source not in checks:
                 checks[source] = make_holdout(source, data.split(args.check_split), window_ms, args.check_frames,
                                               args.threads)
+            folder = work / label.replace(" ", "_").replace(",", "")
             try:
-                q = quantize_graph(source, args.data, work / label.replace(" ", "_").replace(",", ""), options)
+                q = quantize_graph(source, args.data, folder, options)
             except Exception as error:  # noqa: BLE001 - one row's failure must not lose the hour's other rows
                 failed.append({"label": label, "error": f"{type(error).__name__}: {error}"})
                 print(f"{label}: FAILED ({failed[-1]['error']})", flush=True)
                 continue
-            path = work / label.replace(" ", "_").replace(",", "") / q["artifact"]
+            path = folder / q["artifact"]
             graphs[label] = path
             measured = accuracy_of(path, checks[source], args.threads)
             independent = measured["bound_pct"]

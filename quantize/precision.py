@@ -290,11 +290,14 @@ def quantise_recurrent_compute(plan: PrecisionPlan, units: Sequence[Sequence[str
     trials = list(plan.trials)
     assigned: dict[str, str] = {}  # recurrent node -> the precision it keeps
 
+    def split(assignment: Mapping[str, str]) -> tuple[dict[str, list[str]], list[str]]:
+        """The recurrent nodes at each precision, and those in float (not assigned)."""
+        return ({p: [n for n in nodes if assignment.get(n) == p] for p in RECURRENT_PRECISIONS},
+                [n for n in nodes if n not in assignment])
+
     def measure(unit: Sequence[str], precision: str, label: str) -> float:
         """The graph with `unit` at `precision` and the others as `assigned` (float if not)."""
-        now = {**assigned, **dict.fromkeys(unit, precision)}
-        at = {p: [n for n in nodes if now.get(n) == p] for p in RECURRENT_PRECISIONS}
-        rest = [n for n in nodes if n not in now]
+        at, rest = split({**assigned, **dict.fromkeys(unit, precision)})
         err = float(evaluate(plan.int16 + at["int16"], plan.int16w16 + at["int16w16"], plan.float_nodes + rest,
                              label, int8=plan.int8 + at["int8"]))
         trials.append({"label": label, "int8_recurrent_nodes": len(plan.int8 + at["int8"]),
@@ -340,7 +343,6 @@ def quantise_recurrent_compute(plan: PrecisionPlan, units: Sequence[Sequence[str
     choices = list(plan.choices) + [
         PrecisionChoice(c.node, c.precision, f"recurrent group: {c.reason}", c.errors)
         for c in (choose_precision(n, {**errors[n], "float": plan.error_pct}, target) for n in nodes)]
-    at = {p: [n for n in nodes if assigned.get(n) == p] for p in RECURRENT_PRECISIONS}
-    rest = [n for n in nodes if n not in assigned]
+    at, rest = split(assigned)
     return PrecisionPlan(plan.int16 + at["int16"], plan.float_nodes + rest, current, choices, trials,
                          plan.target_pct, plan.int16w16 + at["int16w16"], plan.int8 + at["int8"])
