@@ -364,21 +364,25 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     if options.equalize:
         pre_model, equalized = equalize_geglu(pre_model, calib.feeds)
         onnx.save(pre_model, str(pre))
-    state_reads: list[str] = []
+    kept = set(keep)
+    projections = [n.name for n in pre_model.graph.node
+                   if n.name in kept and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
+    searched = options.searches_int16 and fixed is None
+    # S5's readouts read the new state, a graph output. ONNX Runtime's quantiser puts a
+    # quantised tensor's Q/DQ pair on the tensor itself, so a quantised readout would make the
+    # graph output the rounded state and carry it to the next step (`--exclude none` did so
+    # until 2026-12-01: the error then compounds over a stream). Wherever the readouts may be
+    # quantised (a fixed exclusion that leaves them in, or the search's recurrent stage,
+    # precision.quantise_recurrent_compute) they read a copy instead
+    # (graph_groups.isolate_state_reads). Before calibrating, so every graph and the cache
+    # name the copies.
+    quantisable = projections if searched else [n for n in projections if fixed is not None and n not in fixed]
+    state_reads = isolate_state_reads(pre_model, quantisable)
+    if state_reads:
+        onnx.save(pre_model, str(pre))
     recurrent_compute: list[str] = []
-    if options.searches_int16 and fixed is None:
-        # The recurrent projections may take 16 bits (precision.quantise_recurrent_compute):
-        # S5's readouts then read a copy of the state, so that its Q/DQ never rounds the
-        # state the graph outputs (graph_groups.isolate_state_reads). Before calibrating, so
-        # every trial graph and the cache name the copies.
-        kept = set(keep)
-        projections = [n.name for n in pre_model.graph.node
-                       if n.name in kept and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
-        state_reads = isolate_state_reads(pre_model, projections)
-        if state_reads:
-            onnx.save(pre_model, str(pre))
-        # Any that still reads or writes a graph output (a state) stays float: ONNX Runtime's
-        # quantiser would put the Q/DQ pair on the graph output and round the state carried.
+    if searched:
+        # Any that still reads or writes a graph output (a state) stays float.
         outputs = {o.name for o in pre_model.graph.output}
         wanted = set(projections)
         recurrent_compute = [n.name for n in pre_model.graph.node

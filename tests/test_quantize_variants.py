@@ -77,6 +77,15 @@ def test_full_integer_flow_on_paper_and_released(variant: str, data64: Path, tmp
     assert compute and all(_reads_8bit(model, n, inits) for n in compute), \
         [n.name for n in compute if not _reads_8bit(model, n, inits)][:5]
     assert report["excluded_nodes"] == [] and report["quantization"]["equalized_sites"] > 0
+    # The S5 readouts are quantised too, but read a copy of the new state: the state the graph
+    # outputs and carries to the next step is the float one, never its 8-bit rounding.
+    from e3dpsm.graph_metadata import GraphMetadata
+
+    states = {s.output_name for s in GraphMetadata.from_onnx(model).states}
+    assert report["quantization"]["state_reads"]
+    assert not {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"} & states
+    producer = {o: n.op_type for n in model.graph.node for o in n.output}
+    assert all(producer[s] != "DequantizeLinear" for s in states), {s: producer[s] for s in states}
     assert report["calibration"]["ranges"]["won_by"]  # per-tensor choices were made
     assert np.isfinite(report["holdout"]["bound_pct"]) and report["holdout"]["bound_pct"] > 0
     # the INT8 graph streams a held-out sequence with finite poses near the fp32 ones
