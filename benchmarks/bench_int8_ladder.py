@@ -129,6 +129,11 @@ def main(argv: list[str] | None = None) -> int:
                                                                    equalize=True)))
         runs.append(("full int8, mse, adaround", QuantizeOptions(mode="int8", exclude="none", calibration="mse",
                                                                   weight_rounding="adaround")))
+        # The default leaves MatMul/Gemm outputs no quantised op reads in float (outputs.py).
+        runs.append(("full int8, mse, every output pair kept (--float-outputs none)",
+                     QuantizeOptions(mode="int8", exclude="none", calibration="mse", float_outputs="none")))
+        runs.append(("full int8, mse, Conv outputs float too (--float-outputs all)",
+                     QuantizeOptions(mode="int8", exclude="none", calibration="mse", float_outputs="all")))
         other = "vnni" if saturates_u8s8(detect_isa().kind) else "avx2"
         bits = {"vnni": 8, "avx2": 7}[other]
         runs.append((f"full int8, mse, {bits}-bit weights (--target-isa {other})",

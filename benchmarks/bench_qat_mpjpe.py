@@ -134,6 +134,18 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _ptq_line(report: dict) -> str:
+    """The post-training full-integer graph of the base checkpoint, by both measures."""
+    ptq = next(r for r in report["rows"] if r["label"].startswith("base full int8"))
+    within = all(ptq[f"{rt}_vs_base_pct"] <= report["bar_pct"] for rt in RUNTIMES)
+    return (f"The post-training full-integer graph of the base checkpoint (no QAT): MPJPE "
+            f"{ptq['onnxruntime_vs_base_pct']:+.2f}% / {ptq['openvino_vs_base_pct']:+.2f}% of the base fp32 "
+            f"(ORT / OpenVINO; {'within' if within else 'outside'} the +{report['bar_pct']:g}%), "
+            f"{ptq['onnxruntime_bound_vs_base_pct']:.2f}% / {ptq['openvino_bound_vs_base_pct']:.2f}% from its poses "
+            f"(the INT8 budget's measure: {'within' if max(ptq[f'{rt}_bound_vs_base_pct'] for rt in RUNTIMES) <= 1.0 else 'outside'} "
+            f"the 1% budget).")
+
+
 def markdown(report: dict) -> str:
     isa = report["isa"]
     config = report["config"]
@@ -143,11 +155,12 @@ def markdown(report: dict) -> str:
              f"{config['eval_splits']}), each sequence one stream; calibration on `{config['split']}`. "
              f"QAT checkpoint `{config['qat_checkpoint']}` ({report['qat_steps']} steps) from `{config['checkpoint']}`.",
              "", f"**Bar (+{report['bar_pct']:g}% of the base fp32 MPJPE, both runtimes): "
-             f"{'met' if report['bar_met'] else 'not met'} by MPJPE; "
-             + ("the QAT graph's poses are no further from the fp32 ones than the PTQ graph's.**"
+             f"{'met' if report['bar_met'] else 'not met'} by the QAT graph's MPJPE; "
+             + ("its poses are no further from the fp32 ones than the PTQ graph's.**"
                 if report.get("faithful") else
-                "not accepted: the QAT graph's poses are further from the fp32 checkpoint's than the PTQ "
-                "graph's (last column), so it meets the bar by another route, not as a compression of it.**"), "",
+                "its poses are further from the fp32 checkpoint's than the PTQ graph's (last column)"
+                + (", so it meets the bar by another route, not as a compression of it.**" if report["bar_met"]
+                   else ".**")), "", _ptq_line(report), "",
              "The last column is the INT8 budget's measure against the base checkpoint's fp32 graph: the "
              "largest mean joint distance over the fused, direct and delta poses, % of its MPJPE (budget 1%).", "",
              "| graph | MB | ORT MPJPE mm (vs base fp32) | OpenVINO MPJPE mm (vs base fp32) | distance to own fp32, "

@@ -178,7 +178,18 @@ def census_lines(quantization: dict[str, Any]) -> list[str]:
     total = sum(counts.values())
     return ["Compute nodes (Conv/MatMul/Gemm, recurrent groups included), read off the graph: "
             + ", ".join(f"{n} {label}" for label, n in counts.items() if n)
-            + f"; {quantization['compute_nodes_out_of_8_bits']} of {total} out of 8 bits.", ""]
+            + f"; {quantization['compute_nodes_out_of_8_bits']} of {total} out of 8 bits."
+            + _float_outputs_clause(quantization), ""]
+
+
+def _float_outputs_clause(quantization: dict[str, Any]) -> str:
+    """How many compute outputs the graph leaves float (outputs.py): what each node reads is
+    counted above, what it writes here."""
+    count, ops = quantization.get("float_output_nodes"), quantization.get("float_outputs")
+    if not count:
+        return ""
+    return (f" {count} of them write a float output that no quantised op reads "
+            f"(--float-outputs: {'/'.join(ops)}; no Q/DQ pair rounds it).")
 
 
 def precision_lines(plan: dict[str, Any] | None) -> list[str]:

@@ -130,11 +130,21 @@ def qat_tiny_full_integer(tmp_path_factory) -> dict:
     return _qat_tiny(tmp_path_factory, QATConfig(full_integer=True), "qat_tiny_full")
 
 
+def _quantised_tensor(name: str) -> str:
+    """The graph tensor a QuantizeLinear input stands for: an S5 readout quantises its copy of
+    the state (`<node>/<state>/state_read`, graph_groups.isolate_state_reads), not the state."""
+    from e3dpsm.quantize.graph_groups import STATE_READ_SUFFIX
+    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX
+
+    if name.endswith(STATE_READ_SUFFIX):
+        return name.removesuffix(STATE_READ_SUFFIX).rsplit("/", 1)[1]
+    return name.removesuffix(GRAPH_OUTPUT_SUFFIX)
+
+
 def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str], list[str]]:
     """Quantise the full-integer QAT tiny with `--exclude none --ranges-from-checkpoint`:
     (the recurrent path's learned tensors, those whose graph range is not the learned one)."""
     from e3dpsm.quantize import QuantizeOptions, quantize_graph
-    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX
 
     report = quantize_graph(run["graph"], quant_data, work / "q", QuantizeOptions(
         mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"])))
@@ -144,7 +154,7 @@ def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str
                  if any(s.startswith(("delta_head", "pose_embed")) or ".read_" in s for s in g.sites)]
     model = onnx.load(str(work / "q" / report["artifact"]))
     inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
-    written = {n.input[0].removesuffix(GRAPH_OUTPUT_SUFFIX): (inits[n.input[1]], inits[n.input[2]]) for n in model.graph.node
+    written = {_quantised_tensor(n.input[0]): (inits[n.input[1]], inits[n.input[2]]) for n in model.graph.node
                if n.op_type == "QuantizeLinear" and n.input[1] in inits and n.input[0] not in inits}
     wrong = [t for t in recurrent if not (written[t][0] == np.float32(by_tensor[t][0])
                                           and int(written[t][1]) == by_tensor[t][1])]

@@ -86,6 +86,12 @@ def test_full_integer_flow_on_paper_and_released(variant: str, data64: Path, tmp
     assert not {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"} & states
     producer = {o: n.op_type for n in model.graph.node for o in n.output}
     assert all(producer[s] != "DequantizeLinear" for s in states), {s: producer[s] for s in states}
+    # MatMul and Gemm outputs no quantised op reads are left in float (--float-outputs matmul,
+    # the default): no QuantizeLinear reads a Gemm's output here (heads, feed-forward outputs).
+    assert report["quantization"]["float_outputs"] == ["MatMul", "Gemm"]
+    assert report["quantization"]["float_output_nodes"] > 0
+    assert f"{report['quantization']['float_output_nodes']} of them write a float output" in \
+        (tmp_path / "int8" / "report.md").read_text()
     assert report["calibration"]["ranges"]["won_by"]  # per-tensor choices were made
     assert np.isfinite(report["holdout"]["bound_pct"]) and report["holdout"]["bound_pct"] > 0
     # the INT8 graph streams a held-out sequence with finite poses near the fp32 ones

@@ -72,6 +72,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "each layer's output on the calibration frames (about 2.5 minutes for `small` on 2 cores). Default: "
                    "adaround under --exclude auto with int16 (where activations may stay at 16 bits and the weights' "
                    "rounding is most of the error left), nearest otherwise (docs/quantize.md)")
+    p.add_argument("--float-outputs", choices=("none", "matmul", "all"), default=None,
+                   help="int8: leave the outputs of these Conv/MatMul/Gemm in float where no quantised op reads them "
+                   "(every node still reads 8-bit weights and activations): matmul (MatMul and Gemm; no speed "
+                   "cost on ONNX Runtime), all (Conv too: more accurate, slower on ONNX Runtime, whose QLinearConv "
+                   "needs an 8-bit output), none. Default: matmul with a fixed --exclude; none with --exclude auto "
+                   "or --ranges-from-checkpoint")
     p.add_argument("--int8-elementwise", action="store_true",
                    help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
                    "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")
@@ -99,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         objective=args.objective,
         timing_steps=args.timing_steps, search=args.search, target_isa=args.target_isa,
         equalize=args.equalize, ranges_from_checkpoint=args.ranges_from_checkpoint, int16=args.int16,
-        weight_rounding=args.weight_rounding,
+        weight_rounding=args.weight_rounding, float_outputs=args.float_outputs,
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
