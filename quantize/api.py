@@ -376,6 +376,15 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     keep = [n for g in recurrent for n in g.nodes]
     groups = candidate_groups(pre_model, keep)
     fixed = resolve_exclusions(options.exclude, keep, [*recurrent, *groups], {n.name for n in pre_model.graph.node})
+    # A quantised op that writes a graph output (under --int8-elementwise the Add that writes an
+    # S5 state or a pose) would output, and carry to the next step, its 8-bit rounding: ONNX
+    # Runtime puts the Q/DQ pair on the output itself. Such writers stay float in every plan.
+    outputs = {o.name for o in pre_model.graph.output}
+    writers = [n.name for n in pre_model.graph.node
+               if n.op_type in config.op_types and n.op_type not in DEFAULT_OP_TYPES and set(n.output) & outputs]
+    keep = list(dict.fromkeys([*keep, *writers]))
+    if fixed is not None:
+        fixed = list(dict.fromkeys([*fixed, *writers]))
 
     calib = record_calibration_set(model_path, calib_seqs, options.frames, window_ms,
                                    state_source=options.state_source, seed=options.seed, threads=options.threads)
@@ -396,13 +405,17 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     # (graph_groups.isolate_state_reads). Before calibrating, so every graph and the cache
     # name the copies.
     quantisable = projections if searched else [n for n in projections if fixed is not None and n not in fixed]
+    # The same for a quantised elementwise op reading a graph output (--int8-elementwise: the
+    # fusion's Mul and Sub read the direct pose).
+    quantisable += [n.name for n in pre_model.graph.node if n.op_type in config.op_types
+                    and n.op_type not in DEFAULT_OP_TYPES and set(n.input) & outputs
+                    and n.name not in (keep if fixed is None else fixed)]
     state_reads = isolate_state_reads(pre_model, quantisable)
     if state_reads:
         onnx.save(pre_model, str(pre))
     recurrent_compute: list[str] = []
     if searched:
         # Any that still reads or writes a graph output (a state) stays float.
-        outputs = {o.name for o in pre_model.graph.output}
         wanted = set(projections)
         recurrent_compute = [n.name for n in pre_model.graph.node
                              if n.name in wanted and not {*n.input, *n.output} & outputs]
@@ -434,7 +447,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         model = onnx.load(str(path))
         for chosen in roundings:  # each applies where the graph's weight scale is its own
             apply_rounding(model, chosen)
-        dequantised_outputs(model, options.outputs_in_float)
+        dequantised_outputs(model, options.outputs_in_float, config.op_types)
         path.unlink()
         return model
 
@@ -496,7 +509,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     model = onnx.load(str(out))
     if rounding_report is not None:
         rounding_report["applied"] = sum(apply_rounding(model, chosen) for chosen in roundings)
-    float_outputs = dequantised_outputs(model, options.outputs_in_float)
+    float_outputs = dequantised_outputs(model, options.outputs_in_float, config.op_types)
     census = compute_precisions(model)
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),

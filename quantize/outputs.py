@@ -30,12 +30,15 @@ COMPUTE_OPS = ("Conv", "MatMul", "Gemm")
 _DATA_MOVEMENT = frozenset({"Reshape", "Transpose", "Flatten", "Squeeze", "Unsqueeze", "Identity"})
 
 
-def dequantised_outputs(model: onnx.ModelProto, op_types: Iterable[str]) -> list[str]:
+def dequantised_outputs(model: onnx.ModelProto, op_types: Iterable[str],
+                        quantised_ops: Iterable[str] = COMPUTE_OPS) -> list[str]:
     """Remove, in place, the Q/DQ pair on each output of an `op_types` node that no quantised
-    op reads (no QuantizeLinear or Conv/MatMul/Gemm after it, through data-movement ops);
-    returns the names of the nodes whose output is now float. A pair on a graph output is
-    kept (its name is part of the interface)."""
+    op reads (no QuantizeLinear or `quantised_ops` node after it, through data-movement ops:
+    the quantiser's op types, so that under `--int8-elementwise` an Add or Mul between two
+    convolutions keeps its 8-bit input); returns the names of the nodes whose output is now
+    float. A pair on a graph output is kept (its name is part of the interface)."""
     wanted = set(op_types)
+    quantised = set(quantised_ops) | {"QuantizeLinear"}
     if not wanted:
         return []
     producers = {out: node for node in model.graph.node for out in node.output}
@@ -47,7 +50,7 @@ def dequantised_outputs(model: onnx.ModelProto, op_types: Iterable[str]) -> list
 
     def read_quantised(tensor: str) -> bool:
         for reader in consumers.get(tensor, []):
-            if reader.op_type in COMPUTE_OPS or reader.op_type == "QuantizeLinear":
+            if reader.op_type in quantised:
                 return True
             if reader.op_type in _DATA_MOVEMENT and any(read_quantised(o) for o in reader.output):
                 return True

@@ -86,6 +86,13 @@ def test_a_pair_no_quantised_op_reads_is_removed_and_the_output_is_exact() -> No
     onnx.checker.check_model(model)
 
 
+def test_a_pair_a_quantised_elementwise_op_reads_stays() -> None:
+    """Under --int8-elementwise the quantiser's op types include Add: the first MatMul's
+    output then feeds a quantised op, and its pair stays."""
+    model = _graph()
+    assert dequantised_outputs(model, ["MatMul"], quantised_ops=["Conv", "MatMul", "Gemm", "Add"]) == []
+
+
 def test_op_types_not_named_and_graph_outputs_keep_their_pairs() -> None:
     model = _graph()
     assert dequantised_outputs(model, ["Conv"]) == [] and dequantised_outputs(model, []) == []

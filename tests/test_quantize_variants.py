@@ -132,3 +132,24 @@ def test_int16_nodes_on_paper_and_released(variant: str, data64: Path, tmp_path:
 
     lnes = np.asarray(PreparedData.open(data64).split("test")[0].lnes[:5], dtype=np.float32)
     assert np.all(np.isfinite(onnx_stream_outputs(StepSession(out, threads=1), lnes, 20.0)["pose"]))
+
+
+def test_int8_elementwise_full_integer_never_rounds_a_graph_output(data64: Path, tmp_path: Path) -> None:
+    """Under --int8-elementwise the Adds that write the S5 states and the poses are quantisable
+    ops; ONNX Runtime would put their Q/DQ pair on the graph output itself, and the step would
+    output (and carry) the 8-bit rounding. They stay float."""
+    from e3dpsm.export import export_step
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize.static import ELEMENTWISE_OP_TYPES
+
+    graph = export_step(_model("paper", tmp_path), tmp_path / "step.onnx")
+    report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
+        mode="int8", exclude="none", op_types=ELEMENTWISE_OP_TYPES, batchnorm_as_conv=True, frames=16,
+        holdout_frames=10))
+    model = onnx.load(str(tmp_path / "int8" / report["artifact"]))
+    producer = {o: n.op_type for n in model.graph.node for o in n.output}
+    outputs = [o.name for o in model.graph.output if o.name in producer]
+    assert outputs and all(producer[o] != "DequantizeLinear" for o in outputs), \
+        {o: producer[o] for o in outputs if producer[o] == "DequantizeLinear"}
+    assert report["excluded_nodes"]  # the writers, named in the report
+    assert any(n.op_type == "QuantizeLinear" for n in model.graph.node)
