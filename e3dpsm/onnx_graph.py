@@ -21,6 +21,18 @@ def with_outputs(model: onnx.ModelProto, names: Iterable[str]) -> onnx.ModelProt
     return exposed
 
 
+def drop_unused_initializers(model: onnx.ModelProto, among: Iterable[str] | None = None) -> None:
+    """Remove, in place, the initializers no node reads (subgraphs included); only those named
+    in `among` when given (a pass that removed nodes drops what they alone read)."""
+    used = {i for n in model.graph.node for i in n.input}
+    used |= {i for n in model.graph.node for a in n.attribute if a.type == onnx.AttributeProto.GRAPH
+             for sub in a.g.node for i in sub.input}
+    droppable = {i.name for i in model.graph.initializer} if among is None else set(among)
+    keep = [i for i in model.graph.initializer if i.name in used or i.name not in droppable]
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(keep)
+
+
 def node_key(node: onnx.NodeProto) -> str:
     """A node's name, or its first output's name if it has none (outputs are unique)."""
     return node.name or node.output[0]

@@ -396,20 +396,17 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     projections = [n.name for n in pre_model.graph.node
                    if n.name in kept and n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES]
     searched = options.searches_int16 and fixed is None
-    # S5's readouts read the new state, a graph output. ONNX Runtime's quantiser puts a
-    # quantised tensor's Q/DQ pair on the tensor itself, so a quantised readout would make the
-    # graph output the rounded state and carry it to the next step (`--exclude none` did so
-    # until 2026-12-01: the error then compounds over a stream). Wherever the readouts may be
-    # quantised (a fixed exclusion that leaves them in, or the search's recurrent stage,
-    # precision.quantise_recurrent_compute) they read a copy instead
-    # (graph_groups.isolate_state_reads). Before calibrating, so every graph and the cache
-    # name the copies.
-    quantisable = projections if searched else [n for n in projections if fixed is not None and n not in fixed]
-    # The same for a quantised elementwise op reading a graph output (--int8-elementwise: the
-    # fusion's Mul and Sub read the direct pose).
-    quantisable += [n.name for n in pre_model.graph.node if n.op_type in config.op_types
-                    and n.op_type not in DEFAULT_OP_TYPES and set(n.input) & outputs
-                    and n.name not in (keep if fixed is None else fixed)]
+    # S5's readouts read the new state, a graph output (under --int8-elementwise the fusion's
+    # Mul and Sub read the direct pose too). ONNX Runtime's quantiser puts a quantised tensor's
+    # Q/DQ pair on the tensor itself, so a quantised reader would make the graph output the
+    # rounded value and carry it to the next step (`--exclude none` did so until 2026-12-01:
+    # the error then compounds over a stream). Every node that may be quantised (not in the
+    # fixed exclusion; under the search, outside the recurrent groups or one of the projections
+    # precision.quantise_recurrent_compute tries) reads a copy instead
+    # (graph_groups.isolate_state_reads, which rewires only readers of a graph output).
+    # Before calibrating, so every graph and the cache name the copies.
+    excluded = set(fixed) if fixed is not None else kept - set(projections if searched else ())
+    quantisable = [n.name for n in pre_model.graph.node if n.op_type in config.op_types and n.name not in excluded]
     state_reads = isolate_state_reads(pre_model, quantisable)
     if state_reads:
         onnx.save(pre_model, str(pre))
@@ -455,7 +452,6 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         ranked = None
         if options.strategy == "nodes":
             every = [n.name for n in pre_model.graph.node]
-            kept = set(keep)
             # The compute nodes only (also under --int8-elementwise): one trial per ranked node.
             targets = [n.name for n in pre_model.graph.node
                        if n.op_type in config.op_types and n.op_type in DEFAULT_OP_TYPES and n.name not in kept]
@@ -464,8 +460,6 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         search, latency = _latency_search(keep, groups, pre_meta, holdout, options, work, build, timing, ranked)
         fixed = search.excluded_nodes
         if pre16 is not None:
-            kept = set(keep)
-
             def ranked_nodes(excluded: Sequence[str]) -> list[str]:
                 return [n for n in excluded if n not in kept]
 

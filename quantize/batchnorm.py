@@ -15,6 +15,8 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from e3dpsm.onnx_graph import drop_unused_initializers
+
 
 def batchnorm_as_depthwise_conv(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     """Copy of `model` with every inference-mode BatchNormalization on a 4-D input with
@@ -46,7 +48,7 @@ def batchnorm_as_depthwise_conv(model: onnx.ModelProto) -> tuple[onnx.ModelProto
         replaced += 1
     del model.graph.node[:]
     model.graph.node.extend(nodes)
-    _drop_unused_initializers(model)
+    drop_unused_initializers(model)
     return model, replaced
 
 
@@ -56,12 +58,3 @@ def _input_ranks(model: onnx.ModelProto) -> dict[str, int]:
         if vi.type.tensor_type.HasField("shape"):
             ranks[vi.name] = len(vi.type.tensor_type.shape.dim)
     return ranks
-
-
-def _drop_unused_initializers(model: onnx.ModelProto) -> None:
-    used = {i for n in model.graph.node for i in n.input}
-    used |= {i for n in model.graph.node for a in n.attribute if a.type == onnx.AttributeProto.GRAPH
-             for sub in a.g.node for i in sub.input}
-    keep = [i for i in model.graph.initializer if i.name in used]
-    del model.graph.initializer[:]
-    model.graph.initializer.extend(keep)

@@ -21,10 +21,11 @@ from typing import Iterable
 
 import onnx
 
+from e3dpsm.onnx_graph import drop_unused_initializers
+from e3dpsm.quantize.census import COMPUTE_OPS
+
 # "matmul": MatMul and Gemm outputs (no speed cost on ONNX Runtime); "all": Conv outputs too.
-FLOAT_OUTPUTS: dict[str, tuple[str, ...]] = {"none": (), "matmul": ("MatMul", "Gemm"),
-                                             "all": ("Conv", "MatMul", "Gemm")}
-COMPUTE_OPS = ("Conv", "MatMul", "Gemm")
+FLOAT_OUTPUTS: dict[str, tuple[str, ...]] = {"none": (), "matmul": ("MatMul", "Gemm"), "all": COMPUTE_OPS}
 # Ops that move data without computing: a Q/DQ pair behind one of them still feeds whatever
 # reads its output (ONNX Runtime quantises a 2-D Gemm's Reshapes with it).
 _DATA_MOVEMENT = frozenset({"Reshape", "Transpose", "Flatten", "Squeeze", "Unsqueeze", "Identity"})
@@ -82,8 +83,5 @@ def dequantised_outputs(model: onnx.ModelProto, op_types: Iterable[str],
     kept = [n for n in model.graph.node if id(n) not in removed]
     del model.graph.node[:]
     model.graph.node.extend(kept)
-    used = {name for node in model.graph.node for name in node.input}
-    initializers = [i for i in model.graph.initializer if i.name not in freed or i.name in used]
-    del model.graph.initializer[:]
-    model.graph.initializer.extend(initializers)
+    drop_unused_initializers(model, among=freed)
     return nodes
