@@ -38,7 +38,8 @@ from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.outputs import FLOAT_OUTPUTS, dequantised_outputs
 from e3dpsm.quantize.precision import (SizeProbe, demote_to_int16, promote_to_int16w16, quantise_recurrent_compute,
                                        smallest_int16_plan)
-from e3dpsm.quantize.qat_ranges import learned_overrides, qat_weight_bits, quantised_activations, read_ranges
+from e3dpsm.quantize.qat_ranges import (learned_overrides, qat_weight_bits, quantised_activations, read_ranges,
+                                        simulated_float_outputs)
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, int16_tensors,
                                    preprocess, quantize_int8, quantised_node_count, saturates_u8s8)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
@@ -127,7 +128,8 @@ class QuantizeOptions:
     # exclusion (full integer: 6.6% -> 4.9% on the committed `small`, no speed cost on ONNX
     # Runtime); "none" under --exclude auto (the search's 16-bit nodes widen the outputs that
     # matter, and with "matmul" its graph went further over on unseen data: docs/quantize.md)
-    # and under --ranges-from-checkpoint (QAT simulated the output Q/DQ pairs too).
+    # and under --ranges-from-checkpoint the graph its fine-tune simulated (recorded in the
+    # checkpoint's `qat_ranges`; "none" for checkpoints that predate the record).
     float_outputs: str | None = None
 
     def __post_init__(self) -> None:
@@ -201,6 +203,7 @@ class QuantizeOptions:
         """The op types whose outputs stay float where no quantised op reads them (outputs.py)."""
         if self.float_outputs is not None:
             return FLOAT_OUTPUTS[self.float_outputs]
+        # (quantize_graph sets it from the checkpoint under --ranges-from-checkpoint.)
         return FLOAT_OUTPUTS["none" if self.ranges_from_checkpoint or self.exclude == "auto" else "matmul"]
 
     @property
@@ -264,7 +267,15 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
     if options.ranges_from_checkpoint:  # fail before calibrating, not after
         from e3dpsm.checkpoint import read_checkpoint
 
-        read_ranges(read_checkpoint(options.ranges_from_checkpoint), options.ranges_from_checkpoint)
+        payload = read_checkpoint(options.ranges_from_checkpoint)
+        read_ranges(payload, options.ranges_from_checkpoint)
+        simulated = simulated_float_outputs(payload)
+        if options.float_outputs is None:  # the graph the fine-tune simulated
+            options = replace(options, float_outputs=simulated)
+        elif options.float_outputs != simulated:
+            log.warning("--float-outputs %s: %s's fine-tune simulated --float-outputs %s, so the graph computes "
+                        "close to, not exactly, what training simulated", options.float_outputs,
+                        options.ranges_from_checkpoint, simulated)
     data = PreparedData.open(data_dir)
     height, width = meta.frame_hw
     data.check_compatible(window_ms=meta.train_window_ms, height=height, width=width)

@@ -45,11 +45,14 @@ GRAPH_OUTPUT_SUFFIX = "_QuantizeLinear_Input"
 WEIGHT_SUFFIX = "_quantized"
 
 
-def _placeholder_qdq(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> onnx.ModelProto:
-    """The QDQ graph `pre_path` quantises to with the nodes `exclude` in float, built with
-    placeholder ranges: where the Q/DQ pairs go, not what they hold."""
+def _placeholder_qdq(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str],
+                     float_outputs: str = "none") -> onnx.ModelProto:
+    """The QDQ graph `pre_path` quantises to with the nodes `exclude` in float and the
+    outputs `--float-outputs float_outputs` leaves float without their Q/DQ pair, built
+    with placeholder ranges: where the Q/DQ pairs go, not what they hold."""
     from onnxruntime.quantization.calibrate import CalibrationMethod, TensorsData, create_calibrator, save_tensors_data
 
+    from e3dpsm.quantize.outputs import FLOAT_OUTPUTS, dequantised_outputs
     from e3dpsm.quantize.static import StaticConfig, quantize_int8
 
     with tempfile.TemporaryDirectory(prefix="e3dpsm-qsites-") as work:
@@ -63,7 +66,9 @@ def _placeholder_qdq(pre_path: str | os.PathLike, exclude: Sequence[str], op_typ
         save_tensors_data(TensorsData(CalibrationMethod.MinMax, {n: (np.float32(-1), np.float32(1)) for n in names}), cache)
         out = Path(work) / "q.onnx"
         quantize_int8(pre_path, out, StaticConfig(op_types=tuple(op_types)), exclude=exclude, cache=cache)
-        return onnx.load(str(out))
+        qdq = onnx.load(str(out))
+    dequantised_outputs(qdq, FLOAT_OUTPUTS[float_outputs], op_types)
+    return qdq
 
 
 def _activations_of(qdq: onnx.ModelProto) -> list[str]:
@@ -81,10 +86,11 @@ def _weights_of(qdq: onnx.ModelProto) -> list[str]:
                    if n.op_type == "DequantizeLinear" and n.input[0] in inits and n.input[0].endswith(WEIGHT_SUFFIX)})
 
 
-def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str]) -> list[str]:
+def quantised_activations(pre_path: str | os.PathLike, exclude: Sequence[str], op_types: Sequence[str],
+                          float_outputs: str = "none") -> list[str]:
     """Activation tensors that get a QuantizeLinear when `pre_path` is quantised with the
-    nodes `exclude` in float."""
-    return _activations_of(_placeholder_qdq(pre_path, exclude, op_types))
+    nodes `exclude` in float and `--float-outputs float_outputs`."""
+    return _activations_of(_placeholder_qdq(pre_path, exclude, op_types, float_outputs))
 
 
 def tensor_values(model_path: str | os.PathLike, names: Sequence[str], feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -146,11 +152,14 @@ def probe_feed(model, steps: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
             **{s.input_name: state[s.name].numpy() for s in model.state_spec()}}
 
 
-def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: bool = False) -> list["QuantGroup"]:
+def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: bool = False,
+             float_outputs: str = "none") -> list["QuantGroup"]:
     """The quantisers a QAT run trains: the model exported and pre-processed as `quantize`
     does, its INT8 graph's quantised tensors (recurrent groups in float, unless
-    `full_integer`: the `--exclude none` graph), matched to sites; and the groups of
+    `full_integer`: the `--exclude none` graph; the outputs `quantize --float-outputs
+    float_outputs` leaves float are not among them), matched to sites; and the groups of
     quantised weights matched to `Projection` weights (`QuantGroup.is_weight`)."""
+
     from e3dpsm.export import export_step
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.quantize.graph_groups import recurrent_groups
@@ -163,7 +172,7 @@ def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: 
         pre_model = onnx.load(str(pre))
         keep = [] if full_integer else [n for g in recurrent_groups(pre_model, GraphMetadata.from_onnx(pre_model))
                                         for n in g.nodes]
-        qdq = _placeholder_qdq(pre, keep, DEFAULT_OP_TYPES)
+        qdq = _placeholder_qdq(pre, keep, DEFAULT_OP_TYPES, float_outputs)
         quantised = _activations_of(qdq)
         feed = feed or probe_feed(model)
         groups = match_graph(model, pre, quantised, feed)
@@ -174,9 +183,10 @@ def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: 
     return groups + weight_groups
 
 
-def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]]) -> dict[str, Any]:
-    """The checkpoint's `qat_ranges` entry."""
-    return {"format": QAT_RANGES_FORMAT, "activation_type": "QUInt8",
+def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]], float_outputs: str = "none") -> dict[str, Any]:
+    """The checkpoint's `qat_ranges` entry. `float_outputs`: the `quantize --float-outputs`
+    graph training simulated (its default under `--ranges-from-checkpoint`)."""
+    return {"format": QAT_RANGES_FORMAT, "activation_type": "QUInt8", "float_outputs": float_outputs,
             "quantizers": [{"sites": list(g.sites), "tensors": list(g.tensors), "scale": float(s), "zero_point": int(z)}
                            for g, s, z in quantizers]}
 
@@ -189,6 +199,12 @@ def read_ranges(payload: Mapping[str, Any], source: str) -> list[dict[str, Any]]
     if ranges.get("format") != QAT_RANGES_FORMAT:
         raise CheckpointError(f"{source}: qat_ranges format {ranges.get('format')!r} is not {QAT_RANGES_FORMAT!r}")
     return list(ranges["quantizers"])
+
+
+def simulated_float_outputs(payload: Mapping[str, Any]) -> str:
+    """The `--float-outputs` graph a QAT checkpoint's training simulated: "none" (every Q/DQ
+    pair) for checkpoints that predate the choice."""
+    return str((payload.get("qat_ranges") or {}).get("float_outputs", "none"))
 
 
 def unknown_sites(model: torch.nn.Module, learned: Sequence[Mapping[str, Any]]) -> list[str]:

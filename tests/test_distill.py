@@ -293,9 +293,86 @@ def test_qat_distillation_of_a_copy_learns_ranges_and_moves_towards_the_teacher(
     report = json.loads((out / "report.json").read_text())
     assert report["initial"]["fused"] > 1e-3 and report["qat_ranges_learned"] == len(ranges)
     assert payload["distill_config"]["qat"] and payload["distill_config"]["qat_full_integer"]
+    # The ranges started from an MSE calibration (the default), not from the first batch:
+    # every quantiser but those whose calibration input is constant.
+    start = report["qat_range_start"]
+    assert start["rule"] == "mse" and len(ranges) - 2 <= start["calibrated"] <= start["quantizers"] == len(ranges), start
     load_checkpoint(out / "checkpoint.pt")  # strict load
 
 
 def test_qat_full_integer_without_qat_is_refused_in_distill() -> None:
     with pytest.raises(ConfigError, match="add --qat"):
         DistillConfig(qat_full_integer=True)
+
+
+def test_stream_batches_continue_each_lane_with_its_next_frames(prepared_small: Path) -> None:
+    """Catches: a continuing lane fed other frames than the ones after its previous window, a
+    lane restarted without saying so (or said so without restarting), lanes that all restart
+    at once, and draws that depend on anything but the seed."""
+    from e3dpsm.training.data import stream_batches
+
+    dataset = WindowDataset(PreparedData.open(prepared_small).split("all"), 3)
+    frames = [np.asarray(s.lnes, np.float32) for s in dataset.sequences]
+    stream = stream_batches(dataset, 3, 0, 4)
+    batches = [next(stream) for _ in range(12)]
+    again = stream_batches(dataset, 3, 0, 4)
+    assert all(torch.equal(b[1]["lnes"], next(again)[1]["lnes"]) for b in batches)
+    restarts = torch.stack([fresh for _, _, fresh in batches])
+    assert restarts[0].all() and restarts[1:].sum() >= 6 and not restarts[1:].all(dim=1).any()  # staggered
+
+    def where(window: np.ndarray) -> tuple[int, int]:
+        hits = [(i, f) for i, seq in enumerate(frames) for f in range(len(seq) - 2) if np.array_equal(seq[f:f + 3], window)]
+        assert len(hits) == 1
+        return hits[0]
+
+    for step in range(1, len(batches)):
+        for lane in range(3):
+            before, now = where(batches[step - 1][1]["lnes"][lane].numpy()), where(batches[step][1]["lnes"][lane].numpy())
+            continues = now == (before[0], before[1] + 3)
+            assert bool(batches[step][2][lane]) != continues, (step, lane, before, now)
+
+
+def test_streamed_distillation_carries_each_lanes_states(prepared_small: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--stream-windows`: the teacher's targets and the student's outputs for a window are
+    those of one causal run over the lane's whole stream so far (an explicit run over the
+    concatenated frames), not of a run from the initial states. Catches: states reset every
+    window, carried across lanes, or not reset where a lane starts a new stream."""
+    import e3dpsm.compress.distill as module
+    from e3dpsm.training.data import stream_batches
+
+    teacher, student = make_teacher(1), make_teacher(2)
+    reference = copy.deepcopy(student).eval()
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    real = module.distill_loss
+
+    def record(outputs, target, config):
+        seen.append((outputs["pose"].detach().clone(), target["pose"].clone()))
+        return real(outputs, target, config)
+
+    monkeypatch.setattr(module, "distill_loss", record)
+    config = DistillConfig(steps=6, lr=1e-9, causal=True, freeze_norm_stats=True, stream_windows=4, **FAST)
+    distill(teacher, student, prepared_small, config, progress=False)
+    dataset = WindowDataset(PreparedData.open(prepared_small).split("all"), config.seq_len)
+    batches = stream_batches(dataset, config.batch_size, config.seed, config.stream_windows)
+    so_far: list[list[torch.Tensor]] = [[] for _ in range(config.batch_size)]
+    continued = 0
+    with torch.no_grad():
+        for step in range(config.steps):
+            _, batch, fresh = next(batches)
+            for lane in range(config.batch_size):
+                so_far[lane] = [batch["lnes"][lane]] if fresh[lane] else [*so_far[lane], batch["lnes"][lane]]
+                continued += not bool(fresh[lane])
+                frames = torch.cat(so_far[lane])[None]
+                want_target = teacher.forward_sequence(frames, causal=True)["pose"][0, -config.seq_len:]
+                want_output = reference.forward_sequence(frames, causal=True)["pose"][0, -config.seq_len:]
+                output, target = seen[step][0][lane], seen[step][1][lane]
+                assert torch.allclose(target, want_target, atol=1e-3), (step, lane, (target - want_target).abs().max())
+                assert torch.allclose(output, want_output, atol=1e-2), (step, lane, (output - want_output).abs().max())
+    assert continued >= 6
+
+
+def test_streams_need_a_causal_run() -> None:
+    with pytest.raises(ConfigError, match="add --causal"):
+        DistillConfig(stream_windows=4)
+    with pytest.raises(ConfigError, match="at least 1"):
+        DistillConfig(stream_windows=0, causal=True)

@@ -34,6 +34,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "keep = the checkpoint's (default for a checkpoint), teacher = the teacher's")
     p.add_argument("--causal", action="store_true", help="run teacher and student causally (default: "
                    "bidirectional, as train does)")
+    p.add_argument("--stream-windows", type=int, default=1, metavar="N",
+                   help="with --causal: each batch lane carries its states over N consecutive windows of one "
+                        "recording (truncated backpropagation through a stream; default 1: every window from "
+                        "the initial states). The step graph runs long streams: e.g. --stream-windows 16")
     p.add_argument("--freeze-norm-stats", action="store_true",
                    help="keep the student's BatchNorm running statistics fixed (e.g. a pruned student)")
     p.add_argument("--qat", action="store_true",
@@ -42,6 +46,15 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "checkpoint carries the ranges for quantize --ranges-from-checkpoint")
     p.add_argument("--qat-full-integer", action="store_true",
                    help="with --qat: simulate the full-integer graph (quantize --exclude none)")
+    p.add_argument("--qat-range-init", choices=("mse", "minmax", "first-batch"), default="mse",
+                   help="with --qat: where the learned ranges start: calibrated on windows of the data as "
+                        "quantize --calibration mse|minmax would (default mse), or the first training batch's "
+                        "min-max (first-batch; how the committed small_qat started)")
+    p.add_argument("--qat-calibration-windows", type=int, default=32, metavar="N",
+                   help="with --qat: windows of the data the ranges are calibrated on (default 32)")
+    p.add_argument("--qat-float-outputs", choices=("none", "matmul", "all"),
+                   help="with --qat: the quantize --float-outputs graph to simulate (default matmul with "
+                        "--qat-full-integer, as quantize builds it, else none); recorded in the checkpoint")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace a run already in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -58,8 +71,9 @@ def run(args: argparse.Namespace) -> int:
     config = DistillConfig(
         steps=args.steps, seq_len=args.seq_len, batch_size=args.batch_size, lr=args.lr,
         warmup_steps=args.warmup_steps, labels=args.labels, seed=args.seed, threads=args.threads,
-        causal=args.causal, freeze_norm_stats=args.freeze_norm_stats, qat=args.qat,
-        qat_full_integer=args.qat_full_integer,
+        causal=args.causal, stream_windows=args.stream_windows, freeze_norm_stats=args.freeze_norm_stats, qat=args.qat,
+        qat_full_integer=args.qat_full_integer, qat_range_init=args.qat_range_init,
+        qat_calibration_windows=args.qat_calibration_windows, qat_float_outputs=args.qat_float_outputs,
         prior=args.prior or ("data" if fresh else "keep"),
     )
     report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,

@@ -76,8 +76,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="int8: leave the outputs of these Conv/MatMul/Gemm in float where no quantised op reads them "
                    "(every node still reads 8-bit weights and activations): matmul (MatMul and Gemm; no speed "
                    "cost on ONNX Runtime), all (Conv too: more accurate, slower on ONNX Runtime, whose QLinearConv "
-                   "needs an 8-bit output), none. Default: matmul with a fixed --exclude; none with --exclude auto "
-                   "or --ranges-from-checkpoint")
+                   "needs an 8-bit output), none. Default: matmul with a fixed --exclude; none with --exclude auto; "
+                   "with --ranges-from-checkpoint the graph its fine-tune simulated (recorded in it)")
     p.add_argument("--int8-elementwise", action="store_true",
                    help="int8: also quantise Add/Mul/Sigmoid and run BatchNorm as a depthwise Conv, so CNN "
                    "blocks stay 8-bit between convolutions (faster on `paper`; may cost accuracy: check the report)")

@@ -22,6 +22,7 @@ fusion ignores (a stream starts from the direct pose), as `train`'s delta loss d
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -32,12 +33,14 @@ from tqdm import tqdm
 
 from e3dpsm.data.prepared import ALL_SPLITS, PreparedData
 from e3dpsm.errors import ConfigError, DataError
-from e3dpsm.training.data import WindowDataset, seeded_batches
-from e3dpsm.training.qat import check_qat_flags, freeze_batchnorm_stats
+from e3dpsm.training.data import WindowDataset, seeded_batches, stream_batches
+from e3dpsm.training.qat import CALIBRATION_WINDOWS, RANGE_INITS, check_qat_flags, freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 
 if TYPE_CHECKING:
     from e3dpsm.models.e3dpsm import E3DPSM
+
+log = logging.getLogger(__name__)
 
 LABEL_MODES: tuple[str, ...] = ("none", "gt")
 # How the student's pose prior (the direct head's offset) starts: left as it is (a trained or
@@ -79,6 +82,19 @@ class DistillConfig:
     # statistics. The checkpoint carries the learned ranges (`quantize --ranges-from-checkpoint`).
     qat: bool = False
     qat_full_integer: bool = False
+    # Where the learned ranges start (training/qat.py QATConfig.range_init), and on how many
+    # windows of the data ("mse", "minmax"), spread evenly over it.
+    qat_range_init: str = "mse"
+    qat_calibration_windows: int = CALIBRATION_WINDOWS
+    qat_float_outputs: str | None = None  # training/qat.py QATConfig.float_outputs
+    # Truncated backpropagation through streams (with `causal`): each batch lane carries its
+    # states (teacher's and student's, detached) over this many consecutive windows of one
+    # recording before it starts another. 1: every window starts from the initial states.
+    # The step graph runs streams of thousands of frames: the trained `small`'s stage-1 S5
+    # state grows for ~64 frames before it levels (max |state| 3.6 at frame 16, 8.9 at 64),
+    # so a student trained on 16-frame windows from zero never sees the states, nor learns the
+    # ranges, that its graph meets (QAT ranges learned so clipped them: docs/quantize.md).
+    stream_windows: int = 1
     prior: str = "keep"  # one of PRIOR_MODES
     prior_windows: int = 64  # windows of teacher poses averaged for prior="data"
     log_every: int = 10
@@ -92,6 +108,15 @@ class DistillConfig:
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"distill labels must be one of {list(LABEL_MODES)}, got {self.labels!r}")
         check_qat_flags(self.qat, self.qat_full_integer)
+        if self.qat_range_init not in RANGE_INITS:
+            raise ConfigError(f"distill qat_range_init must be one of {list(RANGE_INITS)}, got {self.qat_range_init!r}")
+        if self.stream_windows < 1:
+            raise ConfigError(f"distill stream_windows must be at least 1, got {self.stream_windows}")
+        if self.stream_windows > 1 and not self.causal:
+            raise ConfigError("distill --stream-windows carries states from window to window, which only a causal "
+                              "run has: add --causal")
+        if self.qat_calibration_windows < 1:
+            raise ConfigError(f"distill qat_calibration_windows must be at least 1, got {self.qat_calibration_windows}")
         if self.prior not in PRIOR_MODES:
             raise ConfigError(f"distill prior must be one of {list(PRIOR_MODES)}, got {self.prior!r}")
         if not self.lr > 0 or not self.charbonnier_mm > 0 or not self.clip_norm > 0:
@@ -199,13 +224,28 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
         prior_seconds = time.perf_counter() - prior_started
         fake_quant = None
         if config.qat:
-            from e3dpsm.training.qat import QATConfig, attach_fake_quant
+            from e3dpsm.training.qat import QATConfig, attach_fake_quant, calibrate_on_windows
 
-            fake_quant = attach_fake_quant(student.train(), QATConfig(full_integer=config.qat_full_integer))
+            fake_quant = attach_fake_quant(student.train(), QATConfig(
+                full_integer=config.qat_full_integer, range_init=config.qat_range_init,
+                float_outputs=config.qat_float_outputs))
+            range_start = {"rule": config.qat_range_init, "quantizers": len(fake_quant.quantizers), "calibrated": 0}
+            if config.qat_range_init != "first-batch":
+                # Calibrated on whole streams as training runs them: windows of every lane's
+                # stream length, from the initial states, as many frames as the windows given.
+                streams = WindowDataset(dataset.sequences, config.seq_len * config.stream_windows)
+                count = max(min(4, config.qat_calibration_windows), -(-config.qat_calibration_windows // config.stream_windows))
+                range_start["calibrated"] = calibrate_on_windows(
+                    fake_quant, student, streams, count, window_ms, config.causal, config.qat_range_init)
+                range_start["windows"], range_start["frames_per_window"] = count, streams.seq_len
+                log.info("QAT: %d of %d learned ranges start from %s calibration on %d windows of %d frames",
+                         range_start["calibrated"], len(fake_quant.quantizers), config.qat_range_init, count,
+                         streams.seq_len)
         try:
             summary = _run(teacher, student, dataset, config, window_ms, criterion, progress, fake_quant)
             if fake_quant is not None:
                 summary["qat_ranges"] = fake_quant.ranges_payload()
+                summary["qat_range_start"] = range_start
         finally:
             if fake_quant is not None:
                 fake_quant.remove()  # the plain student, its learned ranges in the summary
@@ -215,6 +255,17 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
     return {**summary, "prior": config.prior, "prior_seconds": prior_seconds, "split": split,
             "windows": len(dataset), "frames": dataset.frames_total(), "window_ms": window_ms,
             "data": str(data_dir), "config": config.to_dict()}
+
+
+def restart_lanes(model: "E3DPSM", state: Mapping[str, torch.Tensor] | None,
+                  fresh: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The states a streamed batch starts from: the carried ones, the initial ones in the
+    lanes that start a new stream (`fresh`), all initial when nothing is carried yet."""
+    initial = model.init_state(len(fresh))
+    if state is None:
+        return initial
+    lanes = fresh.to(next(iter(initial.values())).device)
+    return {k: torch.where(lanes.view(-1, *[1] * (v.dim() - 1)), initial[k], state[k]) for k, v in initial.items()}
 
 
 def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: DistillConfig, window_ms: float,
@@ -238,12 +289,27 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
     bar = tqdm(total=config.steps, desc=f"distill {teacher.config.variant} -> {student.config.variant}",
                unit="step", disable=not progress, dynamic_ncols=True)
     started = time.perf_counter()
-    for step, batch in seeded_batches(dataset, config.batch_size, config.seed):
+    streaming = config.stream_windows > 1
+    batches = (stream_batches(dataset, config.batch_size, config.seed, config.stream_windows) if streaming
+               else ((step, batch, None) for step, batch in seeded_batches(dataset, config.batch_size, config.seed)))
+    teacher_state: dict[str, torch.Tensor] | None = None
+    student_state: dict[str, torch.Tensor] | None = None
+    for step, batch, fresh in batches:
         lnes = batch["lnes"]  # labels stay untouched unless labels="gt"
-        with torch.no_grad():
-            target = teacher.forward_sequence(lnes.to(teacher_device), causal=config.causal, window_ms=window_ms)
+        if streaming:
+            teacher_state = restart_lanes(teacher, teacher_state, fresh)
+            student_state = restart_lanes(student, student_state, fresh)
+            with torch.no_grad():
+                target, teacher_state = teacher.forward_sequence(
+                    lnes.to(teacher_device), causal=True, state=teacher_state, window_ms=window_ms, return_state=True)
+            outputs, carried = student.forward_sequence(lnes.to(device), causal=True, state=student_state,
+                                                        window_ms=window_ms, return_state=True)
+            student_state = {k: v.detach() for k, v in carried.items()}  # truncated: no gradient into the past
+        else:
+            with torch.no_grad():
+                target = teacher.forward_sequence(lnes.to(teacher_device), causal=config.causal, window_ms=window_ms)
+            outputs = student.forward_sequence(lnes.to(device), causal=config.causal, window_ms=window_ms)
         target = {k: v.to(device) for k, v in target.items()}
-        outputs = student.forward_sequence(lnes.to(device), causal=config.causal, window_ms=window_ms)
         loss, terms = distill_loss(outputs, target, config)
         if criterion is not None:
             label_loss, _ = criterion(outputs, *(batch[k].to(device) for k in ("j3d_mm", "j2d_px", "visible")))

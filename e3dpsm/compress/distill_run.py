@@ -99,7 +99,10 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"prior `{report['prior']}`",
         f"- data: `{report['data']}` split `{report['split']}`, {report['windows']:,} windows of "
         f"{cfg['seq_len']} frames, {report['window_ms']:g} ms; labels `{cfg['labels']}`, "
-        f"{'causal' if cfg['causal'] else 'non-causal'}",
+        f"{'causal' if cfg['causal'] else 'non-causal'}"
+        + (f"; states carried over {cfg['stream_windows']} consecutive windows per lane"
+           if cfg.get("stream_windows", 1) > 1 else ""),
+        *([_qat_line(cfg, report.get("qat_range_start", {}))] if cfg.get("qat") else []),
         f"- {report['steps']} steps x {cfg['batch_size']} windows in {report['seconds']:.1f} s "
         f"({report['seconds_per_step']:.3f} s/step); CPU {report['machine'].get('cpu_model', '?')}, "
         f"ISA `{report['machine'].get('isa', {}).get('kind', '?')}`",
@@ -109,6 +112,20 @@ def report_markdown(report: dict[str, Any]) -> str:
     for record in _thin(report["log"], 12):
         lines.append(f"| {record['step']} | {record['lr']:.2e} | " + " | ".join(f"{record[t]:.3f}" for t in terms) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _qat_line(cfg: dict[str, Any], start: dict[str, Any]) -> str:
+    from e3dpsm.training.qat import QATConfig
+
+    full = bool(cfg.get("qat_full_integer"))
+    outputs = QATConfig(full_integer=full, float_outputs=cfg.get("qat_float_outputs")).simulated_float_outputs
+    line = f"- QAT: the {'full-integer' if full else 'default'} INT8 graph simulated (`--float-outputs {outputs}`)"
+    if start.get("calibrated"):
+        line += (f"; {start['calibrated']} of {start['quantizers']} learned ranges started from `{start['rule']}` "
+                 f"calibration on {start['windows']} windows of {start['frames_per_window']} frames")
+    else:
+        line += "; learned ranges started from the first batch each quantiser saw"
+    return line
 
 
 def _thin(records: list[dict[str, Any]], keep: int) -> list[dict[str, Any]]:

@@ -10,7 +10,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 from e3dpsm.data.prepared import PreparedSequence
 from e3dpsm.errors import DataError
@@ -34,6 +34,10 @@ class WindowDataset(Dataset):
 
     def __len__(self) -> int:
         return int(self._offsets[-1])
+
+    def index_of(self, seq_index: int, start: int) -> int:
+        """(sequence index, first frame) -> window index; the inverse of `locate`."""
+        return int(self._offsets[seq_index]) + start
 
     def locate(self, index: int) -> tuple[int, int]:
         """Window index -> (sequence index, first frame)."""
@@ -105,6 +109,45 @@ def seeded_batches(dataset: WindowDataset, batch_size: int, seed: int, start_ste
         for batch in loader:
             yield step, batch
             step += 1
+
+
+def stream_batches(dataset: WindowDataset, batch_size: int, seed: int, windows_per_stream: int
+                   ) -> Iterator[tuple[int, dict[str, torch.Tensor], torch.Tensor]]:
+    """Yield (step, batch, fresh) endlessly, for truncated backpropagation through a stream:
+    lane b of a batch continues one recording with its next `seq_len` frames for
+    `windows_per_stream` steps, then starts another at a random place; `fresh[b]` is True
+    where lane b starts a stream (its states start from the initial ones), False where it
+    continues the previous step's (its states carry over). The lanes' first streams are
+    staggered, so they restart at different steps. Depends only on (seed, step)."""
+    if windows_per_stream < 1:
+        raise DataError(f"windows per stream must be at least 1, got {windows_per_stream}")
+    length = dataset.seq_len * windows_per_stream
+    starts = np.array([max(0, s.frames - length + 1) for s in dataset.sequences])
+    if not starts.any():
+        longest = max(s.frames for s in dataset.sequences)
+        raise DataError(f"no sequence has {length} frames for a stream of {windows_per_stream} windows of "
+                        f"{dataset.seq_len} (longest: {longest}); lower --stream-windows or --seq-len")
+    rng = np.random.default_rng([seed, 7717])
+
+    def restart(windows: int) -> list[int]:
+        """[sequence, next frame, windows left] of a new stream of `windows` windows."""
+        seq = int(rng.choice(len(starts), p=starts / starts.sum()))
+        first = int(rng.integers(0, dataset.sequences[seq].frames - windows * dataset.seq_len + 1))
+        return [seq, first, windows]
+
+    lanes = [restart(windows_per_stream - (lane * windows_per_stream) // batch_size) for lane in range(batch_size)]
+    fresh = [True] * batch_size
+    step = 0
+    while True:
+        items = []
+        for lane in lanes:
+            items.append(dataset[dataset.index_of(lane[0], lane[1])])
+            lane[1] += dataset.seq_len
+            lane[2] -= 1
+        yield step, default_collate(items), torch.tensor(fresh)
+        fresh = [lane[2] == 0 for lane in lanes]
+        lanes = [restart(windows_per_stream) if lane[2] == 0 else lane for lane in lanes]
+        step += 1
 
 
 def mean_pose_mm(sequences: Sequence[PreparedSequence]) -> np.ndarray:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import torch
 from torch import nn
@@ -30,14 +30,20 @@ from torch.nn.utils import parametrize
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.layers.products import Affine, Projection
-from e3dpsm.training.qat_lsq import LearnedQuantizer
+from e3dpsm.training.qat_lsq import LearnedQuantizer, RangeObserver
 from e3dpsm.training.qat_sites import QuantGroup, QuantSite, linear_bias
+
+if TYPE_CHECKING:
+    from e3dpsm.training.data import WindowDataset
 
 # Modules the INT8 graph keeps in float whatever the search decides: the Kalman fusion's
 # pose embedding and the delta head feeding it (graph_groups' `fusion` recurrent group:
 # `inject` stops at the first projection). The S5 recurrence has no nn.Linear of its own.
 FLOAT_MODULE_PREFIXES: tuple[str, ...] = ("fusion", "pose_embed", "delta_head")
 WEIGHT_QMAX = 127                              # S8 symmetric, per output channel
+RANGE_INITS: tuple[str, ...] = ("mse", "minmax", "first-batch")
+# Windows of the training data the learned ranges are calibrated on before the first step.
+CALIBRATION_WINDOWS = 32
 
 
 @dataclass(frozen=True)
@@ -54,6 +60,33 @@ class QATConfig:
     # default graph, which keeps them in float. The S5 readout matrices are parameters, not
     # Linear modules: their inputs are fake-quantised, their weights are not.
     full_integer: bool = False
+    # Where the learned ranges start (`FakeQuantHandle.calibrate`): "mse" and "minmax" as
+    # `quantize --calibration` chooses them, on calibration windows of the training data;
+    # "first-batch" from the min-max of the first training batch each quantiser sees. A start
+    # far from a good range costs the fine-tune its first steps, and the weights move to make
+    # up for it: the first committed `small_qat` (first-batch) started 12.3 mm from its teacher
+    # (benchmarks/checkpoints/small_qat/recipe.md).
+    range_init: str = "mse"
+    # The `quantize --float-outputs` graph simulated: outputs of these Conv/MatMul/Gemm that no
+    # quantised op reads get no quantiser (quantize/outputs.py). None: "matmul" for the
+    # full-integer graph (quantize's default for a fixed --exclude), "none" for the default
+    # graph (its search keeps every pair). The checkpoint records it; `quantize
+    # --ranges-from-checkpoint` builds the same graph unless told otherwise.
+    float_outputs: str | None = None
+
+    def __post_init__(self) -> None:
+        from e3dpsm.quantize.outputs import FLOAT_OUTPUTS
+
+        if self.range_init not in RANGE_INITS:
+            raise ConfigError(f"unknown QAT range start {self.range_init!r}; choose from {list(RANGE_INITS)}")
+        if self.float_outputs is not None and self.float_outputs not in FLOAT_OUTPUTS:
+            raise ConfigError(f"unknown QAT float outputs {self.float_outputs!r}; choose from {list(FLOAT_OUTPUTS)}")
+
+    @property
+    def simulated_float_outputs(self) -> str:
+        if self.float_outputs is not None:
+            return self.float_outputs
+        return "matmul" if self.full_integer else "none"
 
 
 def check_qat_flags(qat: bool, full_integer: bool) -> None:
@@ -195,13 +228,48 @@ class FakeQuantHandle:
             if was_attached:
                 self.attach()
 
+    def calibrate(self, run: Callable[[], None], rule: str = "mse") -> int:
+        """Start every learned range from calibration data: `run()` (called twice) runs the
+        model over the same calibration windows; the quantisers record their inputs, the
+        first time their min-max, the second a histogram on it, and take the range
+        `quantize --calibration <rule>` would choose from it (quantize/ranges.py). Returns
+        how many quantisers saw values (the others start from their first training batch)."""
+        from e3dpsm.quantize.ranges import HISTOGRAM_BINS, Histogram, choose_range
+
+        if rule not in ("mse", "minmax"):
+            raise ConfigError(f"QAT ranges calibrate by 'mse' or 'minmax', not {rule!r}")
+        observers = [RangeObserver() for _ in self.quantizers]
+        for quantizer, observer in zip(self.quantizers, observers):
+            quantizer.observer = observer
+        try:
+            with torch.no_grad():
+                run()
+                if rule == "mse":
+                    for observer in observers:
+                        observer.start_histogram(HISTOGRAM_BINS)
+                    run()
+        finally:
+            for quantizer in self.quantizers:
+                quantizer.observer = None
+        calibrated = 0
+        for quantizer, observer in zip(self.quantizers, observers):
+            if not observer.high > observer.low:
+                continue  # never reached, or constant (the fusion's all-zero first pose)
+            if rule == "mse" and observer.counts is not None:
+                chosen = choose_range(Histogram(observer.counts.numpy(), observer.low, observer.high))
+                quantizer.init_from_range(chosen.low, chosen.high)
+            else:
+                quantizer.init_from_range(observer.low, observer.high)
+            calibrated += 1
+        return calibrated
+
     def ranges_payload(self) -> dict:
         """The checkpoint's `qat_ranges`: per learned quantiser its sites, the graph tensors
         it matched and its (scale, zero point) as the forward pass applies them."""
         from e3dpsm.quantize.qat_ranges import ranges_payload
 
         done = [(g, q) for g, q in zip(self.groups, self.quantizers) if bool(q.initialised)]
-        payload = ranges_payload([(g, *q.qparams()) for g, q in done])
+        payload = ranges_payload([(g, *q.qparams()) for g, q in done], self.config.simulated_float_outputs)
         for entry, (_, q) in zip(payload["quantizers"], done):
             entry["log_scale"] = float(q.log_scale.detach())  # for an exact resume
         return payload
@@ -222,6 +290,30 @@ class FakeQuantHandle:
         return restored
 
 
+def calibrate_on_windows(handle: FakeQuantHandle, model: nn.Module, dataset: "WindowDataset", count: int,
+                         window_ms: float, causal: bool, rule: str) -> int:
+    """`handle.calibrate` on `count` windows spread evenly over `dataset`, each run from the
+    initial state as training runs it (eval mode: BatchNorm on its running statistics, which
+    QAT keeps fixed). Returns how many quantisers were calibrated."""
+    import numpy as np
+
+    if count < 1:
+        raise ConfigError(f"QAT range calibration needs at least 1 window, got {count}")
+    indices = np.unique(np.linspace(0, len(dataset) - 1, count).round().astype(int))
+    device = next(model.parameters()).device
+    was_training = model.training
+
+    def run() -> None:
+        for index in indices:
+            model.forward_sequence(dataset[int(index)]["lnes"][None].to(device), causal=causal, window_ms=window_ms)
+
+    model.eval()
+    try:
+        return handle.calibrate(run, rule)
+    finally:
+        model.train(was_training)
+
+
 def attach_fake_quant(model: nn.Module, config: QATConfig | None = None,
                       groups: Sequence[QuantGroup] | None = None) -> FakeQuantHandle:
     """Fake-quantise `model` in place as its INT8 graph quantises it; returns the handle
@@ -231,5 +323,5 @@ def attach_fake_quant(model: nn.Module, config: QATConfig | None = None,
     if groups is None and config.activations:
         from e3dpsm.quantize.qat_ranges import qat_plan
 
-        groups = qat_plan(model, full_integer=config.full_integer)
+        groups = qat_plan(model, full_integer=config.full_integer, float_outputs=config.simulated_float_outputs)
     return FakeQuantHandle(model, config, groups or ()).attach()

@@ -46,15 +46,42 @@ def fake_quantize_learned(x: torch.Tensor, scale: torch.Tensor, zero_point: torc
     return (q - z) * s
 
 
+class RangeObserver:
+    """A tensor's calibration values seen by a quantiser that does not quantise yet: on the
+    first pass its min and max, on the second (`start_histogram`) a histogram of them on that
+    range, as `quantize --calibration mse` collects them on the graph (quantize/ranges.py)."""
+
+    def __init__(self) -> None:
+        self.low, self.high = math.inf, -math.inf
+        self.counts: torch.Tensor | None = None
+
+    def start_histogram(self, bins: int) -> None:
+        if self.high >= self.low:
+            self.low, self.high = min(self.low, 0.0), max(self.high, 0.0)
+            self.counts = torch.zeros(bins, dtype=torch.float64)
+
+    def observe(self, x: torch.Tensor) -> None:
+        x = x.detach().float()
+        if self.counts is None:
+            low, high = torch.aminmax(x)
+            self.low, self.high = min(self.low, float(low)), max(self.high, float(high))
+        elif self.high > self.low:
+            # Values outside the first pass's range (none, on the same windows) go to the end bins.
+            self.counts += torch.histc(x.clamp(self.low, self.high), len(self.counts), self.low, self.high).double()
+
+
 class LearnedQuantizer(nn.Module):
-    """A learned U8 range for one quantised tensor; initialised from the first batch it sees
-    (its min-max, widened to hold 0, as ONNX Runtime's calibrator makes it)."""
+    """A learned U8 range for one quantised tensor; initialised from calibration windows
+    (`FakeQuantHandle.calibrate`) or else from the first batch it sees (its min-max, widened
+    to hold 0, as ONNX Runtime's calibrator makes it)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.log_scale = nn.Parameter(torch.tensor(0.0))
         self.zero_point = nn.Parameter(torch.tensor(0.0))
         self.register_buffer("initialised", torch.tensor(False))
+        # Set while calibrating: the forward pass records its input and returns it unchanged.
+        self.observer: RangeObserver | None = None
 
     def init_from_range(self, low: float, high: float) -> None:
         low, high = min(float(low), 0.0), max(float(high), 0.0)
@@ -71,6 +98,9 @@ class LearnedQuantizer(nn.Module):
             self.initialised.fill_(True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.observer is not None:
+            self.observer.observe(x)
+            return x
         if not bool(self.initialised):
             low, high = torch.aminmax(x.detach())
             if not float(high) - float(low) > 0.0:

@@ -30,7 +30,8 @@ from e3dpsm.training.data import WindowDataset, epoch_size, mean_pose_mm, seeded
 from e3dpsm.training.distributed import DistContext, setup_distributed, teardown, wrap_model
 from e3dpsm.training.losses import LossWeights, PoseLoss
 from e3dpsm.training.projection import FisheyeProjection
-from e3dpsm.training.qat import QATConfig, attach_fake_quant, check_qat_flags, freeze_batchnorm_stats
+from e3dpsm.training.qat import (CALIBRATION_WINDOWS, QATConfig, attach_fake_quant, calibrate_on_windows,
+                                 check_qat_flags, freeze_batchnorm_stats)
 from e3dpsm.training.schedule import WarmupCosine
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic
@@ -196,6 +197,9 @@ def _train(args: TrainArgs, data_dir: Path, out: Path, opts: RunOptions, ctx: Di
     fake_quant = attach_fake_quant(model.train(), QATConfig(full_integer=args.qat_full_integer)) if args.qat else None
     if fake_quant and payload is not None and payload.get("qat_ranges"):
         fake_quant.load_ranges(payload["qat_ranges"])
+    elif fake_quant and fake_quant.config.range_init != "first-batch":
+        calibrate_on_windows(fake_quant, model, dataset, CALIBRATION_WINDOWS, data.window_ms, causal=False,
+                             rule=fake_quant.config.range_init)  # as training runs them: bidirectional
     model.to(ctx.device).train()
     if fake_quant:
         # BatchNorm keeps the fine-tuned checkpoint's running statistics: small QAT batches
