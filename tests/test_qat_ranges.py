@@ -492,3 +492,23 @@ def test_calibrated_start_is_the_range_quantize_chooses_on_the_same_values(rule:
     out = model.forward_sequence(windows[0], causal=True)["pose"]
     handle.remove()
     assert not torch.allclose(out, model.forward_sequence(windows[0], causal=True)["pose"], atol=1e-4)
+
+
+def test_full_integer_qat_learns_no_range_where_its_graph_leaves_an_output_float(qat_tiny_full_integer,
+                                                                                 tmp_path: Path) -> None:
+    """QATConfig(full_integer=True) simulates `quantize --exclude none` as quantize builds it,
+    MatMul/Gemm outputs that no quantised op reads in float (--float-outputs matmul). Catches:
+    quantisers learned (and rounding simulated) on outputs the graph never rounds."""
+    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
+
+    pre = tmp_path / "pre.onnx"
+    preprocess(qat_tiny_full_integer["graph"], pre)
+    every_pair = set(quantised_activations(pre, [], DEFAULT_OP_TYPES, "none"))
+    covered = {t for g in qat_tiny_full_integer["handle"].groups for t in g.tensors}
+    producers = {o: n.op_type for n in onnx.load(str(pre)).graph.node for o in n.output}
+    dropped = every_pair - covered
+    assert covered < every_pair and len(dropped) >= 10, (len(covered), len(every_pair))
+    assert {producers[t] for t in dropped} <= {"MatMul", "Gemm"}, {t: producers[t] for t in dropped}
+    # ...and no Conv output: Conv outputs keep their pairs under --float-outputs matmul.
+    assert not any(producers.get(t) == "Conv" for t in dropped)
