@@ -242,7 +242,9 @@ def test_committed_qat_checkpoint_names_only_modules_the_model_has() -> None:
     assert unknown_sites(model, learned) == []
     renamed = [{**q, "sites": [s.replace("offset_projection", "offset_product") for s in q["sites"]]} for q in learned]
     stale = unknown_sites(model, renamed)
-    assert len(stale) == 8 and all("offset_product" in s for s in stale), stale  # 4 layers x (in, prebias)
+    # 4 layers x their input (the output before the bias is float under --float-outputs
+    # matmul, which the committed fine-tune simulated: no range learned for it).
+    assert len(stale) == 4 and all("offset_product" in s for s in stale), stale
 
 
 def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant_data: Path, tmp_path: Path) -> None:
