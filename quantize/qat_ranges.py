@@ -183,10 +183,13 @@ def qat_plan(model, feed: Mapping[str, np.ndarray] | None = None, full_integer: 
     return groups + weight_groups
 
 
-def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]], float_outputs: str = "none") -> dict[str, Any]:
+def ranges_payload(quantizers: Sequence[tuple["QuantGroup", float, int]], float_outputs: str = "none",
+                   weight_bits: int = 8) -> dict[str, Any]:
     """The checkpoint's `qat_ranges` entry. `float_outputs`: the `quantize --float-outputs`
-    graph training simulated (its default under `--ranges-from-checkpoint`)."""
+    graph training simulated (its default under `--ranges-from-checkpoint`); `weight_bits`:
+    the weights' bits it simulated (8, or 7 for a target without int8 dot-product units)."""
     return {"format": QAT_RANGES_FORMAT, "activation_type": "QUInt8", "float_outputs": float_outputs,
+            "weight_bits": int(weight_bits),
             "quantizers": [{"sites": list(g.sites), "tensors": list(g.tensors), "scale": float(s), "zero_point": int(z)}
                            for g, s, z in quantizers]}
 
@@ -199,6 +202,12 @@ def read_ranges(payload: Mapping[str, Any], source: str) -> list[dict[str, Any]]
     if ranges.get("format") != QAT_RANGES_FORMAT:
         raise CheckpointError(f"{source}: qat_ranges format {ranges.get('format')!r} is not {QAT_RANGES_FORMAT!r}")
     return list(ranges["quantizers"])
+
+
+def simulated_weight_bits(payload: Mapping[str, Any]) -> int:
+    """The weights' bits a QAT checkpoint's training simulated: 8 for checkpoints that
+    predate the record."""
+    return int((payload.get("qat_ranges") or {}).get("weight_bits", 8))
 
 
 def simulated_float_outputs(payload: Mapping[str, Any]) -> str:
@@ -215,9 +224,11 @@ def unknown_sites(model: torch.nn.Module, learned: Sequence[Mapping[str, Any]]) 
     return sorted({site for q in learned for site in q["sites"] if QuantSite.parse(site).module not in modules})
 
 
-def qat_weight_bits(config: "StaticConfig", target_isa: str) -> dict[str, Any]:
-    """The weights' bits in the graph against those the QAT fine-tune simulated (8: S8
-    symmetric per channel, `training.qat.WEIGHT_QMAX`), for the report.
+def qat_weight_bits(config: "StaticConfig", target_isa: str, trained: int = 8) -> dict[str, Any]:
+    """The weights' bits in the graph against the `trained` bits the QAT fine-tune simulated
+    (the checkpoint's `qat_ranges.weight_bits`; 8 for checkpoints that predate the record:
+    S8 symmetric per channel, `training.qat.WEIGHT_QMAX`), for the report. A fine-tune for a
+    target without int8 dot-product units simulates the 7-bit weights its graph gets there.
 
     A target without int8 dot-product units gets 7-bit weights (`StaticConfig.for_target`)
     even under learned ranges: there ONNX Runtime's U8S8 kernels saturate with 8-bit weights,
@@ -225,15 +236,12 @@ def qat_weight_bits(config: "StaticConfig", target_isa: str) -> dict[str, Any]:
     (the committed `small_qat`, full integer, 1,000 unseen `val` frames, AMD EPYC with AVX2
     only: 17.2% of MPJPE from its fp32 poses with 7-bit weights, 19.9% with 8-bit; 17.2% for
     8-bit weights in exact arithmetic, docs/quantize.md). `--target-isa vnni` keeps 8 bits."""
-    from e3dpsm.training.qat import WEIGHT_QMAX
-
-    trained = int(WEIGHT_QMAX).bit_length() + 1
-    graph = trained - 1 if config.reduce_range else trained
+    graph = 7 if config.reduce_range else 8
     if graph != trained:
         log.warning("the QAT checkpoint trained %d-bit weights; the graph gets %d-bit weights for --target-isa %s "
-                    "(no int8 dot-product units: 8-bit weights saturate ONNX Runtime's U8S8 kernels there), so it "
-                    "computes close to, not exactly, what training simulated; --target-isa vnni keeps %d bits",
-                    trained, graph, target_isa, trained)
+                    "(7 where there are no int8 dot-product units: 8-bit weights saturate ONNX Runtime's U8S8 "
+                    "kernels there), so it computes close to, not exactly, what training simulated; fine-tune "
+                    "with --qat-weight-bits %d for this target", trained, graph, target_isa, graph)
     return {"trained_bits": trained, "graph_bits": graph, "target_isa": target_isa}
 
 

@@ -176,3 +176,24 @@ def test_qat_full_integer_without_qat_is_refused() -> None:
 
     with pytest.raises(ConfigError, match="add --qat"):
         TrainArgs(variant="tiny", steps=1, qat_full_integer=True)
+
+
+@pytest.mark.parametrize("bits, reduce_range", [(8, False), (7, True)])
+def test_weight_fake_quant_is_onnx_runtimes_weight_rounding(bits: int, reduce_range: bool) -> None:
+    """The weights QAT simulates are the ones `quantize` writes: ONNX Runtime's symmetric S8
+    per channel, with `reduce_range` (7-bit, levels -64..64) for a target without int8
+    dot-product units. Catches: 7-bit weights simulated on -63..63 or with an 8-bit scale."""
+    from onnx import TensorProto
+    from onnxruntime.quantization.quant_utils import quantize_data
+
+    from e3dpsm.training.qat import WEIGHT_QMAX_BY_BITS
+
+    gen = torch.Generator().manual_seed(1)
+    weight = torch.randn(5, 3, 3, 3, generator=gen) * torch.tensor([1e-2, 0.3, 1.0, 4.0, 0.05]).view(5, 1, 1, 1)
+    got = fake_quantize_weight(weight, WEIGHT_QMAX_BY_BITS[bits]).numpy()
+    for channel in range(5):
+        data = weight[channel].numpy().ravel()
+        zero, scale, q = quantize_data(data, TensorProto.INT8, symmetric=True, reduce_range=reduce_range)
+        want = (q.astype(np.float32) - float(zero)) * np.float32(scale)
+        np.testing.assert_allclose(got[channel].ravel(), want, rtol=0, atol=float(scale) * 1e-4)
+        assert np.abs(q).max() == WEIGHT_QMAX_BY_BITS[bits]

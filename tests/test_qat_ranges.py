@@ -127,7 +127,7 @@ def _qat_tiny(tmp_path_factory, config: QATConfig, name: str) -> dict:
 @pytest.fixture(scope="module")
 def qat_tiny_full_integer(tmp_path_factory) -> dict:
     """As qat_tiny, simulating the full-integer graph (QATConfig(full_integer=True))."""
-    return _qat_tiny(tmp_path_factory, QATConfig(full_integer=True), "qat_tiny_full")
+    return _qat_tiny(tmp_path_factory, QATConfig(full_integer=True, weight_bits=8), "qat_tiny_full")
 
 
 def _quantised_tensor(name: str) -> str:
@@ -181,7 +181,7 @@ def test_full_integer_graph_takes_the_recurrent_paths_learned_ranges(qat_tiny_fu
 
 @pytest.fixture(scope="module")
 def qat_tiny(tmp_path_factory) -> dict:
-    return _qat_tiny(tmp_path_factory, QATConfig(), "qat_tiny")
+    return _qat_tiny(tmp_path_factory, QATConfig(weight_bits=8), "qat_tiny")
 
 
 def test_qat_checkpoint_carries_learned_ranges_that_moved(qat_tiny) -> None:
@@ -335,18 +335,20 @@ def test_projection_weights_are_rounded_where_the_graph_quantises_them(qat_tiny,
 
 
 
-def test_a_projections_weight_is_rounded_s8_per_output_channel() -> None:
+@pytest.mark.parametrize("bits, levels", [(8, 127), (7, 64)])
+def test_a_projections_weight_is_rounded_s8_per_output_channel(bits: int, levels: int) -> None:
     from e3dpsm.layers.products import Projection
     from e3dpsm.training.qat import FakeQuantHandle
     from e3dpsm.training.qat_sites import QuantGroup
 
     holder = torch.nn.Module()
     holder.proj = Projection()
-    handle = FakeQuantHandle(holder, QATConfig(activations=False), [QuantGroup(("w",), ("proj:weight",))]).attach()
+    handle = FakeQuantHandle(holder, QATConfig(activations=False, weight_bits=bits),
+                             [QuantGroup(("w",), ("proj:weight",))]).attach()
     gen = torch.Generator().manual_seed(3)
     x, weight = torch.randn(5, 7, generator=gen), torch.randn(4, 7, generator=gen)
-    step = weight.abs().amax(dim=1, keepdim=True).numpy() / 127
-    rounded = np.clip(np.round(weight.numpy() / step), -127, 127) * step  # numpy, per row (output channel)
+    step = weight.abs().amax(dim=1, keepdim=True).numpy() / levels
+    rounded = np.clip(np.round(weight.numpy() / step), -levels, levels) * step  # numpy, per row (output channel)
     with torch.no_grad():
         got = holder.proj(x, weight).numpy()
         handle.remove()

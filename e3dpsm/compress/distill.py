@@ -87,6 +87,7 @@ class DistillConfig:
     qat_range_init: str = "mse"
     qat_calibration_windows: int = CALIBRATION_WINDOWS
     qat_float_outputs: str | None = None  # training/qat.py QATConfig.float_outputs
+    qat_weight_bits: int | None = None  # training/qat.py QATConfig.weight_bits (None: this host's)
     # Truncated backpropagation through streams (with `causal`): each batch lane carries its
     # states (teacher's and student's, detached) over this many consecutive windows of one
     # recording before it starts another. 1: every window starts from the initial states.
@@ -228,8 +229,9 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
 
             fake_quant = attach_fake_quant(student.train(), QATConfig(
                 full_integer=config.qat_full_integer, range_init=config.qat_range_init,
-                float_outputs=config.qat_float_outputs))
-            range_start = {"rule": config.qat_range_init, "quantizers": len(fake_quant.quantizers), "calibrated": 0}
+                float_outputs=config.qat_float_outputs, weight_bits=config.qat_weight_bits))
+            range_start = {"rule": config.qat_range_init, "quantizers": len(fake_quant.quantizers), "calibrated": 0,
+                           "weight_bits": fake_quant.weight_bits}
             if config.qat_range_init != "first-batch":
                 # Calibrated on whole streams as training runs them: windows of every lane's
                 # stream length, from the initial states, as many frames as the windows given.

@@ -119,7 +119,8 @@ def _qat_line(cfg: dict[str, Any], start: dict[str, Any]) -> str:
 
     full = bool(cfg.get("qat_full_integer"))
     outputs = QATConfig(full_integer=full, float_outputs=cfg.get("qat_float_outputs")).simulated_float_outputs
-    line = f"- QAT: the {'full-integer' if full else 'default'} INT8 graph simulated (`--float-outputs {outputs}`)"
+    bits = f", {start['weight_bits']}-bit weights" if "weight_bits" in start else ""
+    line = f"- QAT: the {'full-integer' if full else 'default'} INT8 graph simulated (`--float-outputs {outputs}`{bits})"
     if start.get("calibrated"):
         line += (f"; {start['calibrated']} of {start['quantizers']} learned ranges started from `{start['rule']}` "
                  f"calibration on {start['windows']} windows of {start['frames_per_window']} frames")

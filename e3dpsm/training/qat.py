@@ -41,6 +41,10 @@ if TYPE_CHECKING:
 # `inject` stops at the first projection). The S5 recurrence has no nn.Linear of its own.
 FLOAT_MODULE_PREFIXES: tuple[str, ...] = ("fusion", "pose_embed", "delta_head")
 WEIGHT_QMAX = 127                              # S8 symmetric, per output channel
+# ONNX Runtime's 7-bit weights (reduce_range, symmetric): levels -64..64, scale absmax / 64
+# (onnxruntime.quantization.quant_utils.get_qmin_qmax_for_qType), what `quantize` gives a
+# target without int8 dot-product units (quantize/static.py StaticConfig.for_target).
+WEIGHT_QMAX_BY_BITS: dict[int, int] = {8: WEIGHT_QMAX, 7: 64}
 RANGE_INITS: tuple[str, ...] = ("mse", "minmax", "first-batch")
 # Windows of the training data the learned ranges are calibrated on before the first step.
 CALIBRATION_WINDOWS = 32
@@ -73,14 +77,30 @@ class QATConfig:
     # graph (its search keeps every pair). The checkpoint records it; `quantize
     # --ranges-from-checkpoint` builds the same graph unless told otherwise.
     float_outputs: str | None = None
+    # The weights' bits the graph will have: 8, or 7 where `quantize` targets a CPU without
+    # int8 dot-product units (its U8S8 kernels saturate with 8-bit weights there). None: the
+    # bits `quantize`'s default target, this host, gets. The checkpoint records them.
+    weight_bits: int | None = None
 
     def __post_init__(self) -> None:
         from e3dpsm.quantize.outputs import FLOAT_OUTPUTS
+
+        if self.weight_bits is not None and self.weight_bits not in WEIGHT_QMAX_BY_BITS:
+            raise ConfigError(f"QAT weight bits must be one of {sorted(WEIGHT_QMAX_BY_BITS)}, got {self.weight_bits}")
 
         if self.range_init not in RANGE_INITS:
             raise ConfigError(f"unknown QAT range start {self.range_init!r}; choose from {list(RANGE_INITS)}")
         if self.float_outputs is not None and self.float_outputs not in FLOAT_OUTPUTS:
             raise ConfigError(f"unknown QAT float outputs {self.float_outputs!r}; choose from {list(FLOAT_OUTPUTS)}")
+
+    @property
+    def simulated_weight_bits(self) -> int:
+        if self.weight_bits is not None:
+            return self.weight_bits
+        from e3dpsm.quantize.static import saturates_u8s8
+        from e3dpsm.utils.isa import detect_isa
+
+        return 7 if saturates_u8s8(detect_isa().kind) else 8
 
     @property
     def simulated_float_outputs(self) -> str:
@@ -96,13 +116,13 @@ def check_qat_flags(qat: bool, full_integer: bool) -> None:
         raise ConfigError("--qat-full-integer says which graph --qat simulates: add --qat")
 
 
-def fake_quantize_weight(weight: torch.Tensor) -> torch.Tensor:
-    """Symmetric S8 per output channel (axis 0), zero point 0; gradients pass straight
-    through inside the range."""
+def fake_quantize_weight(weight: torch.Tensor, qmax: int = WEIGHT_QMAX) -> torch.Tensor:
+    """Symmetric per output channel (axis 0) on levels -qmax..qmax, zero point 0; gradients
+    pass straight through inside the range."""
     absmax = weight.detach().abs().flatten(1).amax(dim=1).clamp_min(1e-12)
-    scale = (absmax / WEIGHT_QMAX).to(torch.float32)
+    scale = (absmax / qmax).to(torch.float32)
     zero = torch.zeros_like(scale, dtype=torch.int32)
-    return torch.fake_quantize_per_channel_affine(weight, scale, zero, 0, -WEIGHT_QMAX, WEIGHT_QMAX)
+    return torch.fake_quantize_per_channel_affine(weight, scale, zero, 0, -qmax, qmax)
 
 
 def freeze_batchnorm_stats(model: nn.Module) -> int:
@@ -115,8 +135,12 @@ def freeze_batchnorm_stats(model: nn.Module) -> int:
 
 
 class _WeightFakeQuant(nn.Module):
+    def __init__(self, qmax: int) -> None:
+        super().__init__()
+        self.qmax = qmax
+
     def forward(self, weight: torch.Tensor) -> torch.Tensor:
-        return fake_quantize_weight(weight)
+        return fake_quantize_weight(weight, self.qmax)
 
 
 def quantised_modules(model: nn.Module, full_integer: bool = False) -> list[tuple[str, nn.Module]]:
@@ -150,6 +174,7 @@ class FakeQuantHandle:
         self._hooks: list[torch.utils.hooks.RemovableHandle] = []
         self._weight_hooks: list[torch.utils.hooks.RemovableHandle] = []
         self._weights_attached = False
+        self.weight_bits = config.simulated_weight_bits  # resolved once: the host does not change
 
     def parameters(self) -> list[nn.Parameter]:
         """The learned ranges (an optimizer trains them beside the model's parameters)."""
@@ -157,11 +182,12 @@ class FakeQuantHandle:
 
     def _attach_weights(self) -> None:
         if self.config.weights and not self._weights_attached:
+            qmax = WEIGHT_QMAX_BY_BITS[self.weight_bits]
             for _, module in self.modules:
-                parametrize.register_parametrization(module, "weight", _WeightFakeQuant())
+                parametrize.register_parametrization(module, "weight", _WeightFakeQuant(qmax))
             for _, module in self.projections:  # the weight is an argument, not a parameter
                 self._weight_hooks.append(module.register_forward_pre_hook(
-                    lambda mod, args: (args[0], fake_quantize_weight(args[1]), *args[2:])))
+                    lambda mod, args: (args[0], fake_quantize_weight(args[1], qmax), *args[2:])))
             self._weights_attached = True
 
     def _detach_weights(self) -> None:
@@ -269,7 +295,8 @@ class FakeQuantHandle:
         from e3dpsm.quantize.qat_ranges import ranges_payload
 
         done = [(g, q) for g, q in zip(self.groups, self.quantizers) if bool(q.initialised)]
-        payload = ranges_payload([(g, *q.qparams()) for g, q in done], self.config.simulated_float_outputs)
+        payload = ranges_payload([(g, *q.qparams()) for g, q in done], self.config.simulated_float_outputs,
+                                 self.weight_bits)
         for entry, (_, q) in zip(payload["quantizers"], done):
             entry["log_scale"] = float(q.log_scale.detach())  # for an exact resume
         return payload
