@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         graphs = {"base fp32": (base, "base fp32"), "qat fp32": (qat, "qat fp32")}
         extra = []
         if saturates_u8s8(detect_isa().kind):
-            extra.append(("qat full int8, 8-bit weights as trained (--target-isa vnni), QAT ranges", "qat fp32",
+            extra.append(("qat full int8, 8-bit weights (--target-isa vnni), QAT ranges", "qat fp32",
                           QuantizeOptions(**common, ranges_from_checkpoint=args.qat_checkpoint, target_isa="vnni")))
         # Like with like: the PTQ graph built as the QAT graph with learned ranges is, with
         # the outputs its fine-tune simulated in float (outputs.py; recorded in the checkpoint).
