@@ -39,7 +39,7 @@ from e3dpsm.quantize.outputs import FLOAT_OUTPUTS, dequantised_outputs
 from e3dpsm.quantize.precision import (SizeProbe, demote_to_int16, promote_to_int16w16, quantise_recurrent_compute,
                                        smallest_int16_plan)
 from e3dpsm.quantize.qat_ranges import (learned_overrides, qat_weight_bits, quantised_activations, read_ranges,
-                                        simulated_float_outputs, simulated_weight_bits)
+                                        simulated_float_outputs)
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, int16_tensors,
                                    preprocess, quantize_int8, quantised_node_count, saturates_u8s8)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
@@ -440,10 +440,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
         # too, and a search may; overrides for tensors a graph leaves float are not used.
         quantised = quantised_activations(pre, fixed if fixed is not None else [], config.op_types)
         learned, qat_report = learned_overrides(options.ranges_from_checkpoint, pre, quantised)
-        from e3dpsm.checkpoint import read_checkpoint
-
-        trained_bits = simulated_weight_bits(read_checkpoint(options.ranges_from_checkpoint))
-        qat_report["weights"] = qat_weight_bits(config, target_isa, trained_bits)
+        qat_report["weights"] = qat_weight_bits(config, target_isa, qat_report.pop("trained_weight_bits"))
     search = latency = precision = None
     size_probes: list[SizeProbe] = []
     int16_nodes: list[str] = []

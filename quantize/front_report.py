@@ -107,6 +107,10 @@ def _qat_weight_lines(weights: dict[str, Any]) -> list[str]:
     trained, graph = weights["trained_bits"], weights["graph_bits"]
     if graph == trained:
         return [f"Weights: {graph}-bit, as the fine-tune simulated them.", ""]
+    if graph > trained:  # a fine-tune for a target without int8 dot-product units, quantised for one with
+        return [f"Weights: **{graph}-bit, where the fine-tune simulated {trained}-bit** (for a target without int8 "
+                f"dot-product units): this graph computes close to, not exactly, what training simulated. "
+                f"Fine-tune with `--qat-weight-bits {graph}` for `--target-isa {weights['target_isa']}`.", ""]
     return [f"Weights: **{graph}-bit, where the fine-tune simulated {trained}-bit**: the target "
             f"(`--target-isa {weights['target_isa']}`) has no int8 dot-product units, and ONNX Runtime's U8S8 "
             f"kernels saturate there with {trained}-bit weights, so this graph computes close to, not exactly, "

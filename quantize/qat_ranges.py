@@ -248,7 +248,8 @@ def qat_weight_bits(config: "StaticConfig", target_isa: str, trained: int = 8) -
 def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike,
                       quantised: Sequence[str]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
-    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors).
+    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors, the
+    weights' bits training simulated).
 
     Matched on `probe_feed`, as `qat_plan` matched at training time, not on a stream's first
     frame: with the initial states, values coincide (a state output equals the input
@@ -275,7 +276,8 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
             for tensor in group.tensors:
                 overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
     uncovered = sorted(set(quantised) - set(overrides))
-    report = {"checkpoint": str(checkpoint), "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
+    report = {"checkpoint": str(checkpoint), "trained_weight_bits": simulated_weight_bits(payload),
+              "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
               "uncovered": uncovered, "unknown_sites": stale}
     log.info("QAT ranges: %d tensors take the learned ranges, %d keep calibrated ones", len(overrides), len(uncovered))
     return overrides, report

@@ -197,3 +197,16 @@ def test_weight_fake_quant_is_onnx_runtimes_weight_rounding(bits: int, reduce_ra
         want = (q.astype(np.float32) - float(zero)) * np.float32(scale)
         np.testing.assert_allclose(got[channel].ravel(), want, rtol=0, atol=float(scale) * 1e-4)
         assert np.abs(q).max() == WEIGHT_QMAX_BY_BITS[bits]
+
+
+@pytest.mark.parametrize("kind, bits", [("avx2", 7), ("other", 7), ("vnni", 8), ("dotprod", 8)])
+def test_default_weight_bits_are_those_of_the_hosts_graph(kind: str, bits: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without --qat-weight-bits the fine-tune simulates what `quantize`'s default target, the
+    host, gets: 7-bit weights without int8 dot-product units, 8-bit with them; a given value wins."""
+    import types
+
+    import e3dpsm.utils.isa as isa
+
+    monkeypatch.setattr(isa, "detect_isa", lambda: types.SimpleNamespace(kind=kind))
+    assert QATConfig().simulated_weight_bits == bits
+    assert QATConfig(weight_bits=8).simulated_weight_bits == 8 and QATConfig(weight_bits=7).simulated_weight_bits == 7

@@ -516,3 +516,25 @@ def test_full_integer_qat_learns_no_range_where_its_graph_leaves_an_output_float
     assert {producers[t] for t in dropped} <= {"MatMul", "Gemm"}, {t: producers[t] for t in dropped}
     # ...and no Conv output: Conv outputs keep their pairs under --float-outputs matmul.
     assert not any(producers.get(t) == "Conv" for t in dropped)
+
+
+def test_a_7_bit_fine_tune_is_what_an_avx2_graph_computes_and_is_flagged_for_vnni(qat_tiny_full_integer,
+                                                                                 quant_data: Path, tmp_path: Path) -> None:
+    """The checkpoint's `qat_ranges.weight_bits` reaches the report: a fine-tune that simulated
+    7-bit weights matches the graph of a target without int8 dot-product units, and is flagged
+    on a `vnni` target (8-bit weights). Catches: the trained bits taken as 8 whatever the
+    checkpoint says, or the mismatch text claiming the target lacks dot-product units."""
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    model, payload = load_checkpoint(qat_tiny_full_integer["checkpoint"])
+    ranges = {**payload["qat_ranges"], "weight_bits": 7}
+    seven = save_checkpoint(tmp_path / "seven.pt", model, qat_ranges=ranges)
+    weights, text = {}, {}
+    for isa in ("avx2", "vnni"):
+        report = quantize_graph(qat_tiny_full_integer["graph"], quant_data, tmp_path / isa, QuantizeOptions(
+            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(seven), target_isa=isa))
+        weights[isa], text[isa] = report["qat_ranges"]["weights"], (tmp_path / isa / "report.md").read_text()
+    assert weights["avx2"] == {"trained_bits": 7, "graph_bits": 7, "target_isa": "avx2"}
+    assert "Weights: 7-bit, as the fine-tune simulated them." in text["avx2"]
+    assert weights["vnni"] == {"trained_bits": 7, "graph_bits": 8, "target_isa": "vnni"}
+    assert "`--qat-weight-bits 8`" in text["vnni"] and "has no int8 dot-product units" not in text["vnni"]

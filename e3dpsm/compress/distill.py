@@ -34,7 +34,7 @@ from tqdm import tqdm
 from e3dpsm.data.prepared import ALL_SPLITS, PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.training.data import WindowDataset, seeded_batches, stream_batches
-from e3dpsm.training.qat import CALIBRATION_WINDOWS, RANGE_INITS, check_qat_flags, freeze_batchnorm_stats
+from e3dpsm.training.qat import CALIBRATION_WINDOWS, QATConfig, check_qat_flags, freeze_batchnorm_stats
 from e3dpsm.training.schedule import WarmupCosine
 
 if TYPE_CHECKING:
@@ -109,8 +109,7 @@ class DistillConfig:
         if self.labels not in LABEL_MODES:
             raise ConfigError(f"distill labels must be one of {list(LABEL_MODES)}, got {self.labels!r}")
         check_qat_flags(self.qat, self.qat_full_integer)
-        if self.qat_range_init not in RANGE_INITS:
-            raise ConfigError(f"distill qat_range_init must be one of {list(RANGE_INITS)}, got {self.qat_range_init!r}")
+        self.qat_config  # QATConfig refuses an unknown range start, float-outputs graph or weight bits
         if self.stream_windows < 1:
             raise ConfigError(f"distill stream_windows must be at least 1, got {self.stream_windows}")
         if self.stream_windows > 1 and not self.causal:
@@ -125,6 +124,12 @@ class DistillConfig:
         weights = (self.weight_fused, self.weight_direct, self.weight_delta, self.weight_labels)
         if any(not w >= 0 for w in weights) or not any(weights[:3]):
             raise ConfigError("distill weights must be non-negative, with at least one teacher term positive")
+
+    @property
+    def qat_config(self) -> QATConfig:
+        """What `qat` fake-quantises (training/qat.py)."""
+        return QATConfig(full_integer=self.qat_full_integer, range_init=self.qat_range_init,
+                         float_outputs=self.qat_float_outputs, weight_bits=self.qat_weight_bits)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -225,11 +230,9 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
         prior_seconds = time.perf_counter() - prior_started
         fake_quant = None
         if config.qat:
-            from e3dpsm.training.qat import QATConfig, attach_fake_quant, calibrate_on_windows
+            from e3dpsm.training.qat import attach_fake_quant, calibrate_on_windows
 
-            fake_quant = attach_fake_quant(student.train(), QATConfig(
-                full_integer=config.qat_full_integer, range_init=config.qat_range_init,
-                float_outputs=config.qat_float_outputs, weight_bits=config.qat_weight_bits))
+            fake_quant = attach_fake_quant(student.train(), config.qat_config)
             range_start = {"rule": config.qat_range_init, "quantizers": len(fake_quant.quantizers), "calibrated": 0,
                            "weight_bits": fake_quant.weight_bits}
             if config.qat_range_init != "first-batch":

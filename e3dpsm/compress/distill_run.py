@@ -115,10 +115,10 @@ def report_markdown(report: dict[str, Any]) -> str:
 
 
 def _qat_line(cfg: dict[str, Any], start: dict[str, Any]) -> str:
-    from e3dpsm.training.qat import QATConfig
+    from e3dpsm.compress.distill import DistillConfig
 
     full = bool(cfg.get("qat_full_integer"))
-    outputs = QATConfig(full_integer=full, float_outputs=cfg.get("qat_float_outputs")).simulated_float_outputs
+    outputs = DistillConfig(**cfg).qat_config.simulated_float_outputs
     bits = f", {start['weight_bits']}-bit weights" if "weight_bits" in start else ""
     line = f"- QAT: the {'full-integer' if full else 'default'} INT8 graph simulated (`--float-outputs {outputs}`{bits})"
     if start.get("calibrated"):

@@ -87,7 +87,6 @@ class QATConfig:
 
         if self.weight_bits is not None and self.weight_bits not in WEIGHT_QMAX_BY_BITS:
             raise ConfigError(f"QAT weight bits must be one of {sorted(WEIGHT_QMAX_BY_BITS)}, got {self.weight_bits}")
-
         if self.range_init not in RANGE_INITS:
             raise ConfigError(f"unknown QAT range start {self.range_init!r}; choose from {list(RANGE_INITS)}")
         if self.float_outputs is not None and self.float_outputs not in FLOAT_OUTPUTS:
