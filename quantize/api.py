@@ -23,7 +23,7 @@ from e3dpsm.onnx_constants import retile_constants
 from e3dpsm.quantize.compact import compact_qdq, graph_names
 from e3dpsm.quantize.calibration import record_calibration_set
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
-from e3dpsm.quantize.equalize import equalize_geglu
+from e3dpsm.quantize.equalize import equalize
 from e3dpsm.quantize.exclusions import (NodeRanking, SearchResult, greedy_exclusions, node_sensitivity,
                                         ranked_prefix_exclusions, scratch_model_path)
 from e3dpsm.quantize.fp16 import convert_fp16
@@ -109,8 +109,9 @@ class QuantizeOptions:
     # The CPU kind the INT8 graph is for (utils/isa.py); None: this host's. AVX2 targets get
     # 7-bit weights (StaticConfig.reduce_range).
     target_isa: str | None = None
-    # int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating
-    # (equalize.py; the fp32 function is unchanged).
+    # int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights and into the
+    # LayerNorms before the projections that read them, before calibrating (equalize.py; the
+    # fp32 function is unchanged).
     equalize: bool = False
     # int8: a QAT checkpoint whose learned ranges (`qat_ranges`) the graph takes as they are
     # (qat_ranges.py); the graph must be that checkpoint's export.
@@ -156,6 +157,13 @@ class QuantizeOptions:
             raise ConfigError(f"--search picks how --exclude auto searches; drop it with --exclude {self.exclude}")
         if self.ranges_from_checkpoint is not None and self.mode != "int8":
             raise ConfigError(f"--ranges-from-checkpoint gives INT8 ranges; drop it with --mode {self.mode}")
+        if self.equalize and self.mode != "int8":
+            raise ConfigError(f"--equalize reshapes INT8 activation ranges; drop it with --mode {self.mode}")
+        if self.equalize and self.ranges_from_checkpoint is not None:
+            # The rescaled tensors keep their names: a range learned for the unscaled tensor
+            # would be written onto one 1/s as large.
+            raise ConfigError("--equalize rescales tensors whose ranges the QAT checkpoint learned unscaled; "
+                              "drop --equalize with --ranges-from-checkpoint")
         if self.weight_rounding not in (None, *WEIGHT_ROUNDINGS):
             raise ConfigError(f"unknown weight rounding {self.weight_rounding!r}; choose from {list(WEIGHT_ROUNDINGS)}")
         if self.weight_rounding == "adaround" and self.mode != "int8":
@@ -401,7 +409,7 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
                                    state_source=options.state_source, seed=options.seed, threads=options.threads)
     equalized: list[dict] = []
     if options.equalize:
-        pre_model, equalized = equalize_geglu(pre_model, calib.feeds)
+        pre_model, equalized = equalize(pre_model, calib.feeds)
         onnx.save(pre_model, str(pre))
     kept = set(keep)
     projections = [n.name for n in pre_model.graph.node

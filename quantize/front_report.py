@@ -149,6 +149,7 @@ def markdown_report(report: dict[str, Any]) -> str:
                 if h.get("budget_reference") == "lowest" else f"{h['bound_pct']:.3f}% of fp32 MPJPE."),
              "", *size_lines(report.get("sizes") or {})]
     lines += census_lines(report.get("quantization") or {})
+    lines += equalization_lines(report.get("equalization"))
     lines += qat_ranges_lines(report.get("qat_ranges"))
     search = report.get("search")
     if search:
@@ -184,6 +185,23 @@ def census_lines(quantization: dict[str, Any]) -> list[str]:
             + ", ".join(f"{n} {label}" for label, n in counts.items() if n)
             + f"; {quantization['compute_nodes_out_of_8_bits']} of {total} out of 8 bits."
             + _float_outputs_clause(quantization), ""]
+
+
+def equalization_lines(sites: list[dict[str, Any]] | None) -> list[str]:
+    """What `--equalize` folded into the weights (equalize.py); nothing when it was off."""
+    if sites is None:
+        return []
+    if not sites:
+        return ["Equalisation (`--equalize`): no GEGLU or LayerNorm site found; the graph is as exported.", ""]
+    geglu = [s for s in sites if s.get("kind", "geglu") == "geglu"]
+    norms = [s for s in sites if s.get("kind") == "layernorm"]
+    ratio = [s["activation_range_before"] / s["activation_range_after"] for s in sites if s["activation_range_after"] > 0]
+    restored = sum(s.get("restored_readers", 0) for s in norms)
+    return [f"Equalisation (`--equalize`, SmoothQuant scales folded into the weights, the fp32 function unchanged): "
+            f"{len(geglu)} GEGLU feed-forwards, {len(norms)} LayerNorms"
+            + (f" ({restored} non-projection readers given the unscaled tensor by a float Mul)" if restored else "")
+            + (f"; the largest activation range fell {min(ratio):.2f}x-{max(ratio):.2f}x per site" if ratio else "")
+            + ".", ""]
 
 
 def _float_outputs_clause(quantization: dict[str, Any]) -> str:

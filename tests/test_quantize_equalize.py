@@ -1,12 +1,19 @@
-"""GEGLU equalisation (quantize/equalize.py): the fp32 function is unchanged, the product's
-per-channel ranges are evened out by the SmoothQuant scales."""
+"""Equalisation (quantize/equalize.py): GEGLU and LayerNorm sites. The fp32 function is
+unchanged, the per-channel ranges are evened out by the SmoothQuant scales."""
 from __future__ import annotations
 
 import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from e3dpsm.quantize.equalize import channel_maxima, equalize_geglu, find_geglu_sites
+import onnxruntime as ort
+import pytest
+from onnx import TensorProto, helper
+
+from e3dpsm.errors import ConfigError
+from e3dpsm.quantize.api import QuantizeOptions
+from e3dpsm.quantize.equalize import (channel_maxima, equalize, equalize_geglu, equalize_layernorms,
+                                      find_geglu_sites, find_layernorm_sites)
 
 
 def test_equalized_graph_computes_the_same_poses(tmp_path, trained_graph, quant_data) -> None:  # noqa: F811
@@ -61,3 +68,122 @@ def test_a_scale_on_one_side_only_breaks_the_function(tmp_path, trained_graph) -
     oa, _ = session_a.step(x, session_a.init_state(1), 20.0)
     ob, _ = session_b.step(x, session_b.init_state(1), 20.0)
     assert np.abs(oa["pose"] - ob["pose"]).max() > 1e-2
+
+
+def _layernorm_graph(shared_weight: bool = False) -> onnx.ModelProto:
+    """x [2, 5, 6] -> LayerNorm(gamma, beta) -> y, read by MatMul(W1), by Reshape[-1, 6] ->
+    Gemm(W2, transB=1), by a residual Add with x and by Shape. Channel 4 of gamma is 40x the
+    rest, the outlier SmoothQuant migrates into the weights."""
+    rng = np.random.default_rng(3)
+    gamma = rng.uniform(0.5, 1.5, 6).astype(np.float32)
+    gamma[4] = 40.0
+    w1 = rng.normal(size=(6, 4)).astype(np.float32)
+    w2 = rng.normal(size=(3, 6)).astype(np.float32)
+    inits = [numpy_helper.from_array(gamma, "gamma"), numpy_helper.from_array(rng.normal(size=6).astype(np.float32), "beta"),
+             numpy_helper.from_array(w1, "W1"), numpy_helper.from_array(w2, "W2"),
+             numpy_helper.from_array(np.array([-1, 6], np.int64), "flat")]
+    nodes = [helper.make_node("LayerNormalization", ["x", "gamma", "beta"], ["y"], name="norm", axis=-1),
+             helper.make_node("MatMul", ["y", "W1"], ["a"], name="proj_a"),
+             helper.make_node("Reshape", ["y", "flat"], ["y2"], name="flatten"),
+             helper.make_node("Gemm", ["y2", "W2"], ["b"], name="proj_b", transB=1),
+             helper.make_node("Add", ["y", "x"], ["r"], name="residual"),
+             helper.make_node("Shape", ["y"], ["s"], name="shape")]
+    outputs = [helper.make_tensor_value_info("a", TensorProto.FLOAT, [2, 5, 4]),
+               helper.make_tensor_value_info("b", TensorProto.FLOAT, [10, 3]),
+               helper.make_tensor_value_info("r", TensorProto.FLOAT, [2, 5, 6]),
+               helper.make_tensor_value_info("s", TensorProto.INT64, [3])]
+    if shared_weight:  # a second MatMul reads W1 from another tensor
+        nodes.append(helper.make_node("MatMul", ["x", "W1"], ["c"], name="other"))
+        outputs.append(helper.make_tensor_value_info("c", TensorProto.FLOAT, [2, 5, 4]))
+    graph = helper.make_graph(nodes, "ln", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 5, 6])],
+                              outputs, inits)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def _run(model: onnx.ModelProto, x: np.ndarray) -> list[np.ndarray]:
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return session.run(None, {"x": x})
+
+
+def test_layernorm_scales_fold_into_both_projections_and_the_residual_gets_y_back() -> None:
+    model = _layernorm_graph()
+    sites = find_layernorm_sites(model)
+    assert len(sites) == 1
+    site = sites[0]
+    assert {(p.node, p.channel_axis) for p in site.projections} == {("proj_a", 0), ("proj_b", 1)}
+    assert site.restored == (("residual", "y"),)  # Shape needs nothing
+    rng = np.random.default_rng(0)
+    feeds = [{"x": rng.normal(size=(2, 5, 6)).astype(np.float32) * 3} for _ in range(4)]
+    equalized, done = equalize_layernorms(model, feeds)
+    # The scales, from numpy alone: s_j = sqrt(max|y_j| / max_k |W[j, k]|) over both weights.
+    def layer_norm(x: np.ndarray, g: np.ndarray, b: np.ndarray) -> np.ndarray:
+        x = x.astype(np.float64)
+        return (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5) * g + b
+    w = {i.name: numpy_helper.to_array(i).astype(np.float64) for i in model.graph.initializer}
+    act = np.max([np.abs(layer_norm(f["x"], w["gamma"], w["beta"])).reshape(-1, 6).max(0) for f in feeds], axis=0)
+    wmax = np.maximum(np.abs(w["W1"]).max(1), np.abs(w["W2"]).max(0))
+    scale = np.sqrt(act / wmax)
+    after = {i.name: numpy_helper.to_array(i).astype(np.float64) for i in equalized.graph.initializer}
+    np.testing.assert_allclose(after["gamma"], w["gamma"] / scale, rtol=1e-5)
+    np.testing.assert_allclose(after["beta"], w["beta"] / scale, rtol=1e-5)
+    np.testing.assert_allclose(after["W1"], w["W1"] * scale[:, None], rtol=1e-5)
+    np.testing.assert_allclose(after["W2"], w["W2"] * scale[None, :], rtol=1e-5)
+    assert done[0]["restored_readers"] == 1 and done[0]["projections"] == ["proj_a", "proj_b"]
+    # The outlier channel's range came down to the others': the spread of y's channel ranges shrank.
+    y_after = channel_maxima(equalized, ["y"], feeds)["y"]
+    assert (y_after.max() / y_after.min()) < 0.5 * (act.max() / act.min())
+    # Every output the same to float32 round-off; the graph is still valid and ordered.
+    onnx.checker.check_model(equalized)
+    x = rng.normal(size=(2, 5, 6)).astype(np.float32)
+    for before_out, after_out in zip(_run(model, x), _run(equalized, x)):
+        np.testing.assert_allclose(after_out, before_out, rtol=1e-5, atol=1e-5)
+
+
+def test_without_the_restoring_mul_the_residual_moves() -> None:
+    """The test above can fail: the residual reading the scaled y (the Mul bypassed) is off."""
+    model = _layernorm_graph()
+    feeds = [{"x": np.random.default_rng(1).normal(size=(2, 5, 6)).astype(np.float32)}]
+    equalized, _ = equalize_layernorms(model, feeds)
+    residual = next(n for n in equalized.graph.node if n.name == "residual")
+    residual.input[0] = "y"
+    x = np.random.default_rng(2).normal(size=(2, 5, 6)).astype(np.float32)
+    (a, b, r, _), (a2, b2, r2, _) = _run(model, x), _run(equalized, x)
+    np.testing.assert_allclose(a2, a, rtol=1e-5, atol=1e-5)
+    assert np.abs(r2 - r).max() > 0.1
+
+
+def test_a_weight_another_node_reads_is_not_a_site() -> None:
+    assert find_layernorm_sites(_layernorm_graph(shared_weight=True)) == []
+
+
+def test_layernorm_equalized_model_computes_the_same_poses(tmp_path, trained_graph, quant_data) -> None:  # noqa: F811
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.quantize.calibration import record_calibration_set
+    from e3dpsm.runtime import StepSession
+
+    model = onnx.load(str(trained_graph))
+    sites = find_layernorm_sites(model)
+    norms = [n.name for n in model.graph.node if n.op_type == "LayerNormalization"]
+    assert len(sites) >= len(norms) - 2, (len(sites), norms)  # all but norms read by no projection
+    data = PreparedData.open(quant_data)
+    calib = record_calibration_set(trained_graph, data.split("train"), 16, 20.0)
+    equalized, done = equalize(model, calib.feeds)
+    kinds = [d["kind"] for d in done]
+    assert kinds.count("geglu") == 2 and kinds.count("layernorm") == len(sites)
+    onnx.save(equalized, str(tmp_path / "eq.onnx"))
+    a, b = StepSession(trained_graph), StepSession(tmp_path / "eq.onnx")
+    sa, sb, worst = a.init_state(1), b.init_state(1), 0.0
+    seq = data.split("val")[0]
+    for f in range(20):
+        x = np.asarray(seq.lnes[f: f + 1], np.float32)
+        oa, sa = a.step(x, sa, 20.0)
+        ob, sb = b.step(x, sb, 20.0)
+        worst = max(worst, max(float(np.abs(oa[k] - ob[k]).max()) for k in oa))
+    assert worst < 1e-3  # mm, as for the GEGLU sites alone
+
+
+@pytest.mark.parametrize("options", [dict(mode="fp16", equalize=True),
+                                     dict(mode="int8", equalize=True, ranges_from_checkpoint="qat.pt")])
+def test_equalize_is_refused_where_it_would_mislead(options) -> None:
+    with pytest.raises(ConfigError, match="--equalize"):
+        QuantizeOptions(**options)

@@ -58,8 +58,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    "machine.isa in any report); avx2 and other targets without int8 dot-product units get 7-bit "
                    "weights (int8-dynamic: U8 weights), as ONNX Runtime recommends for non-VNNI CPUs")
     p.add_argument("--equalize", action="store_true",
-                   help="int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights before calibrating "
-                   "(the fp32 function is unchanged; only the INT8 graph moves)")
+                   help="int8: fold SmoothQuant scales into the GEGLU feed-forwards' weights and into the LayerNorms "
+                   "before the projections that read them, before calibrating (the fp32 function is unchanged; "
+                   "only the INT8 graph moves)")
     p.add_argument("--ranges-from-checkpoint", default=None, metavar="CKPT",
                    help="int8: write the learned activation ranges of a QAT checkpoint (`train --qat`) into the "
                    "graph as they are (the graph must be that checkpoint's export); tensors it has no range for "
