@@ -12,7 +12,8 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
-from e3dpsm.quantize.adaround import AdaRoundConfig, adaround_weight, apply_rounding, find_layers
+from e3dpsm.quantize.adaround import (AdaRoundConfig, RoundingProblem, adaround_batch, adaround_weight, apply_rounding,
+                                      buckets, find_layers)
 
 
 def _error(q: np.ndarray, w: np.ndarray, s: np.ndarray, gram: np.ndarray) -> np.ndarray:
@@ -54,6 +55,29 @@ def test_adaround_keeps_the_symmetric_range_of_the_scale() -> None:
     assert q.dtype == np.int8 and q.max() <= 127 and q.min() >= -127
     s7 = np.array([1.0 / 64])  # 7-bit weights (reduce_range): ONNX Runtime's +-64
     assert np.abs(adaround_weight(w, s7, gram, 1, AdaRoundConfig(iterations=300))).max() <= 64
+
+
+def test_layers_solved_in_padded_batches_get_the_integers_each_gets_alone() -> None:
+    """adaround_batch pads the layers of a bucket to one shape; Adam is elementwise and the
+    padding decoupled (zero Gram rows and columns, zero range), so each layer's integers are
+    those it gets solved alone. The shapes (Conv-like, square, 3 inputs, one wide layer in a
+    bucket of its own) are given out of order, so a mix-up between buckets shows too."""
+    rng = np.random.default_rng(5)
+    problems = []
+    for out, inputs in [(8, 16), (16, 16), (5, 3), (32, 18), (12, 16), (16, 8), (24, 20), (48, 144)]:
+        x = rng.standard_normal((300, inputs)) @ (rng.standard_normal((inputs, inputs)) + 1.0)
+        w = rng.standard_normal((out, inputs)) * 0.3
+        problems.append(RoundingProblem(w, np.abs(w).max(axis=1) / 127, x.T @ x, 300))
+    groups = buckets(problems)
+    assert sorted(i for g in groups for i in g) == list(range(len(problems)))
+    assert 2 <= len(groups) < len(problems) and [7] in groups  # the wide layer pads nothing else
+    config = AdaRoundConfig(iterations=200)
+    together = adaround_batch(problems, config)
+    for p, q in zip(problems, together):
+        alone = adaround_weight(p.weight, p.scale, p.gram, p.rows, config)
+        assert q.shape == p.weight.shape and q.dtype == np.int8
+        assert np.array_equal(q, alone)
+    assert any(not np.array_equal(q, np.round(p.weight / p.scale[:, None])) for p, q in zip(problems, together))
 
 
 # -- on the trained tiny's QDQ graph -------------------------------------------------------
