@@ -40,9 +40,9 @@ ALPHA = 0.5
 
 @dataclass(frozen=True)
 class GegluSite:
-    proj_in: str        # MatMul node: x @ W_in, W_in [D, 2H] (value columns first)
-    proj_in_bias: str | None  # Add node's initialiser after proj_in, if any
-    proj_out: str       # MatMul node: p @ W_out, W_out [H, D]
+    proj_in: str        # MatMul or Gemm node: x @ W_in (+ b), W_in [D, 2H] (value columns first)
+    bias: str | None    # b's initialiser: a Gemm's third input, or the Add after a MatMul
+    proj_out: str       # MatMul or Gemm node: p @ W_out, W_out [H, D]
     product: str        # the tensor p = value * gelu(gate)
     value_columns: tuple[int, int]  # [start, end) of the value half in W_in's columns
 
@@ -57,23 +57,53 @@ def _const(model: onnx.ModelProto, name: str) -> np.ndarray | None:
     return None
 
 
+def _plain_projection(node: onnx.NodeProto, inits: Mapping[str, onnx.TensorProto]) -> bool:
+    """A MatMul, or a Gemm without transposes or scaling, whose weight is a 2-D initialiser."""
+    if node.op_type not in ("MatMul", "Gemm") or len(node.input) < 2 or node.input[1] not in inits:
+        return False
+    if len(inits[node.input[1]].dims) != 2:
+        return False
+    attrs = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+    return not attrs.get("transA", 0) and not attrs.get("transB", 0) and attrs.get("alpha", 1.0) == 1.0 \
+        and attrs.get("beta", 1.0) == 1.0
+
+
+def _past_reshapes(index: GraphIndex, tensor: str) -> tuple[str, list[str]]:
+    """Follow `tensor` through Reshapes that are its only non-Shape reader: (the last tensor,
+    its readers other than Shape). The exporter writes a Gemm's input and output as 2-D
+    Reshapes of the 3-D activations; the channel axis stays last, checked by the callers'
+    shapes (a Slice over the last axis, a weight of the right width)."""
+    while True:
+        readers = [c for c in index.consumers.get(tensor, []) if index.nodes[c].op_type not in ("Shape", "Size")]
+        if len(readers) == 1 and index.nodes[readers[0]].op_type == "Reshape" \
+                and index.nodes[readers[0]].input[0] == tensor:
+            tensor = index.nodes[readers[0]].output[0]
+            continue
+        return tensor, readers
+
+
 def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
-    """Every MatMul(W_in) [-> Add(b)] -> Slice(value) * f(Slice(gate)) -> MatMul(W_out) whose
-    weights are initialisers, the value slice a plain column range, and the product read by
-    the output projection alone."""
+    """Every proj_in [-> Add(b)] [-> Reshape] -> Slice(value) * f(Slice(gate)) [-> Reshape]
+    -> proj_out, proj_in and proj_out plain MatMul/Gemm projections with initialiser weights
+    (the S5 blocks' feed-forwards as MatMul, the attention blocks' as Gemm between Reshapes),
+    the value slice a plain column range, and the product read by the output projection alone
+    (and by Shape)."""
     index = GraphIndex(model)
-    inits = {i.name for i in model.graph.initializer}
+    inits = {i.name: i for i in model.graph.initializer}
     sites = []
     for key, node in index.nodes.items():
-        if node.op_type != "MatMul" or node.input[1] not in inits:
+        if not _plain_projection(node, inits):
             continue
-        out, bias = node.output[0], None
+        out, bias = node.output[0], (node.input[2] if node.op_type == "Gemm" and len(node.input) > 2 else None)
+        if bias is not None and bias not in inits:
+            continue
         consumers = index.consumers.get(out, [])
-        if len(consumers) == 1 and index.nodes[consumers[0]].op_type == "Add":
+        if bias is None and len(consumers) == 1 and index.nodes[consumers[0]].op_type == "Add":
             add = index.nodes[consumers[0]]
             other = add.input[1] if add.input[0] == out else add.input[0]
             if other in inits:
-                bias, out, consumers = consumers[0], add.output[0], index.consumers.get(add.output[0], [])
+                bias, out = other, add.output[0]
+        out, consumers = _past_reshapes(index, out)
         slices = [index.nodes[c] for c in consumers if index.nodes[c].op_type == "Slice"]
         if len(slices) != 2 or len(consumers) != 2:
             continue
@@ -82,14 +112,16 @@ def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
             if len(muls) != 1 or muls[0].op_type != "Mul":
                 continue
             product = muls[0].output[0]
-            readers = [index.nodes[c] for c in index.consumers.get(product, [])]
-            if len(readers) != 1 or readers[0].op_type != "MatMul" or readers[0].input[0] != product \
-                    or readers[0].input[1] not in inits:
+            read, readers = _past_reshapes(index, product)
+            if len(readers) != 1:
+                continue
+            reader = index.nodes[readers[0]]
+            if not _plain_projection(reader, inits) or reader.input[0] != read:
                 continue
             columns = _slice_columns(model, value)
             if columns is None:
                 continue
-            sites.append(GegluSite(key, bias, readers[0].name or readers[0].output[0], product, columns))
+            sites.append(GegluSite(key, bias, readers[0], product, columns))
     return sites
 
 
@@ -137,19 +169,15 @@ def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarr
     maxima = channel_maxima(model, [s.product for s in sites], feeds)
     done = []
     for site in sites:
-        w_in_name, w_out_name = nodes[site.proj_in].input[1], nodes[site.proj_out].input[1]
-        bias_name = None
-        if site.proj_in_bias:
-            add = nodes[site.proj_in_bias]
-            bias_name = add.input[1] if add.input[1] in inits else add.input[0]
+        w_in_name, w_out_name, bias_name = nodes[site.proj_in].input[1], nodes[site.proj_out].input[1], site.bias
         if any(uses.get(n, 0) != 1 for n in (w_in_name, w_out_name, bias_name) if n):
             continue  # a shared weight would change another node too
         w_in, w_out = numpy_helper.to_array(inits[w_in_name]), numpy_helper.to_array(inits[w_out_name])
         start, end = site.value_columns
         act = maxima[site.product].astype(np.float64)
         wmax = np.abs(w_out).max(axis=1).astype(np.float64)
-        if act.shape[0] != end - start or wmax.shape[0] != act.shape[0]:
-            continue
+        if act.shape[0] != end - start or wmax.shape[0] != act.shape[0] or w_in.shape[1] < end:
+            continue  # a Reshape on the way moved the channel axis: not this form
         scale = np.where((act > 0) & (wmax > 0), act**alpha / np.maximum(wmax, 1e-12) ** (1 - alpha), 1.0)
         w_in = w_in.astype(np.float64)
         w_in[:, start:end] /= scale

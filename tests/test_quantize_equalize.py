@@ -23,11 +23,13 @@ def test_equalized_graph_computes_the_same_poses(tmp_path, trained_graph, quant_
 
     model = onnx.load(str(trained_graph))
     sites = find_geglu_sites(model)
-    assert len(sites) == 2 and all(s.value_columns[0] == 0 for s in sites)  # the two S5 blocks' feed-forwards
+    # the two S5 blocks' feed-forwards (MatMul) and the four attention blocks' (Gemm between Reshapes)
+    assert len(sites) == 6 and all(s.value_columns[0] == 0 for s in sites)
+    assert sorted(model_node_types(model, s.proj_in) for s in sites) == ["Gemm"] * 4 + ["MatMul"] * 2
     data = PreparedData.open(quant_data)
     calib = record_calibration_set(trained_graph, data.split("train"), 16, 20.0)
     equalized, done = equalize_geglu(model, calib.feeds)
-    assert len(done) == 2
+    assert len(done) == 6
     before = channel_maxima(model, [s.product for s in sites], calib.feeds)
     after = channel_maxima(equalized, [s.product for s in sites], calib.feeds)
     for site, record in zip(sites, done):
@@ -38,7 +40,8 @@ def test_equalized_graph_computes_the_same_poses(tmp_path, trained_graph, quant_
     weights = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     changed = [i.name for i in equalized.graph.initializer
                if not np.array_equal(numpy_helper.to_array(i), weights[i.name])]
-    assert len(changed) == 4  # W_in and W_out of each site, nothing else
+    # W_in and W_out of each site and the attention blocks' proj_in biases, nothing else
+    assert len(changed) == 2 * 6 + sum(s.bias is not None for s in sites)
     onnx.save(equalized, str(tmp_path / "eq.onnx"))
     a, b = StepSession(trained_graph), StepSession(tmp_path / "eq.onnx")
     sa, sb, worst = a.init_state(1), b.init_state(1), 0.0
@@ -49,6 +52,10 @@ def test_equalized_graph_computes_the_same_poses(tmp_path, trained_graph, quant_
         ob, sb = b.step(x, sb, 20.0)
         worst = max(worst, max(float(np.abs(oa[k] - ob[k]).max()) for k in oa))
     assert worst < 1e-3  # mm: float32 round-off on poses of ~1,000 mm
+
+
+def model_node_types(model: onnx.ModelProto, name: str) -> str:
+    return next(n.op_type for n in model.graph.node if (n.name or n.output[0]) == name)
 
 
 def test_a_scale_on_one_side_only_breaks_the_function(tmp_path, trained_graph) -> None:  # noqa: F811
@@ -169,7 +176,7 @@ def test_layernorm_equalized_model_computes_the_same_poses(tmp_path, trained_gra
     calib = record_calibration_set(trained_graph, data.split("train"), 16, 20.0)
     equalized, done = equalize(model, calib.feeds)
     kinds = [d["kind"] for d in done]
-    assert kinds.count("geglu") == 2 and kinds.count("layernorm") == len(sites)
+    assert kinds.count("geglu") == 6 and kinds.count("layernorm") == len(sites)
     onnx.save(equalized, str(tmp_path / "eq.onnx"))
     a, b = StepSession(trained_graph), StepSession(tmp_path / "eq.onnx")
     sa, sb, worst = a.init_state(1), b.init_state(1), 0.0
