@@ -68,15 +68,17 @@ def _plain_projection(node: onnx.NodeProto, inits: Mapping[str, onnx.TensorProto
         and attrs.get("beta", 1.0) == 1.0
 
 
-def _past_reshapes(index: GraphIndex, tensor: str) -> tuple[str, list[str]]:
-    """Follow `tensor` through Reshapes that are its only non-Shape reader: (the last tensor,
-    its readers other than Shape). The exporter writes a Gemm's input and output as 2-D
-    Reshapes of the 3-D activations; the channel axis stays last, checked by the callers'
-    shapes (a Slice over the last axis, a weight of the right width)."""
+def _past_reshapes(model: onnx.ModelProto, index: GraphIndex, tensor: str, channels: int) -> tuple[str, list[str]]:
+    """Follow `tensor` through Reshapes that are its only non-Shape reader and keep its last
+    axis of `channels` (the exporter writes a Gemm's input and output as 2-D Reshapes of the
+    3-D activations): (the last tensor, its readers other than Shape). A Reshape to a shape
+    computed in the graph is followed too; the widths the equalisation meets at run time and
+    `equalize`'s check of the whole graph catch one that moved the channel axis."""
     while True:
-        readers = [c for c in index.consumers.get(tensor, []) if index.nodes[c].op_type not in ("Shape", "Size")]
+        readers = [c for c in index.consumers.get(tensor, []) if index.nodes[c].op_type not in _SHAPE_ONLY]
         if len(readers) == 1 and index.nodes[readers[0]].op_type == "Reshape" \
-                and index.nodes[readers[0]].input[0] == tensor:
+                and index.nodes[readers[0]].input[0] == tensor \
+                and _last_dim_kept(model, index.nodes[readers[0]], channels, unknown=True):
             tensor = index.nodes[readers[0]].output[0]
             continue
         return tensor, readers
@@ -103,7 +105,7 @@ def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
             other = add.input[1] if add.input[0] == out else add.input[0]
             if other in inits:
                 bias, out = other, add.output[0]
-        out, consumers = _past_reshapes(index, out)
+        out, consumers = _past_reshapes(model, index, out, int(inits[node.input[1]].dims[1]))
         slices = [index.nodes[c] for c in consumers if index.nodes[c].op_type == "Slice"]
         if len(slices) != 2 or len(consumers) != 2:
             continue
@@ -112,14 +114,15 @@ def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
             if len(muls) != 1 or muls[0].op_type != "Mul":
                 continue
             product = muls[0].output[0]
-            read, readers = _past_reshapes(index, product)
+            columns = _slice_columns(model, value)
+            if columns is None:
+                continue
+            read, readers = _past_reshapes(model, index, product, columns[1] - columns[0])
             if len(readers) != 1:
                 continue
             reader = index.nodes[readers[0]]
-            if not _plain_projection(reader, inits) or reader.input[0] != read:
-                continue
-            columns = _slice_columns(model, value)
-            if columns is None:
+            if not _plain_projection(reader, inits) or reader.input[0] != read \
+                    or inits[reader.input[1]].dims[0] != columns[1] - columns[0]:
                 continue
             sites.append(GegluSite(key, bias, readers[0], product, columns))
     return sites
@@ -214,9 +217,13 @@ class LayerNormSite:
 _SHAPE_ONLY = ("Shape", "Size")
 
 
-def _last_dim_kept(model: onnx.ModelProto, reshape: onnx.NodeProto, channels: int) -> bool:
+def _last_dim_kept(model: onnx.ModelProto, reshape: onnx.NodeProto, channels: int, unknown: bool = False) -> bool:
+    """Whether a Reshape keeps the last axis at `channels`; `unknown` where its shape is
+    computed in the graph (the exporter's Gemm reshapes back to 3-D are)."""
     shape = _const(model, reshape.input[1])
-    return shape is not None and shape.size >= 1 and int(shape.ravel()[-1]) == channels
+    if shape is None:
+        return unknown
+    return shape.size >= 1 and int(shape.ravel()[-1]) == channels
 
 
 def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
@@ -328,6 +335,32 @@ def equalize(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarray]],
              alpha: float = ALPHA) -> tuple[onnx.ModelProto, list[dict]]:
     """Both foldings (`quantize --equalize`): the GEGLU sites first, then the LayerNorms, with
     the LayerNorm scales taken from the GEGLU-equalised graph's activations."""
+    source = model
     model, geglu = equalize_geglu(model, feeds, alpha)
     model, norms = equalize_layernorms(model, feeds, alpha)
+    if (geglu or norms) and feeds:
+        _check_unchanged(source, model, feeds[0])
     return model, [*({"kind": "geglu", **g} for g in geglu), *norms]
+
+
+# float32 round-off on outputs of up to ~1e3 (poses in mm); a folding that is not exact moves
+# them by far more (a scale left on one side: > 1e-2 on the trained tiny's poses, tested).
+_UNCHANGED_RTOL = 1e-4
+
+
+def _check_unchanged(source: onnx.ModelProto, folded: onnx.ModelProto, feed: Mapping[str, np.ndarray]) -> None:
+    """Every output of `folded` equals `source`'s on `feed` to float32 round-off, or InputError:
+    a graph form the site finders took for one they fold exactly."""
+    import onnxruntime as ort
+
+    from e3dpsm.errors import InputError
+
+    def run(model: onnx.ModelProto) -> list[np.ndarray]:
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        return session.run(None, dict(feed))
+
+    for output, a, b in zip(source.graph.output, run(source), run(folded)):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        if a.dtype.kind == "f" and np.abs(a - b).max(initial=0.0) > _UNCHANGED_RTOL * (1.0 + np.abs(a).max(initial=0.0)):
+            raise InputError(f"--equalize changed the fp32 output {output.name!r} by {np.abs(a - b).max():.3g} "
+                             "(a graph form it cannot fold exactly); quantize without --equalize")

@@ -194,3 +194,26 @@ def test_layernorm_equalized_model_computes_the_same_poses(tmp_path, trained_gra
 def test_equalize_is_refused_where_it_would_mislead(options) -> None:
     with pytest.raises(ConfigError, match="--equalize"):
         QuantizeOptions(**options)
+
+
+def test_a_folding_that_changes_the_function_is_refused(monkeypatch) -> None:
+    """equalize() runs the folded graph against the original once: a site folded inexactly
+    (here W1 doubled after the LayerNorm folding) is one clear InputError, not a silently
+    different model."""
+    import e3dpsm.quantize.equalize as eq
+    from e3dpsm.errors import InputError
+
+    model = _layernorm_graph()
+    feeds = [{"x": np.random.default_rng(4).normal(size=(2, 5, 6)).astype(np.float32)}]
+    assert len(equalize(model, feeds)[1]) == 1  # the exact folding passes the check
+    folding = eq.equalize_layernorms
+
+    def inexact(m, f, alpha=eq.ALPHA):
+        folded, done = folding(m, f, alpha)
+        w1 = next(i for i in folded.graph.initializer if i.name == "W1")
+        w1.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(w1) * 2.0, "W1"))
+        return folded, done
+
+    monkeypatch.setattr(eq, "equalize_layernorms", inexact)
+    with pytest.raises(InputError, match="--equalize changed the fp32 output 'a'"):
+        equalize(model, feeds)
