@@ -9,7 +9,7 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
 --holdout-split):
 - full integer (`--exclude none`: every Conv/MatMul/Gemm reads int8 weights and 8-bit
   activations) with `--calibration minmax`, `percentile`, `mse` (ranges per tensor), and
-  `mse` after `--equalize` (GEGLU scales folded into the weights);
+  `mse` after `--equalize` (GEGLU and LayerNorm scales folded into the weights);
 - the default `--exclude auto` graph with `--calibration mse` (AdaRound weights, int16 before
   float, `--objective size`), with `--objective latency`, without int16, with nearest weight
   rounding, and so without the search's margin;
