@@ -206,20 +206,34 @@ def buckets(problems: Sequence[RoundingProblem]) -> list[list[int]]:
     return groups
 
 
-def adaround_batch(problems: Sequence[RoundingProblem], config: AdaRoundConfig = AdaRoundConfig()) -> list[np.ndarray]:
+def adaround_batch(problems: Sequence[RoundingProblem], config: AdaRoundConfig = AdaRoundConfig(),
+                   threads: int | None = None) -> list[np.ndarray]:
     """AdaRound's integers for each problem, the problems of a bucket solved together.
 
     The objective is a sum of the layers' terms and Adam updates each element from its own
     gradient and moments, so a padded batch follows each layer's own trajectory: padded
     inputs have zero Gram rows and columns and padded rows a zero range, so no real entry's
     gradient depends on a padded one (the rounding term moves padded entries alone, and they
-    are cut off at the end). Batching only removes the
-    interpreter's cost per layer and step (about 1 ms: 110 of the 130 s AdaRound took on
-    `small` one layer at a time)."""
+    are cut off at the end). In exact arithmetic, that is: a padded inner dimension can change
+    float32's summation order, so an element that ends near h = 1/2 may round the other way
+    (none did on `small`: its artifact's integers were bit for bit those of one layer at a
+    time). Batching removes the interpreter's cost per layer and step (about 1 ms: 110 of the
+    130 s AdaRound took on `small` one layer at a time), and a large bucket runs on `threads`
+    (tiny ones on one: two threads' spin-waiting made small tensors 30-60x slower on a 2-core
+    host with anything else running)."""
+    import torch
+
     out: list[np.ndarray | None] = [None] * len(problems)
-    for group in buckets(problems):
-        for index, q in zip(group, _solve_bucket([problems[i] for i in group], config)):
-            out[index] = q
+    previous = torch.get_num_threads()
+    try:
+        for group in buckets(problems):
+            members = [problems[i] for i in group]
+            padded = len(group) * max(p.weight.shape[0] for p in members) * max(p.weight.shape[1] for p in members) ** 2
+            torch.set_num_threads(1 if padded <= _BUCKET_FREE_COST else (threads or previous))
+            for index, q in zip(group, _solve_bucket(members, config)):
+                out[index] = q
+    finally:
+        torch.set_num_threads(previous)
     return out  # type: ignore[return-value]
 
 
@@ -289,8 +303,6 @@ def adaround_weights(pre: onnx.ModelProto, qdq: onnx.ModelProto, feeds: Sequence
     """{quantised weight initializer: AdaRound's integers} for every layer `find_layers` finds
     in `qdq` (a QDQ graph of `pre` with every Conv/MatMul/Gemm quantised), or for those of
     the nodes named in `nodes`."""
-    import torch
-
     layers = find_layers(pre, qdq)
     if nodes is not None:
         wanted = set(nodes)
@@ -299,26 +311,20 @@ def adaround_weights(pre: onnx.ModelProto, qdq: onnx.ModelProto, feeds: Sequence
         return {}
     grams = input_grams(pre, layers, feeds, threads)
     out: dict[str, RoundedWeight] = {}
-    previous = torch.get_num_threads()
-    # Solved one layer at a time, the tensors were too small for threads (two threads'
-    # spin-waiting made them 30-60x slower on a 2-core host with anything else running); a
-    # bucket's are not (`small`'s six 96 x 864 convs: 74 ms a step on one thread, 28 on two).
-    torch.set_num_threads(threads or previous)
-    try:
-        keys = list(layers)
-        solved = adaround_batch([RoundingProblem(layers[k].weight, layers[k].scale, *grams[k], layers[k].alpha)
-                                 for k in keys], config)
-        for key, q in zip(keys, solved):
-            layer, (gram, rows) = layers[key], grams[key]
-            nearest = np.round(layer.weight.astype(np.float32) / layer.scale[:, None].astype(np.float32))
-            # Output channels are independent in the objective: keep nearest's row where the
-            # relaxation ended worse (it can, for a row whose error is small against lambda).
-            baseline = _row_errors(layer, nearest, gram)
-            q = np.where((_row_errors(layer, q, gram) > baseline)[:, None], nearest, q).astype(np.int8)
-            ratio = _row_errors(layer, q, gram).sum() / max(baseline.sum(), 1e-30)
-            out[key] = RoundedWeight(_to_graph(layer, q), layer.scale, float(ratio))
-    finally:
-        torch.set_num_threads(previous)
+    keys = list(layers)
+    # A large bucket runs on `threads` (`small`'s six 96 x 864 convs: 74 ms a step on one
+    # thread, 28 on two), a tiny one on one (adaround_batch).
+    solved = adaround_batch([RoundingProblem(layers[k].weight, layers[k].scale, *grams[k], layers[k].alpha)
+                             for k in keys], config, threads)
+    for key, q in zip(keys, solved):
+        layer, (gram, _) = layers[key], grams[key]
+        nearest = np.round(layer.weight.astype(np.float32) / layer.scale[:, None].astype(np.float32))
+        # Output channels are independent in the objective: keep nearest's row where the
+        # relaxation ended worse (it can, for a row whose error is small against lambda).
+        baseline = _row_errors(layer, nearest, gram)
+        q = np.where((_row_errors(layer, q, gram) > baseline)[:, None], nearest, q).astype(np.int8)
+        ratio = _row_errors(layer, q, gram).sum() / max(baseline.sum(), 1e-30)
+        out[key] = RoundedWeight(_to_graph(layer, q), layer.scale, float(ratio))
     log.info("AdaRound: %d weights, layer output error %.3fx nearest's (median)", len(out),
              float(np.median([r.output_error_ratio for r in out.values()])) if out else float("nan"))
     return out

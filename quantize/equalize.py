@@ -68,6 +68,11 @@ def _plain_projection(node: onnx.NodeProto, inits: Mapping[str, onnx.TensorProto
         and attrs.get("beta", 1.0) == 1.0
 
 
+def _channel_vector(init: onnx.TensorProto, channels: int) -> bool:
+    """A bias of one value per output channel ([C], [1, C], ...), not a scalar or a full tensor."""
+    return int(np.prod(init.dims)) == channels and len(init.dims) >= 1 and int(init.dims[-1]) == channels
+
+
 def _past_reshapes(model: onnx.ModelProto, index: GraphIndex, tensor: str, channels: int) -> tuple[str, list[str]]:
     """Follow `tensor` through Reshapes that are its only non-Shape reader and keep its last
     axis of `channels` (the exporter writes a Gemm's input and output as 2-D Reshapes of the
@@ -96,14 +101,14 @@ def find_geglu_sites(model: onnx.ModelProto) -> list[GegluSite]:
     for key, node in index.nodes.items():
         if not _plain_projection(node, inits):
             continue
-        out, bias = node.output[0], (node.input[2] if node.op_type == "Gemm" and len(node.input) > 2 else None)
-        if bias is not None and bias not in inits:
+        out, bias = node.output[0], (node.input[2] or None if node.op_type == "Gemm" and len(node.input) > 2 else None)
+        if bias is not None and (bias not in inits or not _channel_vector(inits[bias], inits[node.input[1]].dims[1])):
             continue
         consumers = index.consumers.get(out, [])
         if bias is None and len(consumers) == 1 and index.nodes[consumers[0]].op_type == "Add":
             add = index.nodes[consumers[0]]
             other = add.input[1] if add.input[0] == out else add.input[0]
-            if other in inits:
+            if other in inits and _channel_vector(inits[other], inits[node.input[1]].dims[1]):
                 bias, out = other, add.output[0]
         out, consumers = _past_reshapes(model, index, out, int(inits[node.input[1]].dims[1]))
         slices = [index.nodes[c] for c in consumers if index.nodes[c].op_type == "Slice"]
@@ -188,8 +193,9 @@ def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarr
         inits[w_out_name].CopyFrom(numpy_helper.from_array((w_out * scale[:, None]).astype(np.float32), w_out_name))
         if bias_name:
             bias = numpy_helper.to_array(inits[bias_name]).astype(np.float64)
-            bias[start:end] /= scale
-            inits[bias_name].CopyFrom(numpy_helper.from_array(bias.astype(np.float32), bias_name))
+            flat = bias.reshape(-1)  # [2H] or [1, 2H]: _channel_vector
+            flat[start:end] /= scale
+            inits[bias_name].CopyFrom(numpy_helper.from_array(flat.reshape(bias.shape).astype(np.float32), bias_name))
         done.append({"proj_in": site.proj_in, "proj_out": site.proj_out, "channels": int(scale.size),
                      "activation_range_before": float(act.max()), "activation_range_after": float((act / scale).max()),
                      "scale_min": float(scale.min()), "scale_max": float(scale.max())})
@@ -236,6 +242,7 @@ def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
     for node in model.graph.node:
         for name in node.input:
             uses[name] = uses.get(name, 0) + 1
+    graph_outputs = {o.name for o in model.graph.output}
     sites = []
     for key, norm in index.nodes.items():
         if norm.op_type != "LayerNormalization" or len(norm.input) < 2:
@@ -252,7 +259,10 @@ def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
 
         def visit(tensor: str, through_reshape: bool) -> None:
             nonlocal usable
-            for reader_key in index.consumers.get(tensor, []):
+            if tensor in graph_outputs:
+                usable = False  # the graph would output y / s
+            # A node reading y in two slots is listed twice; it needs one restoring Mul.
+            for reader_key in dict.fromkeys(index.consumers.get(tensor, [])):
                 reader = index.nodes[reader_key]
                 op, attrs = reader.op_type, {a.name: a.i for a in reader.attribute}
                 weight = reader.input[1] if len(reader.input) > 1 else ""
@@ -360,7 +370,9 @@ def _check_unchanged(source: onnx.ModelProto, folded: onnx.ModelProto, feed: Map
         return session.run(None, dict(feed))
 
     for output, a, b in zip(source.graph.output, run(source), run(folded)):
+        if np.asarray(a).dtype.kind != "f":
+            continue  # indices, counters: not what a scale can move by round-off
         a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-        if a.dtype.kind == "f" and np.abs(a - b).max(initial=0.0) > _UNCHANGED_RTOL * (1.0 + np.abs(a).max(initial=0.0)):
+        if np.abs(a - b).max(initial=0.0) > _UNCHANGED_RTOL * (1.0 + np.abs(a).max(initial=0.0)):
             raise InputError(f"--equalize changed the fp32 output {output.name!r} by {np.abs(a - b).max():.3g} "
                              "(a graph form it cannot fold exactly); quantize without --equalize")

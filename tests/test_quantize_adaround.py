@@ -60,8 +60,11 @@ def test_adaround_keeps_the_symmetric_range_of_the_scale() -> None:
 def test_layers_solved_in_padded_batches_get_the_integers_each_gets_alone() -> None:
     """adaround_batch pads the layers of a bucket to one shape; Adam is elementwise and the
     padding decoupled (zero Gram rows and columns, zero range), so each layer's integers are
-    those it gets solved alone. The shapes (Conv-like, square, 3 inputs, one wide layer in a
-    bucket of its own) are given out of order, so a mix-up between buckets shows too."""
+    those it gets solved alone, up to float32 summation order (a padded inner dimension may
+    reorder it, and an element ending near h = 1/2 may then round the other way: at most one
+    step on a few elements; bit-identical on this test's shapes on the AVX2 host). The shapes
+    (Conv-like, square, 3 inputs, one wide layer in a bucket of its own) are given out of
+    order, so a mix-up between buckets shows too (it moves most integers)."""
     rng = np.random.default_rng(5)
     problems = []
     for out, inputs in [(8, 16), (16, 16), (5, 3), (32, 18), (12, 16), (16, 8), (24, 20), (48, 144)]:
@@ -76,7 +79,8 @@ def test_layers_solved_in_padded_batches_get_the_integers_each_gets_alone() -> N
     for p, q in zip(problems, together):
         alone = adaround_weight(p.weight, p.scale, p.gram, p.rows, config)
         assert q.shape == p.weight.shape and q.dtype == np.int8
-        assert np.array_equal(q, alone)
+        differ = q != alone
+        assert differ.mean() <= 0.01 and np.abs(q.astype(int) - alone).max(initial=0) <= 1, differ.mean()
     assert any(not np.array_equal(q, np.round(p.weight / p.scale[:, None])) for p, q in zip(problems, together))
 
 

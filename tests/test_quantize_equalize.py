@@ -77,7 +77,7 @@ def test_a_scale_on_one_side_only_breaks_the_function(tmp_path, trained_graph) -
     assert np.abs(oa["pose"] - ob["pose"]).max() > 1e-2
 
 
-def _layernorm_graph(shared_weight: bool = False) -> onnx.ModelProto:
+def _layernorm_graph(shared_weight: bool = False, y_output: bool = False, square: bool = False) -> onnx.ModelProto:
     """x [2, 5, 6] -> LayerNorm(gamma, beta) -> y, read by MatMul(W1), by Reshape[-1, 6] ->
     Gemm(W2, transB=1), by a residual Add with x and by Shape. Channel 4 of gamma is 40x the
     rest, the outlier SmoothQuant migrates into the weights."""
@@ -99,6 +99,11 @@ def _layernorm_graph(shared_weight: bool = False) -> onnx.ModelProto:
                helper.make_tensor_value_info("b", TensorProto.FLOAT, [10, 3]),
                helper.make_tensor_value_info("r", TensorProto.FLOAT, [2, 5, 6]),
                helper.make_tensor_value_info("s", TensorProto.INT64, [3])]
+    if y_output:  # y itself is a graph output
+        outputs.append(helper.make_tensor_value_info("y", TensorProto.FLOAT, [2, 5, 6]))
+    if square:  # one node reading y in both its slots
+        nodes.append(helper.make_node("Mul", ["y", "y"], ["yy"], name="square"))
+        outputs.append(helper.make_tensor_value_info("yy", TensorProto.FLOAT, [2, 5, 6]))
     if shared_weight:  # a second MatMul reads W1 from another tensor
         nodes.append(helper.make_node("MatMul", ["x", "W1"], ["c"], name="other"))
         outputs.append(helper.make_tensor_value_info("c", TensorProto.FLOAT, [2, 5, 4]))
@@ -159,8 +164,24 @@ def test_without_the_restoring_mul_the_residual_moves() -> None:
     assert np.abs(r2 - r).max() > 0.1
 
 
-def test_a_weight_another_node_reads_is_not_a_site() -> None:
+def test_a_weight_another_node_reads_or_a_graph_output_is_not_a_site() -> None:
     assert find_layernorm_sites(_layernorm_graph(shared_weight=True)) == []
+    assert find_layernorm_sites(_layernorm_graph(y_output=True)) == []  # the graph would output y / s
+
+
+def test_a_node_reading_y_twice_gets_one_restoring_mul() -> None:
+    model = _layernorm_graph(square=True)
+    site, = find_layernorm_sites(model)
+    assert site.restored == (("residual", "y"), ("square", "y"))
+    feeds = [{"x": np.random.default_rng(6).normal(size=(2, 5, 6)).astype(np.float32)}]
+    equalized, done = equalize_layernorms(model, feeds)
+    assert done[0]["restored_readers"] == 2
+    square = next(n for n in equalized.graph.node if n.name == "square")
+    assert square.input[0] == square.input[1] != "y"
+    assert sum(n.op_type == "Mul" for n in equalized.graph.node) == 3  # square + 2 restoring
+    x = np.random.default_rng(7).normal(size=(2, 5, 6)).astype(np.float32)
+    for before_out, after_out in zip(_run(model, x), _run(equalized, x)):
+        np.testing.assert_allclose(after_out, before_out, rtol=1e-5, atol=1e-5)
 
 
 def test_layernorm_equalized_model_computes_the_same_poses(tmp_path, trained_graph, quant_data) -> None:  # noqa: F811
@@ -217,3 +238,45 @@ def test_a_folding_that_changes_the_function_is_refused(monkeypatch) -> None:
     monkeypatch.setattr(eq, "equalize_layernorms", inexact)
     with pytest.raises(InputError, match="--equalize changed the fp32 output 'a'"):
         equalize(model, feeds)
+
+
+@pytest.mark.parametrize("bias_shape", [(6,), (1, 6)])
+def test_geglu_bias_of_either_layout_takes_the_value_half_scales_only(bias_shape) -> None:
+    """x @ W_in + b -> value [0:3] * sigmoid(gate [3:6]) -> @ W_out, b stored as [2H] or
+    [1, 2H] (both legal for an Add): the value half of b is divided by s, the gate half left,
+    the outputs unchanged. A scalar bias is no per-channel bias: no site."""
+    rng = np.random.default_rng(8)
+    value = rng.normal(size=(4, 6)).astype(np.float32)
+    value[:, 1] *= 30.0  # one outlier value channel
+    bias = rng.normal(size=bias_shape).astype(np.float32)
+
+    def graph(b: np.ndarray) -> onnx.ModelProto:
+        inits = [numpy_helper.from_array(value, "W_in"), numpy_helper.from_array(b, "b"),
+                 numpy_helper.from_array(rng.normal(size=(3, 4)).astype(np.float32), "W_out")]
+        consts = {"s0": [0], "e0": [3], "s1": [3], "e1": [6], "ax": [-1]}
+        inits += [numpy_helper.from_array(np.array(v, np.int64), k) for k, v in consts.items()]
+        nodes = [helper.make_node("MatMul", ["x", "W_in"], ["h"], name="proj_in"),
+                 helper.make_node("Add", ["h", "b"], ["hb"], name="bias"),
+                 helper.make_node("Slice", ["hb", "s0", "e0", "ax"], ["v"], name="value"),
+                 helper.make_node("Slice", ["hb", "s1", "e1", "ax"], ["g"], name="gate"),
+                 helper.make_node("Sigmoid", ["g"], ["sg"], name="act"),
+                 helper.make_node("Mul", ["v", "sg"], ["p"], name="product"),
+                 helper.make_node("MatMul", ["p", "W_out"], ["y"], name="proj_out")]
+        g = helper.make_graph(nodes, "geglu", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 5, 4])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2, 5, 4])], inits)
+        return helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+    model = graph(bias)
+    site, = find_geglu_sites(model)
+    assert (site.proj_in, site.bias, site.proj_out, site.value_columns) == ("proj_in", "b", "proj_out", (0, 3))
+    feeds = [{"x": rng.normal(size=(2, 5, 4)).astype(np.float32)} for _ in range(3)]
+    equalized, done = equalize_geglu(model, feeds)
+    scale = done[0]["activation_range_before"] / done[0]["activation_range_after"]
+    assert scale > 1.5  # the outlier channel's range came down
+    after = {i.name: numpy_helper.to_array(i) for i in equalized.graph.initializer}
+    assert after["b"].shape == bias.shape
+    np.testing.assert_array_equal(after["b"].reshape(-1)[3:], bias.reshape(-1)[3:])  # the gate half untouched
+    assert not np.allclose(after["b"].reshape(-1)[:3], bias.reshape(-1)[:3])
+    x = feeds[0]["x"]
+    np.testing.assert_allclose(_run(equalized, x)[0], _run(model, x)[0], rtol=1e-5, atol=1e-5)
+    assert find_geglu_sites(graph(np.float32(0.5).reshape(()))) == []
