@@ -185,6 +185,13 @@ _BUCKET_WASTE, _BUCKET_FREE_COST = 1.5, 2_000_000
 _BUCKET_MAX_BYTES = 256 << 20
 
 
+def _padded(members: Sequence[RoundingProblem]) -> tuple[int, int]:
+    """A bucket's multiply-adds per step and its tensors' bytes, padded to its widest layer."""
+    out = max(p.weight.shape[0] for p in members)
+    inputs = max(p.weight.shape[1] for p in members)
+    return len(members) * out * inputs * inputs, len(members) * (inputs * inputs + 12 * out * inputs) * 4
+
+
 def buckets(problems: Sequence[RoundingProblem]) -> list[list[int]]:
     """Indices of `problems` grouped so that each group is solved as one padded batch: sorted
     by input width, a group grows while its padded cost stays within _BUCKET_WASTE of its
@@ -194,11 +201,8 @@ def buckets(problems: Sequence[RoundingProblem]) -> list[list[int]]:
     for i in order:
         if groups:
             group = groups[-1] + [i]
-            out = max(problems[j].weight.shape[0] for j in group)
-            inputs = max(problems[j].weight.shape[1] for j in group)
-            padded = len(group) * out * inputs * inputs
+            padded, bytes_ = _padded([problems[j] for j in group])
             own = sum(problems[j].cost for j in group)
-            bytes_ = len(group) * (inputs * inputs + 12 * out * inputs) * 4
             if (padded <= _BUCKET_WASTE * own or padded <= _BUCKET_FREE_COST) and bytes_ <= _BUCKET_MAX_BYTES:
                 groups[-1] = group
                 continue
@@ -228,8 +232,7 @@ def adaround_batch(problems: Sequence[RoundingProblem], config: AdaRoundConfig =
     try:
         for group in buckets(problems):
             members = [problems[i] for i in group]
-            padded = len(group) * max(p.weight.shape[0] for p in members) * max(p.weight.shape[1] for p in members) ** 2
-            torch.set_num_threads(1 if padded <= _BUCKET_FREE_COST else (threads or previous))
+            torch.set_num_threads(1 if _padded(members)[0] <= _BUCKET_FREE_COST else (threads or previous))
             for index, q in zip(group, _solve_bucket(members, config)):
                 out[index] = q
     finally:

@@ -33,7 +33,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from e3dpsm.onnx_graph import GraphIndex, with_outputs
+from e3dpsm.onnx_graph import GraphIndex, node_key, with_outputs
 
 ALPHA = 0.5
 
@@ -45,6 +45,17 @@ class GegluSite:
     proj_out: str       # MatMul or Gemm node: p @ W_out, W_out [H, D]
     product: str        # the tensor p = value * gelu(gate)
     value_columns: tuple[int, int]  # [start, end) of the value half in W_in's columns
+
+
+def smoothquant_scales(act: np.ndarray, wmax: np.ndarray, alpha: float) -> np.ndarray:
+    """s_j = max|a_j|^alpha / max|W_j|^(1 - alpha) per channel (1 where either is zero)."""
+    return np.where((act > 0) & (wmax > 0), act**alpha / np.maximum(wmax, 1e-12) ** (1 - alpha), 1.0)
+
+
+def _ranges_record(act: np.ndarray, scale: np.ndarray) -> dict:
+    return {"channels": int(scale.size), "activation_range_before": float(act.max()),
+            "activation_range_after": float((act / scale).max()),
+            "scale_min": float(scale.min()), "scale_max": float(scale.max())}
 
 
 def _const(model: onnx.ModelProto, name: str) -> np.ndarray | None:
@@ -169,16 +180,12 @@ def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarr
     if not sites:
         return out, []
     inits = {i.name: i for i in out.graph.initializer}
-    nodes = {n.name or n.output[0]: n for n in out.graph.node}
-    uses: dict[str, int] = {}
-    for node in out.graph.node:
-        for name in node.input:
-            uses[name] = uses.get(name, 0) + 1
+    index = GraphIndex(out)
     maxima = channel_maxima(model, [s.product for s in sites], feeds)
     done = []
     for site in sites:
-        w_in_name, w_out_name, bias_name = nodes[site.proj_in].input[1], nodes[site.proj_out].input[1], site.bias
-        if any(uses.get(n, 0) != 1 for n in (w_in_name, w_out_name, bias_name) if n):
+        w_in_name, w_out_name, bias_name = index.nodes[site.proj_in].input[1], index.nodes[site.proj_out].input[1], site.bias
+        if any(len(index.consumers.get(n, ())) != 1 for n in (w_in_name, w_out_name, bias_name) if n):
             continue  # a shared weight would change another node too
         w_in, w_out = numpy_helper.to_array(inits[w_in_name]), numpy_helper.to_array(inits[w_out_name])
         start, end = site.value_columns
@@ -186,7 +193,7 @@ def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarr
         wmax = np.abs(w_out).max(axis=1).astype(np.float64)
         if act.shape[0] != end - start or wmax.shape[0] != act.shape[0] or w_in.shape[1] < end:
             continue  # a Reshape on the way moved the channel axis: not this form
-        scale = np.where((act > 0) & (wmax > 0), act**alpha / np.maximum(wmax, 1e-12) ** (1 - alpha), 1.0)
+        scale = smoothquant_scales(act, wmax, alpha)
         w_in = w_in.astype(np.float64)
         w_in[:, start:end] /= scale
         inits[w_in_name].CopyFrom(numpy_helper.from_array(w_in.astype(np.float32), w_in_name))
@@ -196,9 +203,7 @@ def equalize_geglu(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarr
             flat = bias.reshape(-1)  # [2H] or [1, 2H]: _channel_vector
             flat[start:end] /= scale
             inits[bias_name].CopyFrom(numpy_helper.from_array(flat.reshape(bias.shape).astype(np.float32), bias_name))
-        done.append({"proj_in": site.proj_in, "proj_out": site.proj_out, "channels": int(scale.size),
-                     "activation_range_before": float(act.max()), "activation_range_after": float((act / scale).max()),
-                     "scale_min": float(scale.min()), "scale_max": float(scale.max())})
+        done.append({"kind": "geglu", "proj_in": site.proj_in, "proj_out": site.proj_out, **_ranges_record(act, scale)})
     return out, done
 
 
@@ -238,10 +243,10 @@ def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
     reads as its data input with an initialiser weight used by that node alone."""
     index = GraphIndex(model)
     inits = {i.name: i for i in model.graph.initializer}
-    uses: dict[str, int] = {}
-    for node in model.graph.node:
-        for name in node.input:
-            uses[name] = uses.get(name, 0) + 1
+
+    def used_once(name: str) -> bool:  # by one input slot of one node
+        return len(index.consumers.get(name, ())) == 1
+
     graph_outputs = {o.name for o in model.graph.output}
     sites = []
     for key, norm in index.nodes.items():
@@ -250,7 +255,7 @@ def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
         axis = next((a.i for a in norm.attribute if a.name == "axis"), -1)
         gain = norm.input[1]
         bias = norm.input[2] if len(norm.input) > 2 and norm.input[2] else None
-        if axis != -1 or any(n not in inits or uses.get(n, 0) != 1 for n in (gain, bias) if n):
+        if axis != -1 or any(n not in inits or not used_once(n) for n in (gain, bias) if n):
             continue
         channels = int(np.prod(inits[gain].dims))
         projections: list[ProjectionRead] = []
@@ -274,7 +279,7 @@ def find_layernorm_sites(model: onnx.ModelProto) -> list[LayerNormSite]:
                 elif op in ("MatMul", "Gemm") and reader.input[0] == tensor and weight in inits \
                         and len(inits[weight].dims) == 2 and not attrs.get("transA", 0):
                     axis = 1 if attrs.get("transB", 0) else 0
-                    if uses.get(weight, 0) != 1 or inits[weight].dims[axis] != channels:
+                    if not used_once(weight) or inits[weight].dims[axis] != channels:
                         usable = False  # a shared weight would change another node too
                     projections.append(ProjectionRead(reader_key, weight, axis))
                 else:
@@ -296,10 +301,9 @@ def equalize_layernorms(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.
     if not sites:
         return out, []
     inits = {i.name: i for i in out.graph.initializer}
-    nodes = {n.name or n.output[0]: n for n in out.graph.node}
+    index = GraphIndex(out)
     maxima = channel_maxima(model, [s.output for s in sites], feeds)
-    restores: dict[str, list[onnx.NodeProto]] = {}  # producer's first output -> Muls to insert after it
-    producers = {o: n for n in out.graph.node for o in n.output}
+    restores: dict[str, list[onnx.NodeProto]] = {}  # producer's key -> Muls to insert after it
     done = []
     for site in sites:
         act = maxima[site.output].astype(np.float64)
@@ -308,7 +312,7 @@ def equalize_layernorms(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.
         wmax = np.max([np.abs(w).max(axis=1 - ax) for w, ax in weights.values()], axis=0)
         if act.shape != wmax.shape:
             continue
-        scale = np.where((act > 0) & (wmax > 0), act**alpha / np.maximum(wmax, 1e-12) ** (1 - alpha), 1.0)
+        scale = smoothquant_scales(act, wmax, alpha)
         for name in (site.gain, site.bias):
             if name:
                 value = numpy_helper.to_array(inits[name]).astype(np.float64)
@@ -322,20 +326,18 @@ def equalize_layernorms(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.
         for k, (reader, tensor) in enumerate(site.restored):
             restored = f"{tensor}/equalize_restored{k}"
             mul = onnx.helper.make_node("Mul", [tensor, scale_name], [restored], name=f"{site.norm}/equalize_restore{k}")
-            restores.setdefault(producers[tensor].output[0], []).append(mul)
-            node = nodes[reader]
+            restores.setdefault(index.producer[tensor], []).append(mul)
+            node = index.nodes[reader]
             for i, name in enumerate(node.input):
                 if name == tensor:
                     node.input[i] = restored
         done.append({"kind": "layernorm", "norm": site.norm, "projections": [p.node for p in site.projections],
-                     "restored_readers": len(site.restored), "channels": int(scale.size),
-                     "activation_range_before": float(act.max()), "activation_range_after": float((act / scale).max()),
-                     "scale_min": float(scale.min()), "scale_max": float(scale.max())})
+                     "restored_readers": len(site.restored), **_ranges_record(act, scale)})
     if restores:
         ordered = []
         for node in out.graph.node:
             ordered.append(node)
-            ordered.extend(restores.get(node.output[0], []))
+            ordered.extend(restores.get(node_key(node), []))
         del out.graph.node[:]
         out.graph.node.extend(ordered)
     return out, done
@@ -350,7 +352,7 @@ def equalize(model: onnx.ModelProto, feeds: Sequence[Mapping[str, np.ndarray]],
     model, norms = equalize_layernorms(model, feeds, alpha)
     if (geglu or norms) and feeds:
         _check_unchanged(source, model, feeds[0])
-    return model, [*({"kind": "geglu", **g} for g in geglu), *norms]
+    return model, [*geglu, *norms]
 
 
 # float32 round-off on outputs of up to ~1e3 (poses in mm); a folding that is not exact moves
