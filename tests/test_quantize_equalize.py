@@ -249,10 +249,11 @@ def test_geglu_bias_of_either_layout_takes_the_value_half_scales_only(bias_shape
     value = rng.normal(size=(4, 6)).astype(np.float32)
     value[:, 1] *= 30.0  # one outlier value channel
     bias = rng.normal(size=bias_shape).astype(np.float32)
+    w_out = rng.normal(size=(3, 4)).astype(np.float32)
 
     def graph(b: np.ndarray) -> onnx.ModelProto:
         inits = [numpy_helper.from_array(value, "W_in"), numpy_helper.from_array(b, "b"),
-                 numpy_helper.from_array(rng.normal(size=(3, 4)).astype(np.float32), "W_out")]
+                 numpy_helper.from_array(w_out, "W_out")]
         consts = {"s0": [0], "e0": [3], "s1": [3], "e1": [6], "ax": [-1]}
         inits += [numpy_helper.from_array(np.array(v, np.int64), k) for k, v in consts.items()]
         nodes = [helper.make_node("MatMul", ["x", "W_in"], ["h"], name="proj_in"),
@@ -277,6 +278,17 @@ def test_geglu_bias_of_either_layout_takes_the_value_half_scales_only(bias_shape
     assert after["b"].shape == bias.shape
     np.testing.assert_array_equal(after["b"].reshape(-1)[3:], bias.reshape(-1)[3:])  # the gate half untouched
     assert not np.allclose(after["b"].reshape(-1)[:3], bias.reshape(-1)[:3])
+    # SmoothQuant's scales written out in numpy (Xiao et al. 2023, eq. 4, alpha 1/2):
+    # s_j = sqrt(max|p_j| / max_k |W_out[j, k]|), p the product over every feed.
+    def product(x: np.ndarray) -> np.ndarray:
+        h = x.astype(np.float64) @ value + bias.reshape(-1)
+        return h[..., :3] / (1.0 + np.exp(-h[..., 3:]))
+    p_max = np.max([np.abs(product(f["x"])).reshape(-1, 3).max(axis=0) for f in feeds], axis=0)
+    s = np.sqrt(p_max / np.abs(w_out).max(axis=1))
+    np.testing.assert_allclose(after["W_in"][:, :3], value[:, :3] / s, rtol=1e-5)
+    np.testing.assert_array_equal(after["W_in"][:, 3:], value[:, 3:])
+    np.testing.assert_allclose(after["W_out"], w_out * s[:, None], rtol=1e-5)
+    np.testing.assert_allclose(after["b"].reshape(-1)[:3], bias.reshape(-1)[:3] / s, rtol=1e-5)
     x = feeds[0]["x"]
     np.testing.assert_allclose(_run(equalized, x)[0], _run(model, x)[0], rtol=1e-5, atol=1e-5)
     assert find_geglu_sites(graph(np.float32(0.5).reshape(()))) == []
