@@ -52,10 +52,9 @@ def speed_verdict(report: dict[str, Any]) -> str | None:
     plan = report.get("precision_search") or {}
     sixteen = len(plan.get("int16_nodes") or []) + len(plan.get("int16w16_nodes") or [])
     if faster and sixteen:
-        nodes = "node runs" if sixteen == 1 else "nodes run"
+        nodes, them = ("node runs", "it") if sixteen == 1 else ("nodes run", "those nodes")
         others = (f" Its {sixteen} {nodes} at 16 bits in float behind a DequantizeLinear on ONNX Runtime; "
-                  f"a timed candidate within budget with {'it' if sixteen == 1 else 'those nodes'} in float runs "
-                  f"{max(faster):.2f}x "
+                  f"a timed candidate within budget with {them} in float runs {max(faster):.2f}x "
                   "(--no-int16 --objective latency ships it, at a larger size).")
     elif faster:
         others = f" A timed candidate within budget runs {max(faster):.2f}x (--objective latency picks it)."
