@@ -33,6 +33,18 @@ def drop_unused_initializers(model: onnx.ModelProto, among: Iterable[str] | None
     model.graph.initializer.extend(keep)
 
 
+def restore_interface_types(model: onnx.ModelProto, source: onnx.ModelProto) -> None:
+    """Give `model`'s graph inputs and outputs, in place, the types `source` declares for the
+    same names (shapes with their axis names: the export's "batch"). Tools that re-infer
+    shapes (onnxsim, ONNX Runtime's symbolic shape inference) rename symbolic axes they
+    cannot prove equal; the interface is the export's contract (export/spec.py), the shapes
+    inside are left as inferred."""
+    declared = {v.name: v.type for v in (*source.graph.input, *source.graph.output)}
+    for value in (*model.graph.input, *model.graph.output):
+        if value.name in declared:
+            value.type.CopyFrom(declared[value.name])
+
+
 def node_key(node: onnx.NodeProto) -> str:
     """A node's name, or its first output's name if it has none (outputs are unique)."""
     return node.name or node.output[0]

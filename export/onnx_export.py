@@ -193,6 +193,9 @@ def export_step_with_report(
     if simplify:
         graph = _simplify(graph, spec, model.state_spec(), model.config.train_window_ms)
     seconds_simplify = time.perf_counter() - t1
+    # The interface is the spec's: the tracer leaves output axes symbolic ("Addpose_direct_dim_1")
+    # and onnxsim renamed window_ms's "batch" axis "unk__0" (the graph broadcasts a window of 1).
+    spec.declare_on(graph)
     # After simplifying: onnxsim would fold the Tiles back. Exact (onnx_constants.py).
     retiled = retile_constants(graph)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import onnx
+
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.joints import JOINT_NAMES, PARENTS
 from e3dpsm.models import OUTPUT_NAMES, E3DPSM
@@ -47,6 +49,22 @@ class StepIOSpec:
     @property
     def dynamic_axes(self) -> dict[str, dict[int, str]]:
         return {t.name: t.dynamic_axes for t in (*self.inputs, *self.outputs) if t.dynamic_axes}
+
+    def declare_on(self, model: onnx.ModelProto) -> None:
+        """Write these shapes, axis names included, on the graph inputs and outputs of `model`
+        of the same names (in place); element types are left as they are."""
+        shapes = {t.name: t.shape for t in (*self.inputs, *self.outputs)}
+        for value in (*model.graph.input, *model.graph.output):
+            if value.name not in shapes:
+                continue
+            dims = value.type.tensor_type.shape.dim
+            del dims[:]
+            for size in shapes[value.name]:
+                dim = dims.add()
+                if isinstance(size, str):
+                    dim.dim_param = size
+                else:
+                    dim.dim_value = size
 
 
 def step_io_spec(model: E3DPSM, batch: int | str = BATCH_AXIS) -> StepIOSpec:

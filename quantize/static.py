@@ -18,6 +18,7 @@ import onnx
 import onnx.version_converter
 
 from e3dpsm.errors import ConfigError
+from e3dpsm.onnx_graph import restore_interface_types
 from e3dpsm.quantize.calibration import CalibrationSet, FeedListReader
 from e3dpsm.quantize.ranges import with_zero
 from e3dpsm.utils.isa import ISA_KINDS
@@ -104,6 +105,10 @@ def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticCon
     quant_pre_process(str(src), str(dst), skip_optimization=False, skip_onnx_shape=False,
                       skip_symbolic_shape=False, auto_merge=True)
     model = onnx.load(str(dst))
+    # ONNX Runtime's symbolic shape inference (auto_merge) renames a symbolic axis it merges,
+    # and which name survives follows Python's string hashing: the same export came out with
+    # "batch" under PYTHONHASHSEED 0, 1 and 4 and "unk__0" under 2, 3 and 5 (ORT 1.31), so two
+    # runs of `quantize` wrote artifacts whose interface differed.
     restore_interface_types(model, onnx.load(str(src), load_external_data=False))
     if (config or StaticConfig()).batchnorm_as_conv:
         from e3dpsm.quantize.batchnorm import batchnorm_as_depthwise_conv
@@ -112,20 +117,6 @@ def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticCon
         log.info("%d BatchNormalization node(s) rewritten as depthwise 1x1 Conv", count)
     onnx.save(model, str(dst))
 
-
-def restore_interface_types(model: onnx.ModelProto, source: onnx.ModelProto) -> None:
-    """Give `model`'s graph inputs and outputs, in place, the types `source` declares for the
-    same names (its batch axis "batch").
-
-    ONNX Runtime's symbolic shape inference (`quant_pre_process` with auto_merge) renames a
-    symbolic axis it merges, and which name survives follows Python's string hashing: the
-    same export came out with "batch" under PYTHONHASHSEED 0, 1 and 4 and "unk__0" under 2,
-    3 and 5 (ORT 1.31), so two runs of `quantize` wrote artifacts that differed in their
-    interface. The names are the export's contract; shapes inside are left as inferred."""
-    declared = {v.name: v.type for v in (*source.graph.input, *source.graph.output)}
-    for value in (*model.graph.input, *model.graph.output):
-        if value.name in declared:
-            value.type.CopyFrom(declared[value.name])
 
 
 def _method(name: str):

@@ -55,6 +55,18 @@ def test_graph_contract(tiny_graph, tiny_model) -> None:
     assert props["e3dpsm.states"][0]["shape"][0] == "batch"
 
 
+def test_every_input_and_output_has_the_specs_shape_and_axis_names(tiny_graph, tiny_model) -> None:
+    """The simplified graph's interface is the declarative spec's, axis names included
+    (onnxsim renamed window_ms's "batch" axis "unk__0" until 2026-12-02)."""
+    from e3dpsm.export.spec import step_io_spec
+
+    graph = onnx.load(str(tiny_graph[0]))
+    declared = {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+                for v in (*graph.graph.input, *graph.graph.output)}
+    spec = step_io_spec(tiny_model)
+    assert declared == {t.name: list(t.shape) for t in (*spec.inputs, *spec.outputs)}
+
+
 def test_dynamic_batch(tiny_graph, tiny_model) -> None:
     session = StepSession(tiny_graph[0], threads=2)
     frames = np.random.default_rng(0).random((3, 2, 192, 256), dtype=np.float32) * (
