@@ -35,10 +35,10 @@ def drop_unused_initializers(model: onnx.ModelProto, among: Iterable[str] | None
 
 def restore_interface_types(model: onnx.ModelProto, source: onnx.ModelProto) -> None:
     """Give `model`'s graph inputs and outputs, in place, the types `source` declares for the
-    same names (shapes with their axis names: the export's "batch"). Tools that re-infer
-    shapes (onnxsim, ONNX Runtime's symbolic shape inference) rename symbolic axes they
-    cannot prove equal; the interface is the export's contract (export/spec.py), the shapes
-    inside are left as inferred."""
+    same names (shapes with their axis names: the export's "batch"), where a pass that
+    re-infers shapes (ONNX Runtime's symbolic shape inference, quantize's pre-pass) renamed
+    the axes; the interface is the export's contract (export/spec.py). Shapes inside are
+    left as inferred."""
     declared = {v.name: v.type for v in (*source.graph.input, *source.graph.output)}
     for value in (*model.graph.input, *model.graph.output):
         if value.name in declared:

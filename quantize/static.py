@@ -118,7 +118,6 @@ def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticCon
     onnx.save(model, str(dst))
 
 
-
 def _method(name: str):
     from onnxruntime.quantization import CalibrationMethod
 
