@@ -1,6 +1,30 @@
 """Shared fixtures. Session-scoped models and exports keep the suite within minutes."""
 from __future__ import annotations
 
+import os
+
+
+def _pin_this_xdist_worker_to_its_own_cores() -> None:
+    """Under `pytest -n N`, give worker i every N-th core of those this process may use.
+
+    ONNX Runtime sizes a session's default thread pool by the machine's cores (not the
+    process's), and the quantiser's own sessions and OpenVINO's pools are made that way: two
+    workers sharing two cores then spin against each other (2026-12-01: 27 min against 22 for
+    one process). Pinned, a worker's extra threads can only delay that worker."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if not worker.startswith("gw") or count < 2 or len(cores) < count:
+        return
+    os.sched_setaffinity(0, cores[int(worker[2:]) % count::count])
+    # PyTorch's OpenMP threads busy-wait at barriers by default: where a test or a CLI it runs
+    # raises the thread count above the worker's cores they spin against the thread doing the
+    # work (a 20-minute run had not passed a third of the tests). Read when torch loads.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+_pin_this_xdist_worker_to_its_own_cores()
+
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +35,27 @@ import e3dpsm
 # modules' session fixtures are registered here once, so that every test module shares one
 # instance (a fixture imported into a module is a separate definition, built again there).
 pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers"]
+
+
+
+# The session fixtures that cost 15 s or more (the default INT8 search 160 s, pruning 75 s,
+# the synthetic sequences 45 s, the QAT fine-tunes 15 s each, one worker to itself): under
+# `--dist loadgroup` every test using one of them runs on the same worker, so that each is
+# built once, not once per worker. A test using two of them is scheduled on its own.
+_EXPENSIVE_FIXTURE_GROUPS = {
+    "int8_recurrent_dir": "int8_search", "int8_dir": "int8_search", "int8_test_budget_pct": "int8_search",
+    "fp16_dir": "int8_search", "pruned_tiny": "prune", "synthetic_data": "synthetic_data",
+    "qat_tiny": "qat_tiny", "qat_tiny_full_integer": "qat_tiny_full_integer",
+}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the markers into the test ids
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        groups = {_EXPENSIVE_FIXTURE_GROUPS[f] for f in getattr(item, "fixturenames", ()) if f in _EXPENSIVE_FIXTURE_GROUPS}
+        if len(groups) == 1:
+            item.add_marker(pytest.mark.xdist_group(groups.pop()))
+
 
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
 # between steps, which starves ONNX Runtime when both alternate in one process (parity).

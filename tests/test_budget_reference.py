@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _quantize_helpers import RUNTIME
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError
@@ -45,7 +46,8 @@ def test_quantize_budgets_against_the_lowest_sequence(trained_graph: Path, quant
 
     frames = 20
     report = quantize_graph(trained_graph, quant_data, tmp_path / "q", QuantizeOptions(
-        mode="int8", exclude="recurrent", frames=16, holdout_frames=frames, budget_reference="lowest"))
+        mode="int8", exclude="recurrent", frames=16, holdout_frames=frames, budget_reference="lowest",
+        **RUNTIME))
     held = report["holdout"]
     data = PreparedData.open(quant_data)
     session = StepSession(trained_graph)

@@ -335,7 +335,7 @@ def test_pipeline_checks_every_graph_on_both_runtimes_and_reports_verdicts(tmp_p
                         (FP16, fp16_dir / "step_fp16.onnx"), (INT8_DYNAMIC, nudged)):
         (run / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(source, run / rel)
-    cfg = PipelineConfig(out=run, checkpoint=TRAINED_TINY, golden_steps=24)
+    cfg = PipelineConfig(out=run, checkpoint=TRAINED_TINY, golden_steps=24, threads=1)
     run_pipeline(cfg, only=["golden-record", "golden-check"])
     summary = json.loads((run / "golden/checks/summary.json").read_text())
     verdicts = {(Path(v["model"]).name, v["runtime"]): v for v in summary["checks"]}

@@ -16,7 +16,7 @@ from e3dpsm.training.qat import QATConfig, attach_fake_quant
 from e3dpsm.training.qat_lsq import LearnedQuantizer
 from e3dpsm.training.qat_sites import match_groups
 
-from _quantize_helpers import TRAINED_TINY
+from _quantize_helpers import RUNTIME, TRAINED_TINY
 
 
 def numpy_qdq_u8(x: np.ndarray, scale: np.float32, zero: int) -> np.ndarray:
@@ -147,7 +147,7 @@ def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str
     from e3dpsm.quantize import QuantizeOptions, quantize_graph
 
     report = quantize_graph(run["graph"], quant_data, work / "q", QuantizeOptions(
-        mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"])))
+        mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"]), **RUNTIME))
     groups = list(zip(run["handle"].groups, run["handle"].quantizers))
     by_tensor = {t: q.qparams() for g, q in groups for t in g.tensors}
     recurrent = [t for g, _ in groups for t in g.tensors
@@ -198,7 +198,8 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
 
     out = tmp_path / "q"
     report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
-        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"])))
+        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"]),
+        **RUNTIME))
     block = report["qat_ranges"]
     assert block["calibrated_tensors"] == 0 and block["uncovered"] == [], block["uncovered"]  # every range learned
     assert (f"{block['learned_tensors']} of the {block['learned_tensors']} quantised tensors take"
@@ -258,7 +259,7 @@ def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant
     torch.save(payload, stale_ckpt)
     out = tmp_path / "q"
     report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
-        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(stale_ckpt)))
+        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(stale_ckpt), **RUNTIME))
     block = report["qat_ranges"]
     assert block["unknown_sites"] == victim["sites"]
     assert block["calibrated_tensors"] >= 1
@@ -433,7 +434,7 @@ def test_fake_quantised_step_is_the_full_integer_graphs_step(qat_tiny_full_integ
                               ("learned_avx2", str(run["checkpoint"]), "avx2")):
         reports[name] = quantize_graph(run["graph"], quant_data, tmp_path / name, QuantizeOptions(
             mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=ranges,
-            target_isa=isa))
+            target_isa=isa, **RUNTIME))
         graphs[name] = tmp_path / name / reports[name]["artifact"]
     assert reports["learned"]["qat_ranges"]["weights"] == {"trained_bits": 8, "graph_bits": 8, "target_isa": "vnni"}
     assert reports["learned_avx2"]["qat_ranges"]["weights"] == {"trained_bits": 8, "graph_bits": 7,
@@ -532,7 +533,8 @@ def test_a_7_bit_fine_tune_is_what_an_avx2_graph_computes_and_is_flagged_for_vnn
     weights, text = {}, {}
     for isa in ("avx2", "vnni"):
         report = quantize_graph(qat_tiny_full_integer["graph"], quant_data, tmp_path / isa, QuantizeOptions(
-            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(seven), target_isa=isa))
+            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(seven), target_isa=isa,
+            **RUNTIME))
         weights[isa], text[isa] = report["qat_ranges"]["weights"], (tmp_path / isa / "report.md").read_text()
     assert weights["avx2"] == {"trained_bits": 7, "graph_bits": 7, "target_isa": "avx2"}
     assert "Weights: 7-bit, as the fine-tune simulated them." in text["avx2"]

@@ -7,7 +7,7 @@ import numpy as np
 import onnx
 import pytest
 
-from _quantize_helpers import FAST, mean_pose_model
+from _quantize_helpers import FAST, RUNTIME, mean_pose_model
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError, OutputExistsError
@@ -100,7 +100,7 @@ def test_fp16_search_keeps_the_chosen_groups_in_float32(tmp_path, tiny_graph, qu
     lowered the held-out error most in float32, and the artifact must say which."""
     out = tmp_path / "fp16"
     report = quantize_graph(tiny_graph, quant_data, out,
-                            QuantizeOptions(mode="fp16", budget_pct=1e-9, holdout_frames=40, max_rounds=1))
+                            QuantizeOptions(mode="fp16", budget_pct=1e-9, holdout_frames=40, max_rounds=1, **RUNTIME))
     search = report["exclusion_search"]
     base, *trials = search["trials"]
     assert base["group"] is None and trials, "the search tried no group"
@@ -161,16 +161,17 @@ def test_state_aware_calibration_beats_zero_and_random_states(tmp_path, trained_
     pre_model = onnx.load(str(pre))
     meta = GraphMetadata.from_onnx(pre_model)
     keep = [n for g in recurrent_groups(pre_model, meta) for n in g.nodes]
-    holdout = make_holdout(tiny_graph, data.split("val"), 20.0, 40)
+    holdout = make_holdout(tiny_graph, data.split("val"), 20.0, 40, RUNTIME["threads"])
     runs = [("rollout", "none"), ("zeros", "none"), ("random", "none"), ("rollout", "recurrent")]
     deviation: dict[tuple[str, str], float] = {}
     for source, label in runs:
-        calib = record_calibration_set(tiny_graph, data.split("train"), 16, 20.0, state_source=source, seed=1)
+        calib = record_calibration_set(tiny_graph, data.split("train"), 16, 20.0, state_source=source, seed=1,
+                                       threads=RUNTIME["threads"])
         out = tmp_path / f"{source}_{label}.onnx"
         quantize_int8(pre, out, StaticConfig(), exclude=keep if label == "recurrent" else [], calibration=calib,
                       cache=tmp_path / f"{source}_{label}.json")
         onnx.save(finalize(onnx.load(str(out)), meta, {"mode": "int8"}), str(out))
-        deviation[source, label] = accuracy_of(out, holdout)["deviation_from_fp32_mm"]
+        deviation[source, label] = accuracy_of(out, holdout, RUNTIME["threads"])["deviation_from_fp32_mm"]
     print({f"{s}/{lab}": round(v, 4) for (s, lab), v in deviation.items()})
     assert deviation["rollout", "none"] < 0.9 * deviation["zeros", "none"]
     # The default (recurrence in float, rollout states) beats calibrating with zero states.

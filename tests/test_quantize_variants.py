@@ -14,6 +14,7 @@ import torch
 
 import e3dpsm
 from e3dpsm.data.prepare import prepare_dataset
+from _quantize_helpers import RUNTIME
 from tests._quantize_helpers import quant_data  # noqa: F401  (session fixture)
 from tests.fixtures.released.weights import lightning_checkpoint, make_state_dict
 
@@ -70,7 +71,7 @@ def test_full_integer_flow_on_paper_and_released(variant: str, data64: Path, tmp
 
     graph = export_step(_model(variant, tmp_path), tmp_path / "step.onnx")
     report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
-        mode="int8", exclude="none", calibration="mse", equalize=True, frames=16, holdout_frames=20))
+        mode="int8", exclude="none", calibration="mse", equalize=True, frames=16, holdout_frames=20, **RUNTIME))
     model = onnx.load(str(tmp_path / "int8" / report["artifact"]))
     inits = {i.name: i for i in model.graph.initializer}
     compute = [n for n in model.graph.node if n.op_type in COMPUTE]
@@ -145,7 +146,7 @@ def test_int8_elementwise_full_integer_never_rounds_a_graph_output(data64: Path,
     graph = export_step(_model("paper", tmp_path), tmp_path / "step.onnx")
     report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
         mode="int8", exclude="none", op_types=ELEMENTWISE_OP_TYPES, batchnorm_as_conv=True, frames=16,
-        holdout_frames=10))
+        holdout_frames=10, **RUNTIME))
     model = onnx.load(str(tmp_path / "int8" / report["artifact"]))
     producer = {o: n.op_type for n in model.graph.node for o in n.output}
     outputs = [o.name for o in model.graph.output if o.name in producer]

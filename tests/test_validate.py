@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from _quantize_helpers import mean_pose_model
+from _quantize_helpers import RUNTIME, mean_pose_model
 from e3dpsm.checkpoint import save_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
@@ -24,7 +24,7 @@ FRAMES = 30
 @pytest.fixture(scope="session")
 def fp16_graph(tmp_path_factory, tiny_graph, quant_data):  # noqa: F811
     out = tmp_path_factory.mktemp("v") / "fp16"
-    quantize_graph(tiny_graph, quant_data, out, QuantizeOptions(mode="fp16", holdout_frames=10))
+    quantize_graph(tiny_graph, quant_data, out, QuantizeOptions(mode="fp16", holdout_frames=10, **RUNTIME))
     return out / "step_fp16.onnx"
 
 
