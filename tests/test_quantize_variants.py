@@ -15,7 +15,6 @@ import torch
 import e3dpsm
 from e3dpsm.data.prepare import prepare_dataset
 from _quantize_helpers import RUNTIME
-from tests._quantize_helpers import quant_data  # noqa: F401  (session fixture)
 from tests.fixtures.released.weights import lightning_checkpoint, make_state_dict
 
 FIXTURE = Path(__file__).parent / "fixtures" / "released"
@@ -24,7 +23,7 @@ COMPUTE = ("Conv", "MatMul", "Gemm")
 
 
 @pytest.fixture(scope="module")
-def data64(quant_data, tmp_path_factory) -> Path:  # noqa: F811
+def data64(quant_data, tmp_path_factory) -> Path:
     """The quantiser's synthetic sequences prepared again at 64 x 96."""
     out = tmp_path_factory.mktemp("data64") / "prepared"
     prepare_dataset(Path(quant_data).parent / "raw", out, window_ms=20.0, progress=False, **SIZE)
