@@ -22,24 +22,21 @@ def _pin_this_xdist_worker_to_its_own_cores() -> None:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-_pin_this_xdist_worker_to_its_own_cores()
+_pin_this_xdist_worker_to_its_own_cores()  # before torch and onnxruntime load
 
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
-import numpy as np
-import pytest
-import torch
-
-import e3dpsm
+import e3dpsm  # noqa: E402
 
 # e3dpsm.testing: the e3dpsm_golden fixture, registered as users register it. The helper
 # modules' session fixtures are registered here once, so that every test module shares one
 # instance (a fixture imported into a module is a separate definition, built again there).
 pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers"]
 
-
-
-# The session fixtures that cost 15 s or more (the default INT8 search 160 s, pruning 75 s,
-# the synthetic sequences 45 s, the QAT fine-tunes 15 s each, one worker to itself): under
+# The shared fixtures that cost 15 s or more on one core (the default INT8 search 160 s,
+# pruning 75 s, the synthetic sequences 45 s, the QAT fine-tunes 15 s each): under
 # `--dist loadgroup` every test using one of them runs on the same worker, so that each is
 # built once, not once per worker. A test using two of them is scheduled on its own.
 _EXPENSIVE_FIXTURE_GROUPS = {
