@@ -4,18 +4,29 @@ from __future__ import annotations
 import os
 
 
+def worker_cores(worker: str, count: int, cores: list[int]) -> list[int] | None:
+    """The cores xdist worker `worker` ("gw<i>") of `count` keeps: every count-th of `cores`
+    from the i-th. None (leave the process as it is) outside xdist, for one worker, or where
+    there are fewer cores than workers."""
+    if not worker.startswith("gw") or count < 2 or len(cores) < count:
+        return None
+    return sorted(cores)[int(worker[2:]) % count::count]
+
+
 def _pin_this_xdist_worker_to_its_own_cores() -> None:
-    """Under `pytest -n N`, give worker i every N-th core of those this process may use.
+    """Under `pytest -n N`, give each worker its own cores (worker_cores).
 
     ONNX Runtime sizes a session's default thread pool by the machine's cores (not the
     process's), and the quantiser's own sessions and OpenVINO's pools are made that way: two
     workers sharing two cores then spin against each other (2026-12-01: 27 min against 22 for
     one process). Pinned, a worker's extra threads can only delay that worker."""
-    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-    if not worker.startswith("gw") or count < 2 or len(cores) < count:
+    if not hasattr(os, "sched_getaffinity"):
         return
-    os.sched_setaffinity(0, cores[int(worker[2:]) % count::count])
+    mine = worker_cores(os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")),
+                        list(os.sched_getaffinity(0)))
+    if mine is None:
+        return
+    os.sched_setaffinity(0, mine)
     # PyTorch's OpenMP threads busy-wait at barriers by default: where a test or a CLI it runs
     # raises the thread count above the worker's cores they spin against the thread doing the
     # work (a 20-minute run had not passed a third of the tests). Read when torch loads.
@@ -38,20 +49,28 @@ pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_t
 # The shared fixtures that cost 15 s or more on one core (the default INT8 search 160 s,
 # pruning 75 s, the synthetic sequences 45 s, the QAT fine-tunes 15 s each): under
 # `--dist loadgroup` every test using one of them runs on the same worker, so that each is
-# built once, not once per worker. A test using two of them is scheduled on its own.
+# built once, not once per worker. A test's fixture names include what its fixtures use, so
+# the first fixture of a chain names it (int8_recurrent_dir <- int8_test_budget_pct <-
+# int8_dir <- int8_graph; synthetic_data <- prepared_data). fp16_dir shares the INT8 group:
+# the pipeline test uses both. A test using two groups is scheduled on its own.
 _EXPENSIVE_FIXTURE_GROUPS = {
-    "int8_recurrent_dir": "int8_search", "int8_dir": "int8_search", "int8_test_budget_pct": "int8_search",
-    "fp16_dir": "int8_search", "pruned_tiny": "prune", "synthetic_data": "synthetic_data",
-    "qat_tiny": "qat_tiny", "qat_tiny_full_integer": "qat_tiny_full_integer",
+    "int8_recurrent_dir": "int8_search", "fp16_dir": "int8_search", "pruned_tiny": "prune",
+    "synthetic_data": "synthetic_data", "qat_tiny": "qat_tiny", "qat_tiny_full_integer": "qat_tiny_full_integer",
 }
+
+
+def fixture_group(fixturenames: list[str]) -> str | None:
+    """The one group a test's fixtures put it in, or None (no costly fixture, or two groups)."""
+    groups = {_EXPENSIVE_FIXTURE_GROUPS[f] for f in fixturenames if f in _EXPENSIVE_FIXTURE_GROUPS}
+    return groups.pop() if len(groups) == 1 else None
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the markers into the test ids
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
-        groups = {_EXPENSIVE_FIXTURE_GROUPS[f] for f in getattr(item, "fixturenames", ()) if f in _EXPENSIVE_FIXTURE_GROUPS}
-        if len(groups) == 1:
-            item.add_marker(pytest.mark.xdist_group(groups.pop()))
+        group = fixture_group(getattr(item, "fixturenames", []))
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
