@@ -46,33 +46,6 @@ import e3dpsm  # noqa: E402
 # instance (a fixture imported into a module is a separate definition, built again there).
 pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers"]
 
-# The shared fixtures that cost 15 s or more on one core (the default INT8 search 160 s,
-# pruning 75 s, the synthetic sequences 45 s, the QAT fine-tunes 15 s each): under
-# `--dist loadgroup` every test using one of them runs on the same worker, so that each is
-# built once, not once per worker. A test's fixture names include what its fixtures use, so
-# the first fixture of a chain names it (int8_recurrent_dir <- int8_test_budget_pct <-
-# int8_dir <- int8_graph; synthetic_data <- prepared_data). fp16_dir shares the INT8 group:
-# the pipeline test uses both. A test using two groups is scheduled on its own.
-_EXPENSIVE_FIXTURE_GROUPS = {
-    "int8_recurrent_dir": "int8_search", "fp16_dir": "int8_search", "pruned_tiny": "prune",
-    "synthetic_data": "synthetic_data", "qat_tiny": "qat_tiny", "qat_tiny_full_integer": "qat_tiny_full_integer",
-}
-
-
-def fixture_group(fixturenames: list[str]) -> str | None:
-    """The one group a test's fixtures put it in, or None (no costly fixture, or two groups)."""
-    groups = {_EXPENSIVE_FIXTURE_GROUPS[f] for f in fixturenames if f in _EXPENSIVE_FIXTURE_GROUPS}
-    return groups.pop() if len(groups) == 1 else None
-
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the markers into the test ids
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        group = fixture_group(getattr(item, "fixturenames", []))
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
-
-
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
 # between steps, which starves ONNX Runtime when both alternate in one process (parity).
 torch.set_num_threads(1)
