@@ -75,7 +75,9 @@ def test_the_verdict_speaks_of_the_artifact_timed_last_not_the_search_candidate(
     report["artifact_timing"] = {"p50_ms": 16.0, "fp32_p50_ms": 11.0, "speedup_vs_fp32": 11.0 / 16.0}
     verdict = speed_verdict(report)
     assert "does not beat fp32" in verdict and "0.69x fp32 (16.00 against 11.00 ms" in verdict
-    assert "A timed candidate within budget runs 1.25x" in verdict  # its own fp32 run: 10.0 / 8.0
+    # Nothing changed the chosen candidate after the search timed it: the artifact is that graph.
+    assert "The search timed this same graph at 1.25x" in verdict  # its own fp32 run: 10.0 / 8.0
+    assert "--objective latency" not in verdict
     report["precision_search"] = {"int16_nodes": ["a", "b"], "int16w16_nodes": ["c"], "float_nodes": []}
     verdict = speed_verdict(report)
     assert "Its 3 nodes run at 16 bits in float" in verdict and "--no-int16 --objective latency" in verdict
@@ -84,3 +86,34 @@ def test_the_verdict_speaks_of_the_artifact_timed_last_not_the_search_candidate(
     assert "Its 1 node runs at 16 bits in float behind a DequantizeLinear" in verdict
     assert "with it in float runs 1.25x" in verdict
 
+
+
+def test_a_faster_chosen_candidate_is_named_by_what_the_precision_stage_changed() -> None:
+    """A fresh clone's pipeline on an AVX-512 VNNI host (2026-12-02): the search timed its only
+    candidate, the recurrent projections in float, at 1.10x; the artifact, with the precision
+    stage's 11 recurrent projections at 8 bits, at 0.85x. The verdict said "--objective latency
+    picks it", which ships the same artifact; --no-int16 ships the candidate as timed."""
+    report = _report(8.05, 8.85, bf16=True)
+    report["artifact_timing"] = {"p50_ms": 10.04, "fp32_p50_ms": 8.55}
+    report["precision_search"] = {"int16_nodes": [], "int16w16_nodes": [], "float_nodes": [],
+                                  "int8_recurrent_nodes": [f"Gemm_{i}" for i in range(11)]}
+    verdict = speed_verdict(report)
+    assert "0.85x fp32 (10.04 against 8.55 ms" in verdict
+    assert ("Its 11 recurrent projections at 8 bits; a timed candidate within budget with those nodes in float "
+            "runs 1.10x (--no-int16 --objective latency ships it") in verdict
+    report["precision_search"]["int16_nodes"] = ["a", "b"]
+    assert ("Its 2 nodes run at 16 bits in float behind a DequantizeLinear on ONNX Runtime and its 11 recurrent "
+            "projections at 8 bits;") in speed_verdict(report)
+    report["precision_search"] = {"int16_nodes": [], "int8_recurrent_nodes": ["Gemm_0"]}
+    assert "Its 1 recurrent projection at 8 bits; a timed candidate within budget with it in float" in (
+        speed_verdict(report))
+
+
+def test_a_faster_candidate_other_than_the_chosen_one_is_what_latency_picks() -> None:
+    report = _report(8.05, 8.85, bf16=False)
+    report["artifact_timing"] = {"p50_ms": 10.0, "fp32_p50_ms": 8.5}
+    report["search"]["candidates"].append(_candidate("top3", 7.0, True))
+    verdict = speed_verdict(report)
+    assert "A timed candidate within budget runs 1.26x (--objective latency picks it)." in verdict
+    report["search"]["candidates"][-1]["within_budget"] = False  # over budget: not offered
+    assert "The search timed this same graph at 1.10x" in speed_verdict(report)
