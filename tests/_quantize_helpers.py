@@ -18,7 +18,7 @@ TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint
 # One ONNX Runtime intra-op thread (a default session adds a pool thread per core that spins
 # between steps, against the test itself under `pytest -n`) and a 5-step verdict timing:
 # the tests check what a graph computes, never how fast (benchmarks do).
-RUNTIME = dict(threads=1, timing_steps=5)
+RUNTIME = dict(threads=1, timing_steps=5, artifact_timing_steps=20)
 FAST = dict(frames=16, holdout_frames=40, rank_frames=20, max_rounds=1, **RUNTIME)
 
 

@@ -284,3 +284,27 @@ def test_dynamic_int8_takes_u8_weights_for_targets_without_dot_product_units(tar
     else:
         assert unsigned and not signed
         assert min(int(w.min()) for w in unsigned) == 0 and max(int(w.max()) for w in unsigned) == 255
+
+
+def test_a_fixed_exclusion_is_judged_by_its_own_distance_and_timed_for_the_verdict(tmp_path, capsys, tiny_graph,
+                                                                                   quant_data):  # noqa: F811
+    """No search ran: the CLI's line and the verdict read the artifact's measured distance against
+    the budget (they said null and "over budget" at 0.3% of a 1% budget), and its timing, taken
+    over --artifact-timing-steps with an interval."""
+    from e3dpsm.quantize.front_report import artifact_within_budget
+
+    out = tmp_path / "q"
+    code = main(["quantize", "--model", str(tiny_graph), "--data", str(quant_data), "--out", str(out),
+                 "--exclude", "none", "--frames", "16", "--holdout-frames", "20", "--threads", "1",
+                 "--budget-pct", "50", "--artifact-timing-steps", "20"])
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    report = json.loads((out / "report.json").read_text())
+    assert code == 0 and report["exclusion_search"] is None  # no search ran
+    assert report["holdout"]["bound_pct"] <= 50 and line["within_budget"] is True
+    timing = report["artifact_timing"]
+    assert timing["timer"]["steps"] == 20 and timing["interval"]["rounds"] == 2
+    assert line["p50_ms"] == pytest.approx(timing["p50_ms"])
+    verdict = (out / "report.md").read_text().splitlines()[2]
+    assert "graph (within budget)" in verdict and "20 steps, 80% interval" in verdict
+    report["quantization"]["budget_pct"] = 0.5 * report["holdout"]["bound_pct"]
+    assert artifact_within_budget(report) is False

@@ -117,3 +117,20 @@ def test_a_faster_candidate_other_than_the_chosen_one_is_what_latency_picks() ->
     assert "A timed candidate within budget runs 1.26x (--objective latency picks it)." in verdict
     report["search"]["candidates"][-1]["within_budget"] = False  # over budget: not offered
     assert "The search timed this same graph at 1.10x" in speed_verdict(report)
+
+
+def test_the_verdict_quotes_the_artifact_timings_interval_and_says_when_it_holds_1x() -> None:
+    report = _report(8.0, 8.0, bf16=False)
+    report["artifact_timing"] = {"p50_ms": 10.0, "fp32_p50_ms": 8.5, "timer": {"steps": 200},
+                                 "interval": {"speedup": 0.85, "low": 0.80, "high": 0.91, "coverage": 0.8, "rounds": 20}}
+    verdict = speed_verdict(report)
+    assert "0.85x fp32 (10.00 against 8.50 ms per step; 200 steps, 80% interval 0.80-0.91x)." in verdict
+    report["artifact_timing"]["interval"].update(low=0.83, high=1.02)
+    assert ("(10.00 against 8.50 ms per step; 200 steps, 80% interval 0.83-1.02x: level with fp32 within "
+            "this host's timing noise)") in speed_verdict(report)
+    report["artifact_timing"].update(p50_ms=8.0, fp32_p50_ms=9.0)
+    report["artifact_timing"]["interval"].update(low=1.05, high=1.2)
+    assert speed_verdict(report).endswith("runs 1.12x fp32 on this vnni host (avx2 avx512_vnni) "
+                                          "(200 steps, 80% interval 1.05-1.20x).")
+    report["artifact_timing"]["interval"].update(low=1.0)
+    assert "80% interval 1.00-1.20x: level with fp32 within this host's timing noise" in speed_verdict(report)

@@ -1,0 +1,70 @@
+"""The artifact's timing beside fp32 and the interval the verdict quotes (quantize/step_timer.py)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from e3dpsm.quantize.step_timer import SideBySideTimer, speedup_interval
+
+
+def _by_loop(candidate: np.ndarray, reference: np.ndarray, chunk: int, picks: list[list[int]]) -> list[float]:
+    """Speed-ups of explicitly drawn rounds, one at a time (the reference for the bootstrap)."""
+    out = []
+    for picked in picks:
+        c = [t for r in picked for t in candidate[r * chunk:(r + 1) * chunk]]
+        f = [t for r in picked for t in reference[r * chunk:(r + 1) * chunk]]
+        out.append(float(np.median(f) / np.median(c)))
+    return out
+
+
+def test_the_interval_is_the_percentiles_of_speed_ups_over_rounds_drawn_together() -> None:
+    rng = np.random.default_rng(3)
+    reference = 10 + rng.gamma(2.0, 1.0, 60)
+    candidate = 12 + rng.gamma(2.0, 1.0, 60)
+    got = speedup_interval(candidate, reference, chunk=10, resamples=400, seed=7)
+    assert got.speedup == pytest.approx(np.median(reference) / np.median(candidate))
+    assert got.rounds == 6 and got.coverage == 0.8
+    # The same draws, computed by hand: rounds of both graphs drawn together.
+    draws_rng = np.random.default_rng(7)
+    picks = [list(draws_rng.integers(0, 6, 6)) for _ in range(400)]
+    expected = np.percentile(_by_loop(candidate, reference, 10, picks), [10, 90])
+    assert (got.low, got.high) == pytest.approx(tuple(expected))
+    assert got.low <= got.speedup <= got.high
+
+
+def test_a_constant_ratio_has_no_spread_and_a_noisy_one_straddles_it() -> None:
+    rng = np.random.default_rng(0)
+    reference = 8 + rng.random(100)
+    exact = speedup_interval(reference * 1.25, reference, chunk=10)
+    assert exact.low == pytest.approx(0.8) and exact.high == pytest.approx(0.8)
+    # Load that slows the candidate's rounds in half of them (a shared host): no fixed ratio.
+    candidate = reference * np.repeat([0.8, 1.25] * 5, 10)
+    noisy = speedup_interval(candidate, reference, chunk=10)
+    assert noisy.low < 1.0 < noisy.high and noisy.high - noisy.low > 0.2
+
+
+@pytest.mark.parametrize("bad", [dict(candidate=np.ones(5), reference=np.ones(6), chunk=2),
+                                 dict(candidate=np.ones(0), reference=np.ones(0), chunk=2),
+                                 dict(candidate=np.ones(4), reference=np.ones(4), chunk=0)])
+def test_mismatched_timings_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="equally long"):
+        speedup_interval(bad["candidate"], bad["reference"], bad["chunk"])
+
+
+def test_compare_times_a_graph_beside_its_reference(tiny_graph: Path) -> None:
+    """The same graph against itself: a speed-up near 1x whose interval holds it, over the steps asked."""
+    frames = np.zeros((4, *_lnes_shape(tiny_graph)), dtype=np.float32)
+    timed = SideBySideTimer(frames, 20.0, threads=1, warmup=2, chunk=5).compare(tiny_graph, tiny_graph, steps=20)
+    assert timed["timer"]["steps"] == 20 and timed["interval"]["rounds"] == 4
+    assert timed["speedup_vs_fp32"] == pytest.approx(timed["fp32_p50_ms"] / timed["p50_ms"])
+    assert timed["interval"]["low"] <= timed["speedup_vs_fp32"] <= timed["interval"]["high"]
+
+
+def _lnes_shape(path: Path) -> tuple[int, ...]:
+    import onnx
+
+    graph = onnx.load(str(path), load_external_data=False).graph
+    lnes = next(i for i in graph.input if i.name == "lnes")
+    return tuple(d.dim_value for d in lnes.type.tensor_type.shape.dim[1:])
