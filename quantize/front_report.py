@@ -45,7 +45,7 @@ def speed_verdict(report: dict[str, Any]) -> str | None:
     spread = _interval_clause(shipped.get("interval"), (shipped.get("timer") or {}).get("steps"))
     if ratio > 1.0 + LATENCY_TIE:
         return (f"Verdict: the chosen {mode} graph ({budget}) runs {ratio:.2f}x fp32 on this {host}"
-                f"{f' ({spread[2:]})' if spread else ''}.")
+                f"{f' ({spread})' if spread else ''}.")
     # Candidates were timed beside their own fp32 run: compare ratios, not milliseconds.
     search_fp32 = search.get("fp32_p50_ms")
     speedups = [(c, search_fp32 / c["p50_ms"]) for c in search.get("candidates", [])
@@ -59,8 +59,8 @@ def speed_verdict(report: dict[str, Any]) -> str | None:
     if isa.get("bf16"):
         alternatives.insert(0, "bf16 (this CPU has bf16 units: OpenVINO target openvino-cpu-bf16)")
     return (f"Verdict: the chosen {mode} graph ({budget}) does not beat fp32 on this {host}: {ratio:.2f}x fp32 "
-            f"({chosen:.2f} against {fp32:.2f} ms per step{spread}).{others}{size} For speed here: "
-            f"{', '.join(alternatives)}.")
+            f"({chosen:.2f} against {fp32:.2f} ms per step{f'; {spread}' if spread else ''}).{others}{size} "
+            f"For speed here: {', '.join(alternatives)}.")
 
 
 def artifact_within_budget(report: dict[str, Any]) -> bool | None:
@@ -77,11 +77,11 @@ def artifact_within_budget(report: dict[str, Any]) -> bool | None:
 
 
 def _interval_clause(interval: dict[str, Any] | None, steps: int | None) -> str:
-    """"; 200 steps, 80% interval 0.80-0.91x", and where the interval holds 1x that the two
+    """"200 steps, 80% interval 0.80-0.91x", and where the interval holds 1x that the two
     are level within the host's timing noise; "" for a timing without one (injected timers)."""
     if not interval:
         return ""
-    clause = (f"; {f'{steps} steps, ' if steps else ''}{round(100 * interval['coverage'])}% interval "
+    clause = (f"{f'{steps} steps, ' if steps else ''}{round(100 * interval['coverage'])}% interval "
               f"{interval['low']:.2f}-{interval['high']:.2f}x")
     if interval["low"] <= 1.0 <= interval["high"]:
         clause += ": level with fp32 within this host's timing noise"

@@ -81,26 +81,25 @@ class SideBySideTimer:
         self.steps, self.warmup, self.chunk = steps, warmup, chunk
 
     def __call__(self, graphs: Mapping[str, os.PathLike | str]) -> dict[str, float]:
-        from e3dpsm.profiles.latency import measure_side_by_side
-
-        runners = {label: CarriedStateRunner(StepSession(path, threads=self.threads), self.window_ms)
-                   for label, path in graphs.items()}
-        seconds = measure_side_by_side(runners, self.frames, self.steps, self.warmup, chunk=self.chunk)
-        return {label: 1e3 * float(np.median(t)) for label, t in seconds.items()}
+        return {label: 1e3 * float(np.median(t)) for label, t in self._seconds(graphs, self.steps).items()}
 
     def compare(self, graph: os.PathLike | str, reference: os.PathLike | str, steps: int) -> dict:
         """`graph` timed beside `reference` over `steps` steps: both p50s (ms), the speed-up and
         its interval (speedup_interval)."""
-        from e3dpsm.profiles.latency import measure_side_by_side
-
-        runners = {label: CarriedStateRunner(StepSession(path, threads=self.threads), self.window_ms)
-                   for label, path in (("graph", graph), ("reference", reference))}
-        seconds = measure_side_by_side(runners, self.frames, steps, self.warmup, chunk=self.chunk)
+        seconds = self._seconds({"graph": graph, "reference": reference}, steps)
         interval = speedup_interval(seconds["graph"], seconds["reference"], self.chunk)
         return {"p50_ms": 1e3 * float(np.median(seconds["graph"])),
                 "fp32_p50_ms": 1e3 * float(np.median(seconds["reference"])),
                 "speedup_vs_fp32": interval.speedup, "interval": interval.to_dict(),
                 "timer": {**self.describe(), "steps": steps}}
+
+    def _seconds(self, graphs: Mapping[str, os.PathLike | str], steps: int) -> dict[str, np.ndarray]:
+        """Per-step seconds of each graph, in step order (measure_side_by_side)."""
+        from e3dpsm.profiles.latency import measure_side_by_side
+
+        runners = {label: CarriedStateRunner(StepSession(path, threads=self.threads), self.window_ms)
+                   for label, path in graphs.items()}
+        return measure_side_by_side(runners, self.frames, steps, self.warmup, chunk=self.chunk)
 
     def describe(self) -> dict:
         return {"kind": "side_by_side", "threads": self.threads, "steps": self.steps, "warmup": self.warmup,

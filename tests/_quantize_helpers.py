@@ -16,8 +16,9 @@ from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
 SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
 TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
 # One ONNX Runtime intra-op thread (a default session adds a pool thread per core that spins
-# between steps, against the test itself under `pytest -n`) and a 5-step verdict timing:
-# the tests check what a graph computes, never how fast (benchmarks do).
+# between steps, against the test itself under `pytest -n`), 5 timed steps per search
+# candidate and 20 for the verdict's timing of the artifact: the tests check what a graph
+# computes, never how fast (benchmarks do).
 RUNTIME = dict(threads=1, timing_steps=5, artifact_timing_steps=20)
 FAST = dict(frames=16, holdout_frames=40, rank_frames=20, max_rounds=1, **RUNTIME)
 
