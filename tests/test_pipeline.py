@@ -93,3 +93,49 @@ def test_int8_stage_budgets_against_the_lowest_sequence_error(tmp_path) -> None:
     assert build_parser().parse_args(argv).budget_reference == "lowest"
     fp16 = next(s for s in STAGES if s.name == "quantize-fp16").argv(PipelineConfig(out=tmp_path / "run"))
     assert build_parser().parse_args(fp16).budget_reference == "holdout"
+
+
+def _train_stage_steps(cfg: PipelineConfig) -> int:
+    from e3dpsm.cli import build_parser
+
+    argv = next(s for s in STAGES if s.name == "train").argv(cfg)
+    return build_parser().parse_args(argv).steps
+
+
+def test_default_training_is_a_fixed_step_count_and_minutes_fit_it_to_a_probe(tmp_path, monkeypatch) -> None:
+    """Without --minutes every host and rerun trains the same model; --minutes fits the steps
+    to the host by a timing probe (stubbed here: the probe itself is a timing)."""
+    from e3dpsm.pipeline import stages
+
+    probed = []
+    monkeypatch.setattr(stages, "estimate_train_steps", lambda cfg: probed.append(cfg.minutes) or 77)
+    assert _train_stage_steps(PipelineConfig(out=tmp_path)) == stages.DEFAULT_TRAIN_STEPS
+    assert _train_stage_steps(PipelineConfig(out=tmp_path, train_steps=33)) == 33
+    assert probed == []
+    assert _train_stage_steps(PipelineConfig(out=tmp_path, minutes=4.0)) == 77
+    assert probed == [4.0]
+
+
+def test_train_steps_and_minutes_exclude_each_other(tmp_path, capsys) -> None:
+    from e3dpsm.cli import main
+    from e3dpsm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="either --train-steps or --minutes"):
+        PipelineConfig(out=tmp_path, train_steps=10, minutes=5.0)
+    with pytest.raises(ConfigError, match="--train-steps must be positive"):
+        PipelineConfig(out=tmp_path, train_steps=0)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["pipeline", "--out", str(tmp_path / "run"), "--train-steps", "10", "--minutes", "5"])
+    assert exit_info.value.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_index_says_how_many_steps_the_model_trained(tmp_path) -> None:
+    from e3dpsm.pipeline.report import write_index
+
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / "report.json").write_text(json.dumps({"total_steps": 120}))
+    write_index(tmp_path, {"variant": "small", "seed": 0, "window_ms": 20.0}, [])
+    header = (tmp_path / "report" / "index.md").read_text().splitlines()[2]
+    assert header.startswith("Variant `small` trained 120 steps here, synthetic data (seed 0)")

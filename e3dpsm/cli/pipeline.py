@@ -4,12 +4,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_float
+from e3dpsm.cli._common import positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        "pipeline", help="run the whole flow on synthetic data (about 15-20 minutes on two cores)",
+        "pipeline", help="run the whole flow on synthetic data (10-30 minutes on two cores)",
         description="synth -> prepare -> train -> evaluate -> export -> parity -> quantize -> validate -> "
                     "golden -> clip -> profile -> OUT/report/index.md, each stage in its own process. "
                     "Finished stages are skipped on a rerun.")
@@ -17,8 +17,13 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--variant", choices=("tiny", "small"), default="small")
     p.add_argument("--checkpoint", type=Path, help="use this trained or imported checkpoint (e3dpsm import) instead "
                                                      "of training; data are prepared at its resolution")
-    p.add_argument("--minutes", type=positive_float, default=10.0,
-                   help="rough total budget; about half of it trains (default 10)")
+    steps = p.add_mutually_exclusive_group()
+    steps.add_argument("--train-steps", type=positive_int,
+                       help="training steps (default 120: the same model on every host and rerun)")
+    steps.add_argument("--minutes", type=positive_float,
+                       help="instead of a step count: a rough total budget, about half of it training, "
+                            "the steps fitted to it by a short timing probe (the model then depends on "
+                            "the host's speed)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--only", nargs="+", metavar="STAGE", help="rerun only these stages (others untouched)")
@@ -32,7 +37,8 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.pipeline.runner import run_pipeline
     from e3dpsm.pipeline.stages import PipelineConfig
 
-    cfg = PipelineConfig(out=Path(args.out), variant=args.variant, minutes=args.minutes, seed=args.seed,
+    cfg = PipelineConfig(out=Path(args.out), variant=args.variant, train_steps=args.train_steps,
+                         minutes=args.minutes, seed=args.seed,
                          threads=args.threads, checkpoint=args.checkpoint,
                          with_stages=tuple(args.with_stages))
     run_pipeline(cfg, only=args.only)

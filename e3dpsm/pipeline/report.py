@@ -99,8 +99,9 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
     parity = _load(out / "parity/report.json") or {}
     export = _load(out / "export/export.json") or {}
     variant = (export.get("model") or {}).get("variant", config.get("variant"))
+    trained = (_load(out / "train/report.json") or {}).get("total_steps")
     model = (f"Checkpoint `{config['checkpoint']}` (variant `{variant}`, not trained here)" if config.get("checkpoint")
-             else f"Variant `{variant}`")
+             else f"Variant `{variant}`" + (f" trained {trained} steps here" if trained else ""))
     int8_report = _load(out / "quantize/int8/report.json") or {}
     from e3dpsm.quantize.front_report import front_table, search_target_phrase, speed_verdict
 

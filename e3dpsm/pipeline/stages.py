@@ -19,7 +19,12 @@ log = logging.getLogger(__name__)
 class PipelineConfig:
     out: Path
     variant: str = "small"
-    minutes: float = 10.0
+    # The default model trains a fixed number of steps, so every host and every rerun trains
+    # the same model (seeded) and the reports of two runs compare. `minutes` instead fits the
+    # steps to a time budget from a short timing probe: faster hosts train longer, and the
+    # probe's noise moved the count between runs on one host (45 and 110 steps, 2026-12-02).
+    train_steps: int | None = None
+    minutes: float | None = None
     seed: int = 0
     sequences: int = 5          # 3 train, 1 val (calibration check), 1 test (held out)
     seconds: float = 4.0
@@ -36,10 +41,18 @@ class PipelineConfig:
     prune_target_macs: float = 0.5
     prune_steps: int = 100
 
+    def __post_init__(self) -> None:
+        if self.train_steps is not None and self.minutes is not None:
+            raise ConfigError("give the training either --train-steps or --minutes, not both")
+        if self.train_steps is not None and self.train_steps < 1:
+            raise ConfigError(f"--train-steps must be positive, got {self.train_steps}")
+        if self.minutes is not None and self.minutes <= 0:
+            raise ConfigError(f"--minutes must be positive, got {self.minutes}")
+
     @property
     def train_budget_s(self) -> float:
         # About half the budget trains; the other stages are sized to fit the rest.
-        return max(30.0, 0.5 * self.minutes * 60.0)
+        return max(30.0, 0.5 * (self.minutes or 0.0) * 60.0)
 
 
 @dataclass(frozen=True)
@@ -87,8 +100,22 @@ def _held_out_events(cfg: PipelineConfig) -> str:
     return str(cfg.out / "data" / names[0] / "events.h5")
 
 
+# About 4 minutes of training for `small` on two cores (1.9 s a step on an AVX-512 VNNI host,
+# ~2.5 on an AVX2 one); what `--minutes 10` gave there.
+DEFAULT_TRAIN_STEPS = 120
+
+
+def train_steps(cfg: PipelineConfig) -> int:
+    """The training stage's steps: given, fitted to `--minutes`, or the fixed default."""
+    if cfg.train_steps is not None:
+        return cfg.train_steps
+    if cfg.minutes is not None:
+        return estimate_train_steps(cfg)
+    return DEFAULT_TRAIN_STEPS
+
+
 def _train_argv(cfg: PipelineConfig) -> list[str]:
-    steps = estimate_train_steps(cfg)
+    steps = train_steps(cfg)
     return ["train", "--variant", cfg.variant, "--data", _p(cfg, "prepared"), "--out", _p(cfg, "train"),
             "--steps", str(steps), "--seq-len", str(cfg.seq_len), "--batch-size", str(cfg.batch_size),
             "--seed", str(cfg.seed), "--threads", str(cfg.threads), "--force"]
