@@ -102,7 +102,8 @@ class QuantizeOptions:
     # (`artifact_timing`, the verdict's figure).
     objective: str | None = None
     timing_steps: int = 30
-    # Steps the written artifact is timed beside fp32 for the verdict (SideBySideTimer.compare):
+    # Steps the written artifact is timed beside fp32 for the verdict (SideBySideTimer.compare),
+    # and a latency pick beside the search's own choice before it ships (front.confirm_faster):
     # longer than a candidate's, since 30-step ratios on a shared 2-core host spread 0.56-1.25x.
     artifact_timing_steps: int = 200
     max_timed: int = 6
@@ -713,8 +714,12 @@ def _latency_search(keep: list[str], groups: Sequence[NodeGroup], meta: GraphMet
         searched = _search_float_groups(keep, groups, meta, holdout, options, work, build, built, ranked)
         candidates = candidates_from_search(searched, built)
         info = timing.describe()
+        compare = getattr(timing.timer, "compare", None)
+        confirm = ((lambda graph, reference: compare(graph, reference, options.artifact_timing_steps))
+                   if compare is not None else None)
         latency = latency_aware_choice(searched, candidates, timing.timer, options.search_objective, options.search_target,
-                                       max_timed=options.max_timed, reference=timing.reference, timer_info=info)
+                                       max_timed=options.max_timed, reference=timing.reference, timer_info=info,
+                                       confirm=confirm)
     finally:
         for _, path in built:
             path.unlink(missing_ok=True)

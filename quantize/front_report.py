@@ -81,11 +81,15 @@ def _interval_clause(interval: dict[str, Any] | None, steps: int | None) -> str:
     are level within the host's timing noise; "" for a timing without one (injected timers)."""
     if not interval:
         return ""
-    clause = (f"{f'{steps} steps, ' if steps else ''}{round(100 * interval['coverage'])}% interval "
-              f"{interval['low']:.2f}-{interval['high']:.2f}x")
+    clause = _interval_span(interval, steps)
     if interval["low"] <= 1.0 <= interval["high"]:
         clause += ": level with fp32 within this host's timing noise"
     return clause
+
+
+def _interval_span(interval: dict[str, Any], steps: int | None) -> str:
+    return (f"{f'{steps} steps, ' if steps else ''}{round(100 * interval['coverage'])}% interval "
+            f"{interval['low']:.2f}-{interval['high']:.2f}x")
 
 
 def _faster_candidate_clause(report: dict[str, Any], faster: list[tuple[dict[str, Any], float]]) -> str:
@@ -119,7 +123,24 @@ def _faster_candidate_clause(report: dict[str, Any], faster: list[tuple[dict[str
     if all(c.get("chosen") for c, _ in faster):
         return (f" The search timed this same graph at {best:.2f}x: two short timings of one graph differ "
                 "that much on this host, so neither settles it (`e3dpsm profile` times it over more steps).")
+    confirmation = (report.get("search") or {}).get("confirmation") or {}
+    if confirmation and not confirmation.get("kept"):
+        return (f" A candidate within budget timed {best:.2f}x in the search's short timing, and not surely "
+                "faster than the search's own choice when timed again longer: short timings differ that much "
+                "on this host.")
     return f" A timed candidate within budget runs {best:.2f}x (--objective latency picks it)."
+
+
+def confirmation_lines(confirmation: dict[str, Any] | None) -> list[str]:
+    """The latency pick timed again beside the search's own choice (front.confirm_faster)."""
+    if not confirmation:
+        return []
+    c = confirmation
+    interval = _interval_span(c["interval"], c.get("steps")) if c.get("interval") else ""
+    timed = (f"The fastest candidate within budget, `{c['candidate']}`, timed again beside the search's own "
+             f"choice `{c['against']}`: {c['speedup']:.2f}x{f' ({interval})' if interval else ''}, ")
+    return [timed + ("surely faster, so it ships." if c["kept"] else
+                     "not surely faster, so the search's own choice ships."), ""]
 
 
 def search_target_phrase(report: dict[str, Any]) -> str:
@@ -211,7 +232,8 @@ def markdown_report(report: dict[str, Any]) -> str:
                   f"Candidates timed side by side with the fp32 graph ({_fmt(fp32)} ms/step): "
                   f"{timer.get('steps', '?')} steps after {timer.get('warmup', '?')} warm-up, "
                   f"{timer.get('threads') or 'all'} threads, interleaved in chunks of {timer.get('chunk', '?')}; "
-                  "untimed candidates show '-'.", "", front_table(search), "", "Plot: `front.png`.", ""]
+                  "untimed candidates show '-'.", "", front_table(search), "", "Plot: `front.png`.", "",
+                  *confirmation_lines(search.get("confirmation"))]
     ranked = (report.get("exclusion_search") or {}).get("sensitivity") or []
     if ranked:
         chosen = set(report.get("excluded_nodes", []))

@@ -4,6 +4,7 @@ latency-aware choice is made against the user's budget, not the mode's default."
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import pytest
 
@@ -89,8 +90,36 @@ GROUPS = [NodeGroup("a", "module", ("a1",)), NodeGroup("b", "module", ("b1",)), 
 P50_MS = {"base": 5.0, "r1:a": 30.0, "r1:b": 20.0, "r1:c": 10.0, "fp32": 40.0}  # b is faster than a
 
 
+class _ComparingTimer:
+    """A step timer with SideBySideTimer's `compare`: p50s from P50_MS, and a longer timing
+    whose interval of the first graph's speed-up over the second is fixed at `low`-`high`."""
+
+    def __init__(self, low: float, high: float) -> None:
+        self.low, self.high, self.compared = low, high, []
+
+    def __call__(self, graphs):
+        return {label: P50_MS[label] for label in graphs}
+
+    def compare(self, graph, reference, steps):
+        self.compared.append((Path(graph).name, Path(reference).name, steps))
+        mid = (self.low + self.high) / 2
+        return {"speedup_vs_fp32": mid, "timer": {"steps": steps},
+                "interval": {"speedup": mid, "low": self.low, "high": self.high, "coverage": 0.8, "rounds": 7}}
+
+
+@pytest.mark.parametrize("low, chosen", [(1.05, ["b"]), (0.95, ["a"])])
+def test_the_latency_pick_is_timed_again_beside_the_searchs_own_over_the_artifacts_steps(monkeypatch, tmp_path,
+                                                                                       low, chosen):
+    """b timed faster in the candidates' timing; the search's own choice is a (more accurate).
+    quantize times b beside a over --artifact-timing-steps and ships b only when surely faster."""
+    timer = _ComparingTimer(low, 1.3)
+    final, latency, _ = _search_with(monkeypatch, tmp_path, "int8", 1.0, timer=timer, artifact_timing_steps=77)
+    assert timer.compared == [("b.onnx", "a.onnx", 77)]  # the evaluator names graphs by group
+    assert final.chosen == chosen and latency.confirmation["kept"] == (chosen == ["b"])
+
+
 def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, objective: str = "latency",
-                 search_margin: float | None = 0.0):
+                 search_margin: float | None = 0.0, timer=None, **option_overrides):
     """api._latency_search with the held-out evaluation and the step timer injected."""
     def fake_evaluator(meta, holdout, options, work, build, built=None):
         def evaluate(excluded, label):
@@ -100,13 +129,14 @@ def _search_with(monkeypatch, tmp_path, mode: str, budget_pct: float | None, obj
 
     asked = []
 
-    def timer(graphs):
+    def fixed_timer(graphs):
         asked.append(set(graphs))
         return {label: P50_MS[label] for label in graphs}
 
+    timer = timer or fixed_timer
     monkeypatch.setattr(api, "_evaluator", fake_evaluator)
     options = QuantizeOptions(mode=mode, budget_pct=budget_pct, search="groups", max_rounds=1, objective=objective,
-                              search_margin=search_margin)
+                              search_margin=search_margin, **option_overrides)
     final, latency = api._latency_search(["r"], GROUPS, None, None, options, tmp_path, None,
                                          api._Timing(timer, tmp_path / "fp32.onnx"))
     return final, latency, asked

@@ -100,6 +100,70 @@ def test_timing_is_bounded_and_untimed_candidates_are_never_chosen():
         QuantizeOptions(objective="speed")
 
 
+def _confirm(low: float, high: float):
+    """An injected longer timing (SideBySideTimer.compare bound to its steps): a fixed
+    interval of the speed-up of the first graph over the second; records what it compared."""
+    asked: list[tuple[str, str]] = []
+
+    def confirm(graph, reference):
+        asked.append((str(graph), str(reference)))
+        return {"speedup_vs_fp32": (low + high) / 2, "timer": {"steps": 200},
+                "interval": {"speedup": (low + high) / 2, "low": low, "high": high, "coverage": 0.8, "rounds": 20}}
+
+    confirm.asked = asked
+    return confirm
+
+
+@pytest.mark.parametrize("low, high, ships", [(1.02, 1.4, "r1:b"), (1.0, 1.4, "r1:a"), (0.7, 1.3, "r1:a")])
+def test_a_latency_pick_ships_only_if_timed_surely_faster_than_the_searchs_own(low, high, ships):
+    """The 30-step timing says r1:b (within budget) is the fastest; timed again beside the
+    search's own choice r1:a it ships only where the interval's lower end is above 1 (1.0
+    itself is not: the boundary case)."""
+    result, cands = _search()
+    confirm = _confirm(low, high)
+    timer = _timer({"r1:a": 30.0, "r1:b": 20.0, "base": 10.0, "fp32": 40.0})
+    search = latency_aware_choice(result, _with_paths(cands), timer, "latency", 1.0, reference="/fp32.onnx",
+                                  confirm=confirm)
+    assert search.chosen.label == ships
+    assert confirm.asked == [("/nowhere/r1:b.onnx", "/nowhere/r1:a.onnx")]
+    block = search.to_dict()["confirmation"]
+    assert block["candidate"] == "r1:b" and block["against"] == "r1:a" and block["kept"] == (ships == "r1:b")
+    assert block["interval"]["low"] == low and block["steps"] == 200
+
+
+def test_nothing_is_confirmed_when_the_pick_is_the_searchs_own_or_the_objective_is_not_latency():
+    result, cands = _search()
+    confirm = _confirm(0.5, 0.6)
+    own_fastest = latency_aware_choice(result, _with_paths(cands), _timer({"r1:a": 20.0, "r1:b": 30.0}),
+                                       "latency", 1.0, confirm=confirm)
+    assert own_fastest.chosen.label == "r1:a" and own_fastest.confirmation is None
+    _, cands = _search()
+    accurate = latency_aware_choice(result, _with_paths(cands), _timer({"r1:a": 30.0, "r1:b": 20.0}),
+                                    "accuracy", 1.0, confirm=confirm)
+    assert accurate.chosen.label == "r1:a" and accurate.confirmation is None
+    assert confirm.asked == []
+
+
+def test_report_says_whether_the_latency_pick_was_confirmed():
+    from e3dpsm.quantize.front_report import confirmation_lines, speed_verdict
+
+    result, cands = _search()
+    timer = _timer({"r1:a": 30.0, "r1:b": 20.0, "base": 10.0, "fp32": 25.0})
+    search = latency_aware_choice(result, _with_paths(cands), timer, "latency", 1.0, reference="/fp32.onnx",
+                                  confirm=_confirm(0.9, 1.2))
+    block = search.to_dict()
+    assert confirmation_lines(block["confirmation"])[0] == (
+        "The fastest candidate within budget, `r1:b`, timed again beside the search's own choice `r1:a`: "
+        "1.05x (200 steps, 80% interval 0.90-1.20x), not surely faster, so the search's own choice ships.")
+    # the verdict (the artifact no faster than fp32) does not tell the reader the latency
+    # objective picks the candidate that timed 1.25x in 30 steps: it was not confirmed
+    report = {"mode": "int8", "search": block, "machine": {"isa": {"kind": "vnni", "flags": ["avx512_vnni"]}},
+              "artifact_timing": {"p50_ms": 30.0, "fp32_p50_ms": 25.0}}
+    verdict = speed_verdict(report)
+    assert "--objective latency picks it" not in verdict
+    assert "timed 1.25x in the search's short timing, and not surely faster" in verdict
+
+
 def test_report_shows_the_front_as_a_table_and_a_plot(tmp_path):
     from e3dpsm.quantize.front_report import markdown_report, write_search_outputs
 

@@ -55,7 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="--exclude auto: timed steps per candidate graph (default 30)")
     p.add_argument("--artifact-timing-steps", type=positive_int, default=200,
                    help="steps the written graph is timed beside fp32 for report.md's verdict, which gives the "
-                   "speed-up with an 80%% interval (default 200)")
+                   "speed-up with an 80%% interval, and a --objective latency pick beside the search's own choice "
+                   "before it ships (default 200)")
     p.add_argument("--target-isa", choices=ISA_KINDS, default=None,
                    help="int8, int8-dynamic: the CPU kind the graph is for (default: this host's; see "
                    "machine.isa in any report); avx2 and other targets without int8 dot-product units get 7-bit "
