@@ -131,6 +131,19 @@ def _faster_candidate_clause(report: dict[str, Any], faster: list[tuple[dict[str
     return f" A timed candidate within budget runs {best:.2f}x (--objective latency picks it)."
 
 
+RUNTIME_NAMES = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}
+
+
+def runtimes_clause(holdout: dict[str, Any]) -> str:
+    """" The worst of 2 runtimes (`--runtimes`): ONNX Runtime 0.412%, OpenVINO 0.745%." where
+    the budget was checked on more than one; "" otherwise."""
+    by_runtime = holdout.get("bound_pct_by_runtime") or {}
+    if len(by_runtime) < 2:
+        return ""
+    each = ", ".join(f"{RUNTIME_NAMES.get(r, r)} {pct:.3f}%" for r, pct in by_runtime.items())
+    return f" The worst of {len(by_runtime)} runtimes (`--runtimes`): {each}."
+
+
 def confirmation_lines(confirmation: dict[str, Any] | None) -> list[str]:
     """The latency pick timed again beside the search's own choice (front.confirm_faster)."""
     if not confirmation:
@@ -219,7 +232,8 @@ def markdown_report(report: dict[str, Any]) -> str:
              f"{h['mpjpe_mm']:.3f} mm vs fp32 {h['fp32_mpjpe_mm']:.3f} mm; distance to fp32 "
              + (f"{h['bound_pct']:.3f}% of the budget's reference MPJPE, {h['budget_mpjpe_mm']:.2f} mm: the lowest "
                 "fp32 MPJPE of any held-out or calibration sequence (`--budget-reference lowest`)."
-                if h.get("budget_reference") == "lowest" else f"{h['bound_pct']:.3f}% of fp32 MPJPE."),
+                if h.get("budget_reference") == "lowest" else f"{h['bound_pct']:.3f}% of fp32 MPJPE.")
+             + runtimes_clause(h),
              "", *size_lines(report.get("sizes") or {})]
     lines += census_lines(report.get("quantization") or {})
     lines += equalization_lines(report.get("equalization"))

@@ -88,7 +88,7 @@ def make_holdout(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequ
 
 
 def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | None = None,
-                exact_arithmetic: bool = False) -> dict[str, float]:
+                exact_arithmetic: bool = False, runtime: str = "onnxruntime") -> dict[str, float]:
     """MPJPE of `model` on the held-out streams, and how far it moved from FP32.
 
     `loss_pct` is the relative MPJPE increase over FP32. `deviation_from_fp32_mm` is the
@@ -101,8 +101,20 @@ def accuracy_of(model: str | os.PathLike, holdout: HoldoutSet, threads: int | No
 
     `exact_arithmetic`: the graph's own numbers, the same on any host
     (`runtime.session.exact_arithmetic_options`), instead of ONNX Runtime's fused kernels.
+    `runtime`: "onnxruntime" or "openvino" (its CPU device in f32), which fuses and rounds
+    a QDQ graph its own way.
     """
-    session = StepSession(model, threads=threads, options=exact_arithmetic_options() if exact_arithmetic else None)
+    if runtime == "openvino":
+        if exact_arithmetic:
+            raise ValueError("exact_arithmetic is ONNX Runtime's; OpenVINO has no such mode")
+        from e3dpsm.runtime.openvino_session import OpenVINOStepSession
+
+        session = OpenVINOStepSession(model, threads=threads, precision="f32")
+    elif runtime == "onnxruntime":
+        session = StepSession(model, threads=threads,
+                              options=exact_arithmetic_options() if exact_arithmetic else None)
+    else:
+        raise ValueError(f"unknown runtime {runtime!r}; choose onnxruntime or openvino")
     outputs = [onnx_stream_outputs(session, x, holdout.window_ms) for x in holdout.lnes]
     base = holdout.fp32_mpjpe
     value = _pooled_mpjpe([o["pose"] for o in outputs], holdout.gt)

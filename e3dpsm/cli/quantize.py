@@ -40,6 +40,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="what the budget is relative to: the fp32 MPJPE over the held-out frames (holdout, "
                    "default) or the lowest fp32 MPJPE of any one held-out or calibration sequence (lowest: for a "
                    "model whose error differs widely between sequences, so that the budget holds on an easy one)")
+    p.add_argument("--runtimes", nargs="+", choices=("onnxruntime", "openvino"), default=["onnxruntime"],
+                   help="the runtimes the budget is checked on: each trial graph of the search and the written "
+                   "graph are measured on every one, the worst distance counting (default onnxruntime; add "
+                   "openvino for a graph that must hold its budget there too: it fuses and rounds QDQ its own way)")
     p.add_argument("--search", choices=("nodes", "groups"), default=None,
                    help="--exclude auto: 'nodes' quantises each Conv/MatMul/Gemm alone to rank them by held-out "
                    "error, then keeps the fewest top-ranked in float that meet the budget (int8 default; one "
@@ -113,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         target_isa=args.target_isa,
         equalize=args.equalize, ranges_from_checkpoint=args.ranges_from_checkpoint, int16=args.int16,
         weight_rounding=args.weight_rounding, float_outputs=args.float_outputs,
+        runtimes=tuple(dict.fromkeys(args.runtimes)),
         **({"op_types": ELEMENTWISE_OP_TYPES, "batchnorm_as_conv": True} if args.int8_elementwise else {}))
     report = quantize_graph(args.model, args.data, args.out, options, force=args.force)
     h = report["holdout"]
