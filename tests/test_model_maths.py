@@ -137,7 +137,8 @@ def test_exclusion_search_budgets_on_distance_to_fp32(monkeypatch, tmp_path: Pat
 
     monkeypatch.setattr(api, "finalize", lambda model, meta, info: None)
     monkeypatch.setattr(api, "save_model", lambda model, path: Path(path).write_bytes(b""))
-    monkeypatch.setattr(api, "accuracy_of", lambda path, holdout, threads=None: {"bound_pct": 3.0, "loss_pct": -2.5})
+    monkeypatch.setattr(api, "accuracy_of", lambda path, holdout, threads=None, runtime="onnxruntime": {
+        "bound_pct": 3.0, "loss_pct": -2.5})
     options = api.QuantizeOptions(mode="int8", budget_pct=1.0, max_rounds=1)
     result = api._search_float_groups([], [NodeGroup("stages.0", "module", ("n1",))], None, None, options, tmp_path,
                                       build=lambda excluded: None)
