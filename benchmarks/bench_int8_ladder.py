@@ -36,6 +36,7 @@ compare only within one run on one host).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import tempfile
 from pathlib import Path
 
@@ -43,6 +44,7 @@ import numpy as np
 
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize.front_report import RUNTIME_NAMES
 from e3dpsm.quantize.holdout import accuracy_of, make_holdout
 from e3dpsm.quantize.static import saturates_u8s8
 from e3dpsm.utils.env import report_header
@@ -107,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", nargs="*", default=None, help="only rows whose label contains one of these")
     parser.add_argument("--only", nargs="*", default=None, help="only the rows with exactly these labels")
     parser.add_argument("--append", action="store_true", help="add the rows to the existing results")
+    parser.add_argument("--runtimes", nargs="+", choices=("onnxruntime", "openvino"), default=["onnxruntime"],
+                        help="quantize --runtimes for every row: the runtimes the search checks its budget on; "
+                        "rows searched on more than one are labelled so")
     args = parser.parse_args(argv)
 
     from e3dpsm.checkpoint import load_checkpoint
@@ -170,13 +175,18 @@ def main(argv: list[str] | None = None) -> int:
             if unknown:
                 parser.error(f"no row labelled {unknown}; the rows: {[label for label, _ in runs]}")
             runs = [(label, o) for label, o in runs if label in args.only]
+        if len(args.runtimes) > 1:  # a different experiment from the same row on ONNX Runtime alone
+            runs = [(f"{label}, on {' + '.join(RUNTIME_NAMES[r] for r in args.runtimes)}"
+                     if options.exclude == "auto" else label, options) for label, options in runs]
+            sources.update({label: sources[base] for label, _ in runs for base in list(sources)
+                            if label.startswith(f"{base}, on ")})
         checks = {fp32: check}
         exact_holdouts: dict[Path, object] = {}
         failed: list[dict] = []
         for label, options in runs:
             options = QuantizeOptions(**{**options.__dict__, "frames": args.frames, "holdout_frames": args.holdout_frames,
                                          "split": args.split, "holdout_split": args.holdout_split,
-                                         "threads": args.threads})
+                                         "threads": args.threads, "runtimes": tuple(args.runtimes)})
             source = sources[label]
             if source not in checks:
                 checks[source] = make_holdout(source, data.split(args.check_split), window_ms, args.check_frames,
@@ -192,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
             graphs[label] = path
             measured = accuracy_of(path, checks[source], args.threads)
             independent = measured["bound_pct"]
+            # The same frames on OpenVINO, which fuses and rounds a QDQ graph its own way.
+            on_openvino = (accuracy_of(path, checks[source], args.threads, runtime="openvino")["bound_pct"]
+                           if importlib.util.find_spec("openvino") else None)
             if source not in exact_holdouts:
                 exact_holdouts[source] = make_holdout(source, data.split(args.holdout_split), window_ms,
                                                       args.holdout_frames, args.threads)
@@ -199,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
             ranked = q.get("exclusion_search") or {}
             kept = [n for n in q["excluded_nodes"] if n in {r["node"] for r in ranked.get("sensitivity", [])}]
             rows.append({"label": label, "distance_pct": q["holdout"]["bound_pct"], "check_distance_pct": independent,
-                         "exact_distance_pct": exact, "weight_bits": 7 if q["quantization"].get("reduce_range") else 8,
+                         "exact_distance_pct": exact, "check_distance_openvino_pct": on_openvino,
+                         "runtimes": list(args.runtimes), "weight_bits": 7 if q["quantization"].get("reduce_range") else 8,
                          "check_frames": checks[source].frames,
                          "mpjpe_loss_pct": q["holdout"]["loss_pct"], "bytes": path.stat().st_size,
                          "compute_nodes_in_float": len(kept) if ranked else 0,
@@ -287,6 +301,12 @@ def markdown(report: dict) -> str:
                   "check; the QAT bar is judged on every held-out frame by benchmarks/bench_qat_mpjpe.py, "
                   f"results/qat_{report['variant']}_mpjpe_{report['isa']['kind']}.md):", ""]
         lines += [f"- {r['label']}: {r['mpjpe_vs_base_pct']:+.2f}%" for r in report["rows"] if "mpjpe_vs_base_pct" in r]
+    on_openvino = [r for r in report["rows"] if r.get("check_distance_openvino_pct") is not None]
+    if on_openvino:
+        lines += ["", "The independent check's frames on OpenVINO (CPU, f32; the same graphs), distance to the fp32 "
+                  "graph on ONNX Runtime, % of MPJPE:", ""]
+        lines += [f"- {r['label']}: {r['check_distance_openvino_pct']:.3f} (ONNX Runtime {r['check_distance_pct']:.3f})"
+                  for r in on_openvino]
     lines += [f"\nNote: {note}" for note in report.get("notes", [])]
     lines += [f"\nFailed in the last run (no row): {f['label']}: {f['error']}" for f in report.get("failed_rows", [])]
     appended = report.get("appended", [])
