@@ -168,6 +168,11 @@ def main(argv: list[str] | None = None) -> int:
                         mode="int8", ranges_from_checkpoint=args.qat_checkpoint))):
                 runs.append((label, options))
                 sources[label] = qat_fp32
+        if len(args.runtimes) > 1:  # a different experiment from the same row on ONNX Runtime alone
+            runs = [(f"{label}, on {' + '.join(RUNTIME_NAMES[r] for r in args.runtimes)}"
+                     if options.exclude == "auto" else label, options) for label, options in runs]
+            sources.update({label: sources[base] for label, _ in runs for base in list(sources)
+                            if label.startswith(f"{base}, on ")})
         if args.rows:
             runs = [(label, o) for label, o in runs if any(word in label for word in args.rows)]
         if args.only:
@@ -175,11 +180,6 @@ def main(argv: list[str] | None = None) -> int:
             if unknown:
                 parser.error(f"no row labelled {unknown}; the rows: {[label for label, _ in runs]}")
             runs = [(label, o) for label, o in runs if label in args.only]
-        if len(args.runtimes) > 1:  # a different experiment from the same row on ONNX Runtime alone
-            runs = [(f"{label}, on {' + '.join(RUNTIME_NAMES[r] for r in args.runtimes)}"
-                     if options.exclude == "auto" else label, options) for label, options in runs]
-            sources.update({label: sources[base] for label, _ in runs for base in list(sources)
-                            if label.startswith(f"{base}, on ")})
         checks = {fp32: check}
         exact_holdouts: dict[Path, object] = {}
         failed: list[dict] = []
