@@ -169,10 +169,13 @@ def main(argv: list[str] | None = None) -> int:
                 runs.append((label, options))
                 sources[label] = qat_fp32
         if len(args.runtimes) > 1:  # a different experiment from the same row on ONNX Runtime alone
-            runs = [(f"{label}, on {' + '.join(RUNTIME_NAMES[r] for r in args.runtimes)}"
-                     if options.exclude == "auto" else label, options) for label, options in runs]
-            sources.update({label: sources[base] for label, _ in runs for base in list(sources)
-                            if label.startswith(f"{base}, on ")})
+            searched_on = " + ".join(RUNTIME_NAMES[r] for r in args.runtimes)
+            relabelled = []
+            for label, options in runs:
+                new = f"{label}, on {searched_on}" if options.exclude == "auto" else label
+                sources[new] = sources[label]
+                relabelled.append((new, options))
+            runs = relabelled
         if args.rows:
             runs = [(label, o) for label, o in runs if any(word in label for word in args.rows)]
         if args.only:
