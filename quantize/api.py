@@ -344,6 +344,8 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         # error depends on the CPU's kernels (utils/isa.py), so it also says where it was checked.
         info["budget_pct"] = options.budget
         info["checked_on_isa"] = detect_isa().to_dict()
+        # ... and on which runtimes: a budget held on one need not hold on another (--runtimes).
+        info["checked_on_runtimes"] = list(options.runtimes)
         info["budget_reference"] = options.budget_reference
         finalize(model, meta, info)
         compaction = compact_qdq(model, keep=graph_names(source))

@@ -180,6 +180,9 @@ def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golde
     # and the ISA the budget was checked on beside this host's (the same host here)
     assert report["isa"]["budget_checked_on"] == report["isa"]["host"] == report["machine"]["isa"]
     assert report["isa"]["same_kind"] is True
+    # and the runtimes it was checked on (quantize's default: ONNX Runtime), this one among them
+    assert report["budget_runtimes"] == {"runtime": "onnxruntime", "budget_checked_on": ["onnxruntime"],
+                                         "checked_here": True}
     # The budget measure recomputed by hand: mean joint distance to the golden poses / golden MPJPE.
     golden = load_golden(golden_holdout)
     session = StepSession(int8_graph, threads=2)

@@ -4,12 +4,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import onnx
 import pytest
 
 from _quantize_helpers import RECURRENT_FLOAT
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError
+from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
 from e3dpsm.quantize import api
 from e3dpsm.quantize.front_report import markdown_report, runtimes_clause
@@ -77,6 +79,9 @@ def test_quantize_reports_the_budget_on_both_runtimes(tmp_path, trained_graph, q
         distances.append(np.linalg.norm(ov - fp32, axis=-1).mean())
     expected = 100.0 * max(distances) / holdout.budget_mpjpe
     assert h["bound_pct_by_runtime"]["openvino"] == pytest.approx(expected, rel=1e-4)
+    # The graph says where its budget was checked (`golden check` compares it with its runtime).
+    assert GraphMetadata.from_onnx(onnx.load(str(out / "step_int8.onnx"))).quantization["checked_on_runtimes"] == [
+        "onnxruntime", "openvino"]
     md = (out / "report.md").read_text()
     assert "The worst of 2 runtimes (`--runtimes`): ONNX Runtime" in md and "OpenVINO" in md
     assert markdown_report(report) == md
@@ -96,10 +101,41 @@ def test_cli_refuses_an_unknown_runtime(tmp_path, capsys):
     assert not (tmp_path / "q").exists()
 
 
-def test_pipeline_checks_its_int8_budget_on_both_runtimes(tmp_path):
+def test_pipeline_checks_every_quantised_budget_where_its_golden_check_runs(tmp_path, monkeypatch):
+    """Each quantize stage checks its budget on the runtimes the golden check then runs it on:
+    both where OpenVINO is installed, ONNX Runtime alone where it is not (where the golden
+    check skips OpenVINO too), never a refusal that stops the pipeline."""
     from e3dpsm.cli import build_parser
+    from e3dpsm.pipeline import stages
     from e3dpsm.pipeline.stages import STAGES, PipelineConfig
 
-    argv = next(s for s in STAGES if s.name == "quantize-int8").argv(PipelineConfig(out=tmp_path))
-    assert build_parser().parse_args(argv).runtimes == ["onnxruntime", "openvino"]
-    assert json.dumps(argv)  # argv is plain strings
+    quantize_stages = [s for s in STAGES if s.name.startswith("quantize-")]
+    assert {s.name for s in quantize_stages} == {"quantize-int8", "quantize-fp16", "quantize-int8-dynamic"}
+    for stage in quantize_stages:
+        argv = stage.argv(PipelineConfig(out=tmp_path))
+        assert build_parser().parse_args(argv).runtimes == ["onnxruntime", "openvino"], stage.name
+        assert json.dumps(argv)  # argv is plain strings
+    real_find_spec = stages.importlib.util.find_spec
+    monkeypatch.setattr(stages.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "openvino" else real_find_spec(name, *a))
+    for stage in quantize_stages:
+        assert build_parser().parse_args(stage.argv(PipelineConfig(out=tmp_path))).runtimes == ["onnxruntime"]
+
+
+def test_a_golden_check_says_when_the_budget_was_not_checked_on_its_runtime():
+    from e3dpsm.golden.verify import budget_runtime_note, runtime_comparison
+
+    both = {"mode": "int8", "checked_on_runtimes": ["onnxruntime", "openvino"]}
+    one = {"mode": "int8", "checked_on_runtimes": ["onnxruntime"]}
+    assert runtime_comparison(both, "openvino")["checked_here"] is True
+    assert runtime_comparison(one, "onnxruntime")["checked_here"] is True
+    assert runtime_comparison(one, "openvino") == {
+        "runtime": "openvino", "budget_checked_on": ["onnxruntime"], "checked_here": False}
+    assert runtime_comparison(one, "openvino-bf16")["checked_here"] is False  # quantize measures f32 only
+    assert runtime_comparison(None, "openvino")["checked_here"] is None  # an fp32 graph has no budget
+    assert runtime_comparison({"mode": "int8"}, "openvino")["checked_here"] is None  # older graphs: unknown
+    assert budget_runtime_note(runtime_comparison(both, "openvino")) == ""
+    assert budget_runtime_note(runtime_comparison(None, "openvino")) == ""
+    note = budget_runtime_note(runtime_comparison(one, "openvino"))
+    assert "checked on onnxruntime, not on openvino" in note and note.endswith("--runtimes onnxruntime openvino")
+    assert "f32 only" in budget_runtime_note(runtime_comparison(one, "openvino-bf16"))

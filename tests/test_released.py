@@ -10,7 +10,6 @@ Tolerance: 0.01 mm on every joint, frame and output (poses of metre scale).
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import types

@@ -86,6 +86,8 @@ def run_record(args: argparse.Namespace) -> int:
 
 
 def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> None:
+    from e3dpsm.golden.verify import budget_runtime_note
+
     print(f"golden check {model} on {runtime}, profile {result.profile.name}: {result.summary()}")
     for tensor in result.tensors:
         if tensor.kind == "output" or not tensor.passed:
@@ -99,6 +101,9 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
           + ("" if isa["same_kind"] is not False else
              f"; the graph's budget was checked on a {isa['budget_checked_on']['kind']} host: INT8 error "
              "differs between AVX2 and VNNI/AMX kernels, so this check is the one that counts here"))
+    note = budget_runtime_note(report["budget_runtimes"])
+    if note:
+        print("  " + note)
 
 
 def run_check(args: argparse.Namespace) -> int:

@@ -62,6 +62,27 @@ def isa_comparison(quantization: dict[str, Any] | None) -> dict[str, Any]:
     return {"host": host, "budget_checked_on": checked, "same_kind": same}
 
 
+def runtime_comparison(quantization: dict[str, Any] | None, runtime: str) -> dict[str, Any]:
+    """The runtime this check runs on beside those the graph's budget was checked on
+    (`quantize --runtimes` records them): the same INT8 graph was 0.7% from fp32 on ONNX
+    Runtime and 2.2% on OpenVINO over the same frames (docs/quantize.md). `checked_here` is
+    None where the graph carries no budget or predates the record."""
+    checked = (quantization or {}).get("checked_on_runtimes")
+    return {"runtime": runtime, "budget_checked_on": checked,
+            "checked_here": None if not checked else runtime in checked}
+
+
+def budget_runtime_note(comparison: dict[str, Any]) -> str:
+    """One line for a check on a runtime the graph's budget was not checked on ("" otherwise)."""
+    if comparison["checked_here"] is not False:
+        return ""
+    checked, runtime = comparison["budget_checked_on"], comparison["runtime"]
+    fix = ("quantize checks budgets in f32 only" if runtime.endswith("-bf16") else
+           f"to hold it here, quantize with --runtimes {' '.join([*checked, runtime])}")
+    return (f"the graph's budget was checked on {' and '.join(checked)}, not on {runtime}: one quantised "
+            f"graph's error differs between runtimes; {fix}")
+
+
 def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | GoldenRecord, out_dir: str | os.PathLike | None = None, *,
                  runtime: str = "onnxruntime", providers: Sequence[str] | None = None, threads: int | None = None,
                  profile: str | None = None, budget_pct: float | None = None, progress: bool = False,
@@ -83,6 +104,7 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
                    "window_ms": golden.manifest.get("window_ms")},
         "runtime": runtime, "providers": list(providers or []),
         "isa": isa_comparison(runner.meta.quantization),
+        "budget_runtimes": runtime_comparison(runner.meta.quantization, runtime),
         **result.to_dict(),
     }
     if out_dir is not None:
