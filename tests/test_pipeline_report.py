@@ -58,3 +58,14 @@ def test_gap_names_a_lowest_budget_reference(tmp_path) -> None:
     assert "(100 frames, relative to 101.0 mm, the lowest fp32 MPJPE of any sequence it measured; `val` pooled: " \
            "352.1 mm)" in line
     assert "0.353% on onnxruntime (0.44x)" in line
+
+
+def test_gap_names_each_runtime_the_search_measured_on(tmp_path) -> None:
+    report = {"holdout": {"bound_pct": 0.4614, "split": "val", "frames": 100,
+                          "bound_pct_by_runtime": {"onnxruntime": 0.4614, "openvino": 0.4370}},
+              "quantization": {"budget_pct": 1.0}}
+    _check(tmp_path / "golden/checks/step_int8-openvino", "openvino", [0.3, 0.4, 0.1], 200.0)
+    line = budget_gap(tmp_path, report)
+    assert "measured 0.461% on `val` (the worse of onnxruntime 0.461%, openvino 0.437%; 100 frames)" in line
+    report["holdout"]["bound_pct_by_runtime"] = {"onnxruntime": 0.4614}  # one runtime: nothing to name
+    assert "measured 0.461% on `val` (100 frames)" in budget_gap(tmp_path, report)
