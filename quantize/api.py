@@ -2,7 +2,6 @@
 folder (`DIR/step_<mode>.onnx`, `DIR/report.json`), built under a temporary name."""
 from __future__ import annotations
 
-import importlib.util
 
 import logging
 import os
@@ -153,8 +152,12 @@ class QuantizeOptions:
         unknown = [r for r in self.runtimes if r not in CHECK_RUNTIMES]
         if not self.runtimes or unknown:
             raise ConfigError(f"unknown runtime(s) {unknown}; choose from {list(CHECK_RUNTIMES)}")
-        if "openvino" in self.runtimes and importlib.util.find_spec("openvino") is None:
-            raise ConfigError("--runtimes openvino needs OpenVINO: pip install -e \".[openvino]\"")
+        if "openvino" in self.runtimes:
+            from e3dpsm.runtime.openvino_session import openvino_available
+
+            available, reason = openvino_available()
+            if not available:
+                raise ConfigError(f"--runtimes openvino: {reason}")
         if self.objective not in (None, *OBJECTIVES):
             raise ConfigError(f"unknown objective {self.objective!r}; choose from {list(OBJECTIVES)}")
         if self.objective == "size" and not self.searches_int16:

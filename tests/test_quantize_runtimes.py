@@ -28,6 +28,15 @@ def test_unknown_or_no_runtime_is_refused(runtimes):
         QuantizeOptions(runtimes=runtimes)
 
 
+def test_openvino_refused_in_one_line_where_it_is_not_available(monkeypatch):
+    from e3dpsm.runtime import openvino_session
+
+    monkeypatch.setattr(openvino_session, "openvino_available", lambda: (False, "openvino is not installed (pip ...)"))
+    with pytest.raises(ConfigError, match=r"^--runtimes openvino: openvino is not installed"):
+        QuantizeOptions(runtimes=("onnxruntime", "openvino"))
+    assert QuantizeOptions(runtimes=("onnxruntime",)).runtimes == ("onnxruntime",)  # not asked: not needed
+
+
 def test_the_worst_runtime_counts(monkeypatch, tmp_path):
     measured = {"onnxruntime": 0.4, "openvino": 1.3}
     monkeypatch.setattr(api, "accuracy_of", lambda model, holdout, threads, runtime: {
@@ -106,7 +115,7 @@ def test_pipeline_checks_every_quantised_budget_where_its_golden_check_runs(tmp_
     both where OpenVINO is installed, ONNX Runtime alone where it is not (where the golden
     check skips OpenVINO too), never a refusal that stops the pipeline."""
     from e3dpsm.cli import build_parser
-    from e3dpsm.pipeline import stages
+    from e3dpsm.runtime import openvino_session
     from e3dpsm.pipeline.stages import STAGES, PipelineConfig
 
     quantize_stages = [s for s in STAGES if s.name.startswith("quantize-")]
@@ -115,9 +124,7 @@ def test_pipeline_checks_every_quantised_budget_where_its_golden_check_runs(tmp_
         argv = stage.argv(PipelineConfig(out=tmp_path))
         assert build_parser().parse_args(argv).runtimes == ["onnxruntime", "openvino"], stage.name
         assert json.dumps(argv)  # argv is plain strings
-    real_find_spec = stages.importlib.util.find_spec
-    monkeypatch.setattr(stages.importlib.util, "find_spec",
-                        lambda name, *a: None if name == "openvino" else real_find_spec(name, *a))
+    monkeypatch.setattr(openvino_session, "openvino_available", lambda: (False, "openvino is not installed"))
     for stage in quantize_stages:
         assert build_parser().parse_args(stage.argv(PipelineConfig(out=tmp_path))).runtimes == ["onnxruntime"]
 
