@@ -21,7 +21,9 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
 - with `--qat-checkpoint CKPT` (a `train --qat` fine-tune of --checkpoint): its export full
   integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
   calibrated min-max ranges; distances are to that checkpoint's own fp32 graph, and
-  `mpjpe_vs_base_pct` compares its INT8 poses' MPJPE with --checkpoint's fp32 one.
+  `mpjpe_vs_base_pct` compares its INT8 poses' MPJPE with --checkpoint's fp32 one. A
+  `distill --qat-ranges-only` checkpoint (ranges learned, weights frozen) has --checkpoint's
+  fp32 graph: its rows are labelled "learned ranges" and are post-training graphs.
 `--rows` keeps only the rows whose label contains one of the given words, `--only` those with
 exactly the given labels, and `--append` adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
@@ -160,12 +162,17 @@ def main(argv: list[str] | None = None) -> int:
             qat_model, qat_payload = load_checkpoint(args.qat_checkpoint)
             qat_fp32 = export_step(qat_model, work / "qat_step.onnx")
             steps = qat_payload.get("step", "?")
-            for label, options in (
-                    (f"QAT {steps} steps, full int8, QAT ranges", QuantizeOptions(
+            # A `distill --qat-ranges-only` fine-tune learned its ranges alone: its weights, and
+            # so its fp32 graph, are --checkpoint's, and its rows are post-training graphs.
+            ranges_only = (qat_payload.get("distill_config") or {}).get("qat_ranges_only", False)
+            prefix = f"learned ranges {steps} steps (weights frozen)" if ranges_only else f"QAT {steps} steps"
+            qat_runs = [(f"{prefix}, full int8, QAT ranges", QuantizeOptions(
                         mode="int8", exclude="none", ranges_from_checkpoint=args.qat_checkpoint)),
-                    (f"QAT {steps} steps, full int8, minmax", QuantizeOptions(mode="int8", exclude="none")),
-                    (f"QAT {steps} steps, default search, QAT ranges, int16", QuantizeOptions(
-                        mode="int8", ranges_from_checkpoint=args.qat_checkpoint))):
+                    (f"{prefix}, default search, QAT ranges, int16", QuantizeOptions(
+                        mode="int8", ranges_from_checkpoint=args.qat_checkpoint))]
+            if not ranges_only:  # else the same graph as the base checkpoint's minmax row
+                qat_runs.insert(1, (f"{prefix}, full int8, minmax", QuantizeOptions(mode="int8", exclude="none")))
+            for label, options in qat_runs:
                 runs.append((label, options))
                 sources[label] = qat_fp32
         if len(args.runtimes) > 1:  # a different experiment from the same row on ONNX Runtime alone

@@ -300,6 +300,35 @@ def test_qat_distillation_of_a_copy_learns_ranges_and_moves_towards_the_teacher(
     load_checkpoint(out / "checkpoint.pt")  # strict load
 
 
+def test_qat_ranges_only_learns_the_ranges_and_leaves_every_weight_as_the_teachers(teacher_checkpoint: Path,
+                                                                                  prepared_small: Path,
+                                                                                  tmp_path: Path) -> None:
+    """`distill --qat --qat-ranges-only`: the checkpoint's tensors are the teacher's to the bit
+    (its fp32 graph is the teacher's, the INT8 budget's own reference), while its ranges moved
+    away from the calibration they started from (a run at a vanishing learning rate keeps that
+    start: both calibrate on the same windows)."""
+    from e3dpsm.checkpoint import read_checkpoint
+    from e3dpsm.cli import main
+
+    def ranges(out: Path, lr: str) -> dict[str, tuple[float, int]]:
+        assert main(cli_args(teacher_checkpoint, str(teacher_checkpoint), prepared_small, out, "--qat",
+                             "--qat-full-integer", "--qat-ranges-only", "--lr", lr, "--steps", "3")) == 0
+        payload = read_checkpoint(out / "checkpoint.pt")
+        teacher = read_checkpoint(teacher_checkpoint)["model"]
+        assert set(payload["model"]) == set(teacher)
+        assert all(torch.equal(v, teacher[k]) for k, v in payload["model"].items())
+        assert payload["distill_config"]["qat_ranges_only"]
+        assert "the ranges alone learned" in (out / "report.md").read_text()
+        return {r["sites"][0]: (r["scale"], r["zero_point"]) for r in payload["qat_ranges"]["quantizers"]}
+
+    learned, start = ranges(tmp_path / "learned", "1e-2"), ranges(tmp_path / "start", "1e-12")
+    assert learned.keys() == start.keys() and len(learned) > 50
+    moved = [s for s in learned if learned[s] != start[s]]
+    assert len(moved) > len(learned) // 2, f"{len(moved)} of {len(learned)} ranges moved"
+    with pytest.raises(ConfigError, match="add --qat"):
+        DistillConfig(qat_ranges_only=True)
+
+
 def test_qat_full_integer_without_qat_is_refused_in_distill() -> None:
     with pytest.raises(ConfigError, match="add --qat"):
         DistillConfig(qat_full_integer=True)

@@ -209,6 +209,27 @@ def test_int8_graph_passes_its_budget_and_fails_the_fp32_profile(tmp_path, golde
     assert failure["tensor"] == "pose" and failure["step"] == (int(within[-1]) + 1 if within.size else 0)
 
 
+def test_a_check_on_a_runtime_the_budget_skipped_prints_how_to_hold_it_there(tmp_path, golden_holdout,  # noqa: F811
+                                                                           int8_dir,
+                                                                           capsys: pytest.CaptureFixture) -> None:
+    """The INT8 graph's budget was checked on ONNX Runtime alone (quantize's default): its check
+    there prints no runtime note; on OpenVINO one line names the --runtimes that holds it there."""
+    from e3dpsm.runtime.openvino_session import openvino_available
+
+    args = ["golden", "check", "--model", str(int8_dir / "step_int8.onnx"), "--golden", str(golden_holdout)]
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "ort")]) == 0
+    assert "budget was checked on" not in capsys.readouterr().out
+    available, reason = openvino_available()
+    if not available:
+        pytest.skip(f"OpenVINO: {reason}")
+    main([*args, "--out", str(tmp_path / "ov"), "--runtime", "openvino"])  # passes or not: the note is the point
+    notes = [line.strip() for line in capsys.readouterr().out.splitlines() if "budget was checked on" in line]
+    assert notes == ["the graph's budget was checked on onnxruntime, not on openvino: one quantised graph's error "
+                     "differs between runtimes; to hold it here, quantize with --runtimes onnxruntime openvino"]
+    assert json.loads((tmp_path / "ov" / "check.json").read_text())["budget_runtimes"]["checked_here"] is False
+
+
 def damage_activation_scale(graph: Path, out: Path, tensors: set[str]) -> str:
     """Make the activation scale of one of `tensors` (quantised Conv outputs) 100x too small:
     its values then saturate."""

@@ -58,6 +58,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--qat-weight-bits", type=int, choices=(7, 8),
                    help="with --qat: the weights' bits to simulate: those of the graph quantize builds for the "
                         "target (8; 7 for a CPU without int8 dot-product units, e.g. AVX2 only). Default: this host's")
+    p.add_argument("--qat-ranges-only", action="store_true",
+                   help="with --qat: learn the ranges alone, the student's weights frozen (use --student = "
+                        "--teacher): its fp32 graph stays the teacher's, so the INT8 graph is held to the budget's "
+                        "own reference")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--force", action="store_true", help="replace a run already in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -77,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         causal=args.causal, stream_windows=args.stream_windows, freeze_norm_stats=args.freeze_norm_stats, qat=args.qat,
         qat_full_integer=args.qat_full_integer, qat_range_init=args.qat_range_init,
         qat_calibration_windows=args.qat_calibration_windows, qat_float_outputs=args.qat_float_outputs,
-        qat_weight_bits=args.qat_weight_bits,
+        qat_weight_bits=args.qat_weight_bits, qat_ranges_only=args.qat_ranges_only,
         prior=args.prior or ("data" if fresh else "keep"),
     )
     report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,

@@ -88,6 +88,10 @@ class DistillConfig:
     qat_calibration_windows: int = CALIBRATION_WINDOWS
     qat_float_outputs: str | None = None  # training/qat.py QATConfig.float_outputs
     qat_weight_bits: int | None = None  # training/qat.py QATConfig.weight_bits (None: this host's)
+    # With `qat`: learn the ranges alone, the student's weights frozen (LSQ's step sizes fitted
+    # to the end loss, a post-training calibration): the fp32 graph stays the teacher's, so the
+    # INT8 graph is held to the budget's own reference.
+    qat_ranges_only: bool = False
     # Truncated backpropagation through streams (with `causal`): each batch lane carries its
     # states (teacher's and student's, detached) over this many consecutive windows of one
     # recording before it starts another. 1: every window starts from the initial states.
@@ -115,6 +119,8 @@ class DistillConfig:
         if self.stream_windows > 1 and not self.causal:
             raise ConfigError("distill --stream-windows carries states from window to window, which only a causal "
                               "run has: add --causal")
+        if self.qat_ranges_only and not self.qat:
+            raise ConfigError("distill --qat-ranges-only learns the QAT ranges alone: add --qat")
         if self.qat_calibration_windows < 1:
             raise ConfigError(f"distill qat_calibration_windows must be at least 1, got {self.qat_calibration_windows}")
         if self.prior not in PRIOR_MODES:
@@ -279,10 +285,16 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
     if config.freeze_norm_stats or fake_quant is not None:
         freeze_batchnorm_stats(student)
     device, teacher_device = _device(student), _device(teacher)
-    groups = [{"params": list(student.parameters())}]
+    groups = []
+    if config.qat_ranges_only:
+        student.requires_grad_(False)
+    else:
+        groups.append({"params": list(student.parameters())})
     if fake_quant is not None:
         fake_quant.quantizers.to(device)
-        groups.append({"params": fake_quant.parameters(), "lr": config.lr * fake_quant.config.range_lr_scale})
+        groups.append({"params": list(fake_quant.parameters()), "lr": config.lr * fake_quant.config.range_lr_scale})
+    # The ranges' gradients go unclipped beside the weights' (as `train --qat`), clipped when alone.
+    clipped = groups[0]["params"]
     optimizer = torch.optim.Adam(groups, lr=config.lr)
     schedule = WarmupCosine(config.steps, min(config.warmup_steps, max(1, config.steps // 10)), config.min_lr_ratio)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, schedule)
@@ -326,7 +338,7 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
                             "data (labels with --labels gt) or a learning rate too high (lower --lr)")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(student.parameters(), config.clip_norm)
+        grad_norm = torch.nn.utils.clip_grad_norm_(clipped, config.clip_norm)
         lr = scheduler.get_last_lr()[0]
         optimizer.step()
         scheduler.step()

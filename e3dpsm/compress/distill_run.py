@@ -126,6 +126,8 @@ def _qat_line(cfg: dict[str, Any], start: dict[str, Any]) -> str:
                  f"calibration on {start['windows']} windows of {start['frames_per_window']} frames")
     else:
         line += "; learned ranges started from the first batch each quantiser saw"
+    if cfg.get("qat_ranges_only"):
+        line += "; the ranges alone learned, every weight the teacher's (the fp32 graph unchanged)"
     return line
 
 
