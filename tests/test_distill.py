@@ -327,6 +327,12 @@ def test_qat_ranges_only_learns_the_ranges_and_leaves_every_weight_as_the_teache
     assert len(moved) > len(learned) // 2, f"{len(moved)} of {len(learned)} ranges moved"
     with pytest.raises(ConfigError, match="add --qat"):
         DistillConfig(qat_ranges_only=True)
+    # Frozen for the run only: the caller's model trains again afterwards.
+    teacher = make_teacher()
+    student = copy.deepcopy(teacher)
+    distill(teacher, student, prepared_small, DistillConfig(steps=1, qat=True, qat_ranges_only=True, **FAST),
+            progress=False)
+    assert all(p.requires_grad for p in student.parameters())
 
 
 def test_qat_full_integer_without_qat_is_refused_in_distill() -> None:

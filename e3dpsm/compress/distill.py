@@ -226,6 +226,7 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
         criterion = pose_criterion(data).to(_device(student))
 
     teacher_was_training, student_was_training = teacher.training, student.training
+    trainable = [p for p in student.parameters() if p.requires_grad]  # qat_ranges_only freezes them for the run
     teacher.eval()
     try:
         prior_started = time.perf_counter()
@@ -263,6 +264,8 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
     finally:
         teacher.train(teacher_was_training)
         student.train(student_was_training)
+        for parameter in trainable:
+            parameter.requires_grad_(True)
     return {**summary, "prior": config.prior, "prior_seconds": prior_seconds, "split": split,
             "windows": len(dataset), "frames": dataset.frames_total(), "window_ms": window_ms,
             "data": str(data_dir), "config": config.to_dict()}
