@@ -183,9 +183,12 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
                 + ". Tensors matched only through them keep calibrated ranges; repeat the QAT fine-tune with this "
                 "version for them to take learned ones.", ""] if stale else []),
              *(_qat_weight_lines(block["weights"]) if block.get("weights") else []),
-             "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
-             "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
-             "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`).", ""]
+             ("The checkpoint learned its ranges alone, its weights frozen (`distill --qat-ranges-only`): its fp32 "
+              "graph is that of the checkpoint it was tuned from, so the distance to fp32 above is the compression's, "
+              "the measure the budget holds." if block.get("weights_frozen") else
+              "The distance to fp32 above is to this checkpoint's own fp32 graph, which the fine-tune trained "
+              "towards the INT8 rounding: it measures how far the fine-tune moved, not the compression. Judge a "
+              "QAT graph by MPJPE against the checkpoint it was tuned from (`benchmarks/bench_qat_mpjpe.py`)."), ""]
     return lines
 
 

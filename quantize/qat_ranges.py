@@ -216,6 +216,12 @@ def simulated_float_outputs(payload: Mapping[str, Any]) -> str:
     return str((payload.get("qat_ranges") or {}).get("float_outputs", "none"))
 
 
+def learned_with_weights_frozen(payload: Mapping[str, Any]) -> bool:
+    """Whether a checkpoint learned its ranges alone (`distill --qat-ranges-only`): its weights,
+    and so its fp32 graph, are those of the checkpoint it was tuned from."""
+    return bool((payload.get("distill_config") or {}).get("qat_ranges_only", False))
+
+
 def unknown_sites(model: torch.nn.Module, learned: Sequence[Mapping[str, Any]]) -> list[str]:
     """Sites of the learned quantisers whose module the model does not have: a checkpoint
     trained before a module was renamed or restructured. Their tensors cannot be matched and
@@ -277,6 +283,7 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
                 overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
     uncovered = sorted(set(quantised) - set(overrides))
     report = {"checkpoint": str(checkpoint), "trained_weight_bits": simulated_weight_bits(payload),
+              "weights_frozen": learned_with_weights_frozen(payload),
               "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
               "uncovered": uncovered, "unknown_sites": stale}
     log.info("QAT ranges: %d tensors take the learned ranges, %d keep calibrated ones", len(overrides), len(uncovered))

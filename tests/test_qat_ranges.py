@@ -204,6 +204,8 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
     assert block["calibrated_tensors"] == 0 and block["uncovered"] == [], block["uncovered"]  # every range learned
     assert (f"{block['learned_tensors']} of the {block['learned_tensors']} quantised tensors take"
             in (out / "report.md").read_text())
+    # a fine-tune of the weights: the distance is to its own fp32 graph, and the report says so
+    assert block["weights_frozen"] is False and "how far the fine-tune moved" in (out / "report.md").read_text()
     learned = {}
     for q in read_checkpoint(qat_tiny["checkpoint"])["qat_ranges"]["quantizers"]:
         for site in q["sites"]:
@@ -227,6 +229,20 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
         assert int(zero) == want_zero, node.input[0]
         checked += 1
     assert checked >= block["learned_tensors"] * 0.9 and checked > 50
+
+
+def test_ranges_learned_with_the_weights_frozen_are_judged_by_the_budget_in_the_report() -> None:
+    from e3dpsm.quantize.front_report import qat_ranges_lines
+    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen
+
+    assert learned_with_weights_frozen({"distill_config": {"qat": True, "qat_ranges_only": True}})
+    assert not learned_with_weights_frozen({"distill_config": {"qat": True}})
+    assert not learned_with_weights_frozen({"train_args": {}})  # `train --qat` has no distill_config
+    block = {"checkpoint": "c.pt", "learned_tensors": 3, "calibrated_tensors": 0, "uncovered": []}
+    frozen = "\n".join(qat_ranges_lines({**block, "weights_frozen": True}))
+    tuned = "\n".join(qat_ranges_lines({**block, "weights_frozen": False}))
+    assert "the measure the budget holds" in frozen and "how far the fine-tune moved" not in frozen
+    assert "how far the fine-tune moved" in tuned and "the measure the budget holds" not in tuned
 
 
 COMMITTED_QAT = Path(__file__).resolve().parents[1] / "benchmarks" / "checkpoints" / "small_qat" / "checkpoint.pt"
