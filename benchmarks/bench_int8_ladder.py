@@ -22,8 +22,9 @@ Rows (each an `e3dpsm quantize` run, calibrated on --split, its distance measure
   integer with its learned ranges (`--ranges-from-checkpoint`) and, for comparison, with
   calibrated min-max ranges; distances are to that checkpoint's own fp32 graph, and
   `mpjpe_vs_base_pct` compares its INT8 poses' MPJPE with --checkpoint's fp32 one. A
-  `distill --qat-ranges-only` checkpoint (ranges learned, weights frozen) has --checkpoint's
-  fp32 graph: its rows are labelled "learned ranges" and are post-training graphs.
+  `distill --qat-ranges-only` checkpoint of --checkpoint (ranges learned, its weights frozen,
+  checked tensor by tensor) has --checkpoint's fp32 graph: its rows are labelled "learned
+  ranges" and are post-training graphs.
 `--rows` keeps only the rows whose label contains one of the given words, `--only` those with
 exactly the given labels, and `--append` adds the rows to the existing results (each row keeps the fp32 p50 timed beside it).
 Every graph's distance is also measured on --check-split, which no search saw (the gap says
@@ -116,8 +117,11 @@ def main(argv: list[str] | None = None) -> int:
                         "rows searched on more than one are labelled so")
     args = parser.parse_args(argv)
 
+    import torch
+
     from e3dpsm.checkpoint import load_checkpoint
     from e3dpsm.export import export_step
+    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen
     from e3dpsm.profiles.latency import measure_side_by_side
 
     model, _ = load_checkpoint(args.checkpoint)
@@ -162,9 +166,11 @@ def main(argv: list[str] | None = None) -> int:
             qat_model, qat_payload = load_checkpoint(args.qat_checkpoint)
             qat_fp32 = export_step(qat_model, work / "qat_step.onnx")
             steps = qat_payload.get("step", "?")
-            # A `distill --qat-ranges-only` fine-tune learned its ranges alone: its weights, and
-            # so its fp32 graph, are --checkpoint's, and its rows are post-training graphs.
-            ranges_only = (qat_payload.get("distill_config") or {}).get("qat_ranges_only", False)
+            # Ranges learned with --checkpoint's own weights frozen (`distill --qat-ranges-only` of
+            # it): the fp32 graph is --checkpoint's, and its rows are post-training graphs.
+            base_state = model.state_dict()
+            ranges_only = learned_with_weights_frozen(qat_payload) and all(
+                torch.equal(v, base_state[k]) for k, v in qat_model.state_dict().items())
             prefix = f"learned ranges {steps} steps (weights frozen)" if ranges_only else f"QAT {steps} steps"
             qat_runs = [(f"{prefix}, full int8, QAT ranges", QuantizeOptions(
                         mode="int8", exclude="none", ranges_from_checkpoint=args.qat_checkpoint)),

@@ -259,6 +259,8 @@ def test_cli_bad_input_is_one_line(teacher_checkpoint: Path, prepared_small: Pat
         (cli_args(teacher_checkpoint, str(big), prepared_small, tmp_path / "b"), "height 96 vs 192"),
         (cli_args(big, "tiny", prepared_small, tmp_path / "c"), "re-run prepare with --height 192"),
         (cli_args(teacher_checkpoint, "tiny", prepared_small, tmp_path / "d", "--steps", "0"), "at least 1"),
+        (cli_args(teacher_checkpoint, "tiny", prepared_small, tmp_path / "e", "--qat", "--qat-ranges-only"),
+         "is a fresh variant: give a checkpoint"),
     ]
     for argv, expected in cases:
         capsys.readouterr()
@@ -319,6 +321,8 @@ def test_qat_ranges_only_learns_the_ranges_and_leaves_every_weight_as_the_teache
         assert all(torch.equal(v, teacher[k]) for k, v in payload["model"].items())
         assert payload["distill_config"]["qat_ranges_only"]
         assert "the ranges alone learned" in (out / "report.md").read_text()
+        # the lr column is --lr's schedule, as in a full fine-tune (the ranges train at 10x)
+        assert json.loads((out / "report.json").read_text())["log"][-1]["lr"] <= float(lr)
         return {r["sites"][0]: (r["scale"], r["zero_point"]) for r in payload["qat_ranges"]["quantizers"]}
 
     learned, start = ranges(tmp_path / "learned", "1e-2"), ranges(tmp_path / "start", "1e-12")
@@ -327,6 +331,8 @@ def test_qat_ranges_only_learns_the_ranges_and_leaves_every_weight_as_the_teache
     assert len(moved) > len(learned) // 2, f"{len(moved)} of {len(learned)} ranges moved"
     with pytest.raises(ConfigError, match="add --qat"):
         DistillConfig(qat_ranges_only=True)
+    with pytest.raises(ConfigError, match="use --prior keep"):  # a new prior moves every pose
+        DistillConfig(qat=True, qat_ranges_only=True, prior="data")
     # Frozen for the run only: the caller's model trains again afterwards.
     teacher = make_teacher()
     student = copy.deepcopy(teacher)

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         qat_full_integer=args.qat_full_integer, qat_range_init=args.qat_range_init,
         qat_calibration_windows=args.qat_calibration_windows, qat_float_outputs=args.qat_float_outputs,
         qat_weight_bits=args.qat_weight_bits, qat_ranges_only=args.qat_ranges_only,
-        prior=args.prior or ("data" if fresh else "keep"),
+        prior=args.prior or ("data" if fresh and not args.qat_ranges_only else "keep"),
     )
     report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,
                          force=args.force, progress=not args.no_progress and sys.stderr.isatty())

@@ -121,6 +121,9 @@ class DistillConfig:
                               "run has: add --causal")
         if self.qat_ranges_only and not self.qat:
             raise ConfigError("distill --qat-ranges-only learns the QAT ranges alone: add --qat")
+        if self.qat_ranges_only and self.prior != "keep":
+            raise ConfigError(f"distill --qat-ranges-only keeps the student's weights and pose prior as they are; "
+                              f"--prior {self.prior} would change the prior: use --prior keep")
         if self.qat_calibration_windows < 1:
             raise ConfigError(f"distill qat_calibration_windows must be at least 1, got {self.qat_calibration_windows}")
         if self.prior not in PRIOR_MODES:
@@ -342,7 +345,7 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(clipped, config.clip_norm)
-        lr = scheduler.get_last_lr()[0]
+        lr = config.lr * schedule(scheduler.last_epoch)  # --lr's schedule (the ranges train at a multiple)
         optimizer.step()
         scheduler.step()
         record = {"step": step + 1, "lr": lr, "grad_norm": float(grad_norm), "loss": float(loss.detach()),

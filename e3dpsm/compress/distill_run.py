@@ -58,6 +58,11 @@ def run_distill(teacher_path: str | os.PathLike, student_spec: str, data_dir: st
                 force: bool = False, progress: bool = True) -> dict[str, Any]:
     """Distil and write OUT; returns the report. `config.prior` applies as given (the CLI
     defaults it to "data" for a fresh variant, "keep" for a checkpoint)."""
+    from e3dpsm.models import list_models
+
+    if config.qat_ranges_only and student_spec in list_models():
+        raise ConfigError(f"--qat-ranges-only learns INT8 ranges for a trained model and keeps its weights; "
+                          f"--student {student_spec} is a fresh variant: give a checkpoint (e.g. the teacher's)")
     out = Path(out)
     prepare_out_dir(out, force)  # refuse before the long run, not after
     teacher, teacher_payload = load_checkpoint(teacher_path)
@@ -127,7 +132,7 @@ def _qat_line(cfg: dict[str, Any], start: dict[str, Any]) -> str:
     else:
         line += "; learned ranges started from the first batch each quantiser saw"
     if cfg.get("qat_ranges_only"):
-        line += "; the ranges alone learned, every weight the teacher's (the fp32 graph unchanged)"
+        line += "; the ranges alone learned, the student's weights and prior kept (its fp32 graph unchanged)"
     return line
 
 
