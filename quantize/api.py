@@ -39,8 +39,8 @@ from e3dpsm.quantize.ranges import summarise as summarise_ranges
 from e3dpsm.quantize.outputs import FLOAT_OUTPUTS, dequantised_outputs
 from e3dpsm.quantize.precision import (SizeProbe, demote_to_int16, promote_to_int16w16, quantise_recurrent_compute,
                                        smallest_int16_plan)
-from e3dpsm.quantize.qat_ranges import (learned_overrides, qat_weight_bits, quantised_activations, read_ranges,
-                                        simulated_float_outputs)
+from e3dpsm.quantize.qat_ranges import (coverage_in_graph, learned_overrides, qat_weight_bits, quantised_activations,
+                                        read_ranges, simulated_float_outputs)
 from e3dpsm.quantize.static import (DEFAULT_OP_TYPES, StaticConfig, calibrate, ensure_opset, int16_tensors,
                                    preprocess, quantize_int8, quantised_node_count, saturates_u8s8)
 from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
@@ -553,6 +553,8 @@ def _static(model_path, source, calib_seqs, holdout, window_ms, options: Quantiz
     if rounding_report is not None:
         rounding_report["applied"] = sum(apply_rounding(model, chosen) for chosen in roundings)
     float_outputs = dequantised_outputs(model, options.outputs_in_float, config.op_types)
+    if qat_report is not None:
+        coverage_in_graph(qat_report, model, learned)
     census = compute_precisions(model)
     info = {
         "mode": "int8", **config.to_dict(), "target_isa": target_isa, "equalized_sites": len(equalized),

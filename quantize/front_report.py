@@ -177,7 +177,9 @@ def qat_ranges_lines(block: dict[str, Any] | None) -> list[str]:
     lines = ["## Learned ranges (QAT)", "",
              f"{learned} of the {learned + calibrated} quantised tensors take `{block['checkpoint']}`'s learned "
              f"ranges as they are; {calibrated} keep calibrated ones"
-             + (": " + ", ".join(f"`{t}`" for t in block["uncovered"]) if calibrated else "") + ".", "",
+             + (": " + ", ".join(f"`{t}`" for t in block["uncovered"]) if calibrated else "")
+             + (f"; {block['sixteen_bit_tensors']} tensors at 16 bits take calibrated ranges (a learned 8-bit range "
+                "has no 16-bit form)" if block.get("sixteen_bit_tensors") else "") + ".", "",
              *([f"{len(stale)} sites of the learned ranges name modules this version of the model does not have "
                 "(renamed since the checkpoint was trained): " + ", ".join(f"`{s}`" for s in stale)
                 + ". Tensors matched only through them keep calibrated ranges; repeat the QAT fine-tune with this "

@@ -286,8 +286,28 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
               "weights_frozen": learned_with_weights_frozen(payload),
               "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
               "uncovered": uncovered, "unknown_sites": stale}
-    log.info("QAT ranges: %d tensors take the learned ranges, %d keep calibrated ones", len(overrides), len(uncovered))
+    log.info("QAT ranges: %d of the %d tensors a graph of this model may quantise have learned ranges",
+             len(overrides), len(quantised))
     return overrides, report
+
+
+def coverage_in_graph(report: dict[str, Any], model: onnx.ModelProto, learned: Mapping[str, Any]) -> None:
+    """Count, in place, the learned and calibrated ranges over the activations the written
+    graph quantises to 8 bits. `learned_overrides` counted every tensor a graph of that model
+    may quantise; the written one quantises fewer (a search's float and 16-bit nodes, the
+    outputs `--float-outputs` leaves float), so those counts overstated the calibrated ones."""
+    initializers = {i.name: i for i in model.graph.initializer}
+    bits: dict[str, int] = {}
+    for node in model.graph.node:
+        if node.op_type == "QuantizeLinear" and node.input[0] not in initializers and len(node.input) > 2:
+            zero_point = initializers.get(node.input[2])
+            if zero_point is not None:
+                bits[node.input[0]] = 16 if zero_point.data_type in (onnx.TensorProto.UINT16,
+                                                                     onnx.TensorProto.INT16) else 8
+    eight = {t for t, b in bits.items() if b == 8}
+    uncovered = sorted(eight - set(learned))
+    report.update(learned_tensors=len(eight) - len(uncovered), calibrated_tensors=len(uncovered),
+                  uncovered=uncovered, sixteen_bit_tensors=sum(b == 16 for b in bits.values()))
 
 
 def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),

@@ -556,3 +556,26 @@ def test_a_7_bit_fine_tune_is_what_an_avx2_graph_computes_and_is_flagged_for_vnn
     assert "Weights: 7-bit, as the fine-tune simulated them." in text["avx2"]
     assert weights["vnni"] == {"trained_bits": 7, "graph_bits": 8, "target_isa": "vnni"}
     assert "`--qat-weight-bits 8`" in text["vnni"] and "has no int8 dot-product units" not in text["vnni"]
+
+
+def test_coverage_counts_the_written_graphs_8_bit_activations() -> None:
+    """Learned and calibrated ranges are counted over the activations the written graph
+    quantises to 8 bits; a 16-bit one is counted apart, a weight (an initializer) not at all."""
+    from onnx import TensorProto, helper
+
+    from e3dpsm.quantize.qat_ranges import coverage_in_graph
+
+    def zero_point(name: str, dtype: int) -> onnx.TensorProto:
+        return helper.make_tensor(name, dtype, [], [0])
+
+    nodes = [helper.make_node("QuantizeLinear", [x, "s", zp], [f"{x}_q"])
+             for x, zp in (("a", "z8"), ("b", "z8"), ("c", "z16"), ("w", "z8"))]
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info(x, TensorProto.FLOAT, [1]) for x in "abc"],
+                              [helper.make_tensor_value_info(f"{x}_q", TensorProto.UINT8, [1]) for x in "abw"],
+                              initializer=[helper.make_tensor("s", TensorProto.FLOAT, [], [0.1]),
+                                           zero_point("z8", TensorProto.UINT8), zero_point("z16", TensorProto.UINT16),
+                                           helper.make_tensor("w", TensorProto.FLOAT, [1], [1.0])])
+    model = helper.make_model(graph)
+    report: dict = {}
+    coverage_in_graph(report, model, {"a": {}, "c": {}, "gone": {}})
+    assert report == {"learned_tensors": 1, "calibrated_tensors": 1, "uncovered": ["b"], "sixteen_bit_tensors": 1}

@@ -153,3 +153,38 @@ def test_int8_elementwise_full_integer_never_rounds_a_graph_output(data64: Path,
         {o: producer[o] for o in outputs if producer[o] == "DequantizeLinear"}
     assert report["excluded_nodes"]  # the writers, named in the report
     assert any(n.op_type == "QuantizeLinear" for n in model.graph.node)
+
+
+@pytest.mark.parametrize("variant", ["paper", "released"])
+def test_ranges_learned_with_the_weights_frozen_reach_the_full_integer_graph_on_paper_and_released(
+        variant: str, data64: Path, tmp_path: Path) -> None:
+    """`distill --qat --qat-full-integer --qat-ranges-only` on `paper` and an imported `released`
+    (one step): a learned range for every tensor the full-integer graph quantises, the weights
+    the teacher's, and `quantize --ranges-from-checkpoint` writes each range into that graph."""
+    from e3dpsm.checkpoint import read_checkpoint, save_checkpoint
+    from e3dpsm.cli import main
+    from e3dpsm.export import export_step
+    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+
+    model = _model(variant, tmp_path)
+    teacher = save_checkpoint(tmp_path / "teacher.pt", model)
+    out = tmp_path / "ranges"
+    assert main(["distill", "--teacher", str(teacher), "--student", str(teacher), "--data", str(data64),
+                 "--out", str(out), "--steps", "1", "--seq-len", "3", "--batch-size", "1", "--warmup-steps", "1",
+                 "--threads", "1", "--no-progress", "--qat", "--qat-full-integer", "--qat-ranges-only",
+                 "--qat-calibration-windows", "2", "--causal"]) == 0
+    payload = read_checkpoint(out / "checkpoint.pt")
+    teacher_state = read_checkpoint(teacher)["model"]
+    assert all(torch.equal(v, teacher_state[k]) for k, v in payload["model"].items())
+    graph = export_step(model, tmp_path / "step.onnx")
+    report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
+        mode="int8", exclude="none", frames=16, holdout_frames=20,
+        ranges_from_checkpoint=str(out / "checkpoint.pt"), **RUNTIME))
+    block = report["qat_ranges"]
+    assert block["weights_frozen"] and block["calibrated_tensors"] == 0, block["uncovered"]
+    learned = {(np.float32(q["scale"]), q["zero_point"]) for q in payload["qat_ranges"]["quantizers"]}
+    written = onnx.load(str(tmp_path / "int8" / report["artifact"]))
+    inits = {i.name: onnx.numpy_helper.to_array(i) for i in written.graph.initializer}
+    activations = [n for n in written.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in inits]
+    assert len(activations) >= block["learned_tensors"] * 0.9
+    assert all((np.float32(inits[n.input[1]]), int(inits[n.input[2]])) in learned for n in activations)
