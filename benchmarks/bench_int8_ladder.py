@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from e3dpsm.checkpoint import load_checkpoint
     from e3dpsm.export import export_step
-    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen
+    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen, simulated_float_outputs
     from e3dpsm.profiles.latency import measure_side_by_side
 
     model, _ = load_checkpoint(args.checkpoint)
@@ -172,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
             ranges_only = learned_with_weights_frozen(qat_payload) and all(
                 torch.equal(v, base_state[k]) for k, v in qat_model.state_dict().items())
             prefix = f"learned ranges {steps} steps (weights frozen)" if ranges_only else f"QAT {steps} steps"
+            if simulated_float_outputs(qat_payload) == "all":  # another graph than the default rows'
+                prefix += ", Conv outputs float too"
             qat_runs = [(f"{prefix}, full int8, QAT ranges", QuantizeOptions(
                         mode="int8", exclude="none", ranges_from_checkpoint=args.qat_checkpoint)),
                     (f"{prefix}, default search, QAT ranges, int16", QuantizeOptions(
