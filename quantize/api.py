@@ -2,7 +2,6 @@
 folder (`DIR/step_<mode>.onnx`, `DIR/report.json`), built under a temporary name."""
 from __future__ import annotations
 
-
 import logging
 import os
 import tempfile

@@ -41,6 +41,16 @@ def _integer_bits(tensor: str, initializers: dict[str, onnx.TensorProto],
     return 8  # QuantizeLinear without a zero point writes uint8
 
 
+def quantised_activation_bits(model: onnx.ModelProto) -> dict[str, int]:
+    """{activation: bits} for every float activation a QuantizeLinear quantises (weights, which
+    are initializers, left out)."""
+    initializers = {init.name: init for init in model.graph.initializer}
+    producers = {out: node for node in model.graph.node for out in node.output}
+    bits = {node.input[0]: _integer_bits(node.output[0], initializers, producers)
+            for node in model.graph.node if node.op_type == "QuantizeLinear" and node.input[0] not in initializers}
+    return {tensor: b for tensor, b in bits.items() if b is not None}
+
+
 def compute_precisions(model: onnx.ModelProto) -> dict[str, str]:
     """{node name: precision label} for every Conv/MatMul/Gemm (module doc)."""
     initializers = {init.name: init for init in model.graph.initializer}

@@ -254,8 +254,9 @@ def qat_weight_bits(config: "StaticConfig", target_isa: str, trained: int = 8) -
 def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike,
                       quantised: Sequence[str]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
-    quantiser of `checkpoint` covers, and a report block (counts, the uncovered tensors, the
-    weights' bits training simulated).
+    quantiser of `checkpoint` covers, and a report block (the weights' bits training simulated,
+    whether the weights were frozen, stale sites; `coverage_in_graph` adds the counts once the
+    graph is written).
 
     Matched on `probe_feed`, as `qat_plan` matched at training time, not on a stream's first
     frame: with the initial states, values coincide (a state output equals the input
@@ -281,11 +282,8 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
         if hit is not None:
             for tensor in group.tensors:
                 overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
-    uncovered = sorted(set(quantised) - set(overrides))
     report = {"checkpoint": str(checkpoint), "trained_weight_bits": simulated_weight_bits(payload),
-              "weights_frozen": learned_with_weights_frozen(payload),
-              "learned_tensors": len(overrides), "calibrated_tensors": len(uncovered),
-              "uncovered": uncovered, "unknown_sites": stale}
+              "weights_frozen": learned_with_weights_frozen(payload), "unknown_sites": stale}
     log.info("QAT ranges: %d of the %d tensors a graph of this model may quantise have learned ranges",
              len(overrides), len(quantised))
     return overrides, report
@@ -293,17 +291,13 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
 
 def coverage_in_graph(report: dict[str, Any], model: onnx.ModelProto, learned: Mapping[str, Any]) -> None:
     """Count, in place, the learned and calibrated ranges over the activations the written
-    graph quantises to 8 bits. `learned_overrides` counted every tensor a graph of that model
-    may quantise; the written one quantises fewer (a search's float and 16-bit nodes, the
-    outputs `--float-outputs` leaves float), so those counts overstated the calibrated ones."""
-    initializers = {i.name: i for i in model.graph.initializer}
-    bits: dict[str, int] = {}
-    for node in model.graph.node:
-        if node.op_type == "QuantizeLinear" and node.input[0] not in initializers and len(node.input) > 2:
-            zero_point = initializers.get(node.input[2])
-            if zero_point is not None:
-                bits[node.input[0]] = 16 if zero_point.data_type in (onnx.TensorProto.UINT16,
-                                                                     onnx.TensorProto.INT16) else 8
+    graph quantises to 8 bits, and apart its 16-bit ones. Counted on the written graph, not on
+    every tensor a graph of the model may quantise (`learned_overrides`' list): the written one
+    quantises fewer (a search's float and 16-bit nodes, the outputs `--float-outputs` leaves
+    float)."""
+    from e3dpsm.quantize.census import quantised_activation_bits
+
+    bits = quantised_activation_bits(model)
     eight = {t for t, b in bits.items() if b == 8}
     uncovered = sorted(eight - set(learned))
     report.update(learned_tensors=len(eight) - len(uncovered), calibrated_tensors=len(uncovered),

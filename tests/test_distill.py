@@ -339,6 +339,7 @@ def test_qat_ranges_only_learns_the_ranges_and_leaves_every_weight_as_the_teache
     distill(teacher, student, prepared_small, DistillConfig(steps=1, qat=True, qat_ranges_only=True, **FAST),
             progress=False)
     assert all(p.requires_grad for p in student.parameters())
+    assert all(p.grad is None for p in student.parameters())  # no weight gradient computed while frozen
 
 
 def test_qat_full_integer_without_qat_is_refused_in_distill() -> None:

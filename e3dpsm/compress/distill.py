@@ -229,9 +229,11 @@ def distill(teacher: "E3DPSM", student: "E3DPSM", data_dir: str | os.PathLike, c
         criterion = pose_criterion(data).to(_device(student))
 
     teacher_was_training, student_was_training = teacher.training, student.training
-    trainable = [p for p in student.parameters() if p.requires_grad]  # qat_ranges_only freezes them for the run
+    trainable = [p for p in student.parameters() if p.requires_grad]
     teacher.eval()
     try:
+        if config.qat_ranges_only:
+            student.requires_grad_(False)  # for the run only: restored below
         prior_started = time.perf_counter()
         if config.prior == "teacher":
             student.set_pose_prior(teacher.pose_prior_mm.detach().cpu())
@@ -291,11 +293,7 @@ def _run(teacher: "E3DPSM", student: "E3DPSM", dataset: WindowDataset, config: D
     if config.freeze_norm_stats or fake_quant is not None:
         freeze_batchnorm_stats(student)
     device, teacher_device = _device(student), _device(teacher)
-    groups = []
-    if config.qat_ranges_only:
-        student.requires_grad_(False)
-    else:
-        groups.append({"params": list(student.parameters())})
+    groups = [] if config.qat_ranges_only else [{"params": list(student.parameters())}]
     if fake_quant is not None:
         fake_quant.quantizers.to(device)
         groups.append({"params": list(fake_quant.parameters()), "lr": config.lr * fake_quant.config.range_lr_scale})
