@@ -15,7 +15,9 @@ OpenVINO application, C++ included:
   (MakeStateful alone) the variables of a dynamic-batch graph have no shape and a fresh
   request returns empty outputs.
 
-The ONNX `metadata_props` travel verbatim in the IR's rt_info (section `e3dpsm`).
+The ONNX `metadata_props` travel verbatim in the IR's rt_info (section `e3dpsm`), and the IR
+carries `runtime_options` that keep OpenVINO from quantising 16-bit and float activations to 8
+bits at run time (`runtime.openvino_session.DYNAMIC_QUANTIZATION_OFF`).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from typing import Any
 
 from e3dpsm.errors import ConfigError, DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.openvino_session import openvino_available, openvino_core
+from e3dpsm.runtime.openvino_session import DYNAMIC_QUANTIZATION_OFF, openvino_available, openvino_core
 from e3dpsm.runtime.openvino_stateful import RT_CONVERSION, RT_METADATA
 
 
@@ -150,11 +152,18 @@ def make_stateful(model: Any, meta: GraphMetadata, batch: int) -> list[str]:
     return [s.name for s in meta.states]
 
 
+# The rt_info section OpenVINO's CPU plugin reads compile options from (since 2024.5), so that
+# an application compiling the IR with no options of its own runs the graph's arithmetic.
+RT_RUNTIME_OPTIONS = "runtime_options"
+
+
 def attach_metadata(model: Any, props: dict[str, str], info: ConversionInfo) -> None:
     for key, value in props.items():
         model.set_rt_info(value, [RT_METADATA, key])
     for key, value in info.to_dict().items():
         model.set_rt_info(json.dumps(value), [RT_CONVERSION, key])
+    for key, value in DYNAMIC_QUANTIZATION_OFF.items():
+        model.set_rt_info(str(value), [RT_RUNTIME_OPTIONS, key])
 
 
 def _precision(meta: GraphMetadata) -> str:

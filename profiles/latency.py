@@ -73,6 +73,9 @@ def openvino_precision(target: Target) -> str:
     return "bf16" if target.precision == "bf16" else "f32"
 
 
+LATENCY_HINT = {"PERFORMANCE_HINT": "LATENCY"}
+
+
 class OpenVinoRunner:
     """OpenVINO compiled model; state outputs fed back by the names in the graph metadata."""
 
@@ -80,12 +83,11 @@ class OpenVinoRunner:
         import onnx
 
         from e3dpsm.graph_metadata import GraphMetadata
-        from e3dpsm.runtime.openvino_session import openvino_core
+        from e3dpsm.runtime.openvino_session import compile_config, openvino_core
 
         self.meta = GraphMetadata.from_onnx(onnx.load(path, load_external_data=False))
         core = openvino_core()
-        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY",
-                  "INFERENCE_PRECISION_HINT": openvino_precision(target)}
+        config = compile_config(target.threads, LATENCY_HINT, precision=openvino_precision(target))
         self.compiled = core.compile_model(path, target.provider, config)
         self.request = self.compiled.create_infer_request()
         self.window = np.full((1,), window_ms, np.float32)
@@ -110,12 +112,12 @@ class OpenVinoStatefulRunner:
         import openvino as ov
 
         from e3dpsm.export.openvino_ir import convert_step_graph
+        from e3dpsm.runtime.openvino_session import compile_config
         from e3dpsm.runtime.openvino_stateful import metadata_from_ir
 
         model, _ = convert_step_graph(path, stateful=True, batch=1)  # in memory; no IR file needed to time it
         meta = metadata_from_ir(model, path)
-        config = {"INFERENCE_NUM_THREADS": target.threads, "PERFORMANCE_HINT": "LATENCY",
-                  "INFERENCE_PRECISION_HINT": openvino_precision(target)}
+        config = compile_config(target.threads, LATENCY_HINT, precision=openvino_precision(target))
         self.request = ov.Core().compile_model(model, target.provider, config).create_infer_request()
         self.frame_name, self.window_name = meta.frame_input["name"], meta.window_input["name"]
         self.window = np.full((1,), window_ms, np.float32)
