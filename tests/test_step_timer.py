@@ -68,3 +68,25 @@ def _lnes_shape(path: Path) -> tuple[int, ...]:
     graph = onnx.load(str(path), load_external_data=False).graph
     lnes = next(i for i in graph.input if i.name == "lnes")
     return tuple(d.dim_value for d in lnes.type.tensor_type.shape.dim[1:])
+
+
+def test_one_step_rounds_are_allowed() -> None:
+    """chunk=1: every step its own round (the bootstrap then resamples steps)."""
+    reference = 8 + np.random.default_rng(1).random(12)
+    got = speedup_interval(reference * 2.0, reference, chunk=1)
+    assert got.rounds == 12 and got.speedup == pytest.approx(0.5) and got.low == pytest.approx(0.5)
+
+
+def test_the_timer_reports_median_milliseconds_per_graph() -> None:
+    """__call__ turns each graph's per-step seconds into its median in milliseconds."""
+    timer = SideBySideTimer(np.zeros((2, 1)), 20.0)
+    timer._seconds = lambda graphs, steps: {"a": np.array([0.004, 0.001, 0.002]), "b": np.array([0.010, 0.030])}
+    assert timer({"a": "a.onnx", "b": "b.onnx"}) == pytest.approx({"a": 2.0, "b": 20.0})
+
+
+def test_the_timer_describes_itself_and_needs_frames() -> None:
+    """What the report records of the timing (its defaults: 30 steps after 5, rounds of 10)."""
+    assert SideBySideTimer(np.zeros((3, 1)), 20.0, threads=2).describe() == {
+        "kind": "side_by_side", "threads": 2, "steps": 30, "warmup": 5, "chunk": 10, "frames": 3}
+    with pytest.raises(ValueError, match="at least one frame"):
+        SideBySideTimer(np.zeros((0, 1)), 20.0)
