@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import pytest
+from _precision_helpers import recurrent_evaluator, recurrent_plan
 from onnx import TensorProto, helper, numpy_helper
 
 from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
-from e3dpsm.quantize.precision import PrecisionChoice, PrecisionPlan, quantise_recurrent_compute
+from e3dpsm.quantize.precision import quantise_recurrent_compute
 
 
 def _qdq_graph() -> onnx.ModelProto:
@@ -81,30 +82,9 @@ def test_census_names_other_mixes() -> None:
 
 # -- the recurrent projections' stage, on injected errors -------------------------------------
 
-def _plan(error: float = 0.5, target: float = 0.7) -> PrecisionPlan:
-    return PrecisionPlan(["x"], ["f"], error, [PrecisionChoice("x", "int16", "fits", {"int16": 0.4})],
-                         [{"label": "int16_all"}], target_pct=target, int16w16=["w"])
-
-
-def _evaluator(cost16: dict[str, float], cost_w16: dict[str, float], base: float = 0.5,
-               cost8: dict[str, float] | None = None):
-    """A graph error from injected per-node costs at each precision (float costs nothing);
-    8 bits cost 1.0 per node unless `cost8` says otherwise (nothing fits there by default)."""
-    cost8 = cost8 if cost8 is not None else dict.fromkeys(cost16, 1.0)
-
-    def evaluate(int16: list[str], w16: list[str], floats: list[str], label: str, int8: list[str] = ()) -> float:
-        # The plan's own decisions always carried along, each recurrent node in exactly one list.
-        assert int16[0] == "x" and w16[:1] == ["w"] and floats[0] == "f"
-        recurrent = [*int16[1:], *w16[1:], *floats[1:], *int8]
-        assert sorted(recurrent) == sorted(cost16), recurrent
-        return (base + sum(cost16[n] for n in int16[1:]) + sum(cost_w16[n] for n in w16[1:])
-                + sum(cost8[n] for n in int8))
-    return evaluate
-
-
 def test_recurrent_projections_all_at_int8_when_they_fit() -> None:
     cost8 = {"drive": 0.05, "read": 0.1}
-    plan = quantise_recurrent_compute(_plan(), [["drive"], ["read"]], _evaluator(cost8, cost8, cost8=cost8))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive"], ["read"]], recurrent_evaluator(cost8, cost8, cost8=cost8))
     assert plan.int8 == ["drive", "read"] and plan.int16 == ["x"] and plan.float_nodes == ["f"]
     assert plan.error_pct == pytest.approx(0.65) and [t["label"] for t in plan.trials][1:] == ["recurrent_int8_all"]
     assert {c.node: c.precision for c in plan.choices} == {"x": "int16", "drive": "int8", "read": "int8"}
@@ -116,7 +96,7 @@ def test_recurrent_projections_all_at_int16_then_each_back_at_int8_where_it_fits
     # each back at 8 bits: drive 0.65 - 0.05 + 0.25 = 0.85 (stays int16); read 0.65 - 0.1 +
     # 0.1 = 0.65 (int8, costs nothing more).
     cost16, cost8 = {"drive": 0.05, "read": 0.1}, {"drive": 0.25, "read": 0.1}
-    plan = quantise_recurrent_compute(_plan(), [["drive"], ["read"]], _evaluator(cost16, cost16, cost8=cost8))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive"], ["read"]], recurrent_evaluator(cost16, cost16, cost8=cost8))
     assert plan.int8 == ["read"] and plan.int16 == ["x", "drive"] and plan.int16w16 == ["w"]
     assert plan.float_nodes == ["f"] and plan.error_pct == pytest.approx(0.65)
     assert [t["label"] for t in plan.trials][1:] == [
@@ -130,7 +110,7 @@ def test_recurrent_projections_all_at_int16_then_each_back_at_int8_where_it_fits
 
 def test_recurrent_projections_all_at_int16_when_they_fit() -> None:
     cost16 = {"drive": 0.05, "read": 0.1}
-    plan = quantise_recurrent_compute(_plan(), [["drive"], ["read"]], _evaluator(cost16, {"drive": 0.0, "read": 0.0}))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive"], ["read"]], recurrent_evaluator(cost16, {"drive": 0.0, "read": 0.0}))
     assert plan.int16 == ["x", "drive", "read"] and plan.int16w16 == ["w"] and plan.float_nodes == ["f"]
     assert plan.int8 == [] and plan.error_pct == pytest.approx(0.65)
     assert [t["label"] for t in plan.trials][1:] == [
@@ -147,7 +127,7 @@ def test_recurrent_projections_one_at_a_time_int8_then_int16_then_int16w16_then_
     cost8 = {"drive": 0.3, "gain": 0.3, "read": 0.04}
     cost16 = {"drive": 0.05, "gain": 0.3, "read": 0.3}
     cost_w16 = {"drive": 0.01, "gain": 0.05, "read": 0.29}
-    plan = quantise_recurrent_compute(_plan(), [["drive"], ["gain"], ["read"]], _evaluator(cost16, cost_w16, cost8=cost8))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive"], ["gain"], ["read"]], recurrent_evaluator(cost16, cost_w16, cost8=cost8))
     assert plan.int16 == ["x", "drive"] and plan.int16w16 == ["w", "gain"] and plan.int8 == ["read"]
     assert plan.float_nodes == ["f"] and plan.error_pct == pytest.approx(0.64)
     by_node = {c.node: c for c in plan.choices}
@@ -161,7 +141,7 @@ def test_recurrent_projections_one_at_a_time_int8_then_int16_then_int16w16_then_
 
 def test_a_recurrent_projection_that_fits_nowhere_stays_float() -> None:
     cost = {"read": 0.3}
-    plan = quantise_recurrent_compute(_plan(), [["read"]], _evaluator(cost, {"read": 0.29}, cost8={"read": 0.4}))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["read"]], recurrent_evaluator(cost, {"read": 0.29}, cost8={"read": 0.4}))
     assert plan.float_nodes == ["f", "read"] and plan.int8 == [] and plan.int16 == ["x"]
     by_node = {c.node: c for c in plan.choices}
     # float: the graph with every recurrent projection in float, the plan this stage started from
@@ -173,8 +153,8 @@ def test_a_unit_that_shares_an_input_leaves_8_bits_together() -> None:
     # drive_re and drive_im read one tensor: tried back at int8 together (0.65 - 0.1 + 0.1 =
     # 0.65 fits); alone, drive_re would have fitted and drive_im not, which no graph can be.
     cost16, cost8 = {"drive_re": 0.05, "drive_im": 0.05, "read": 0.05}, {"drive_re": 0.0, "drive_im": 0.1, "read": 0.5}
-    plan = quantise_recurrent_compute(_plan(), [["drive_re", "drive_im"], ["read"]],
-                                      _evaluator(cost16, cost16, cost8=cost8))
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive_re", "drive_im"], ["read"]],
+                                      recurrent_evaluator(cost16, cost16, cost8=cost8))
     assert plan.int8 == ["drive_re", "drive_im"] and plan.int16 == ["x", "read"]
     assert [t["label"] for t in plan.trials][1:] == [
         "recurrent_int8_all", "recurrent_int16_all", "recurrent_int8_drive_re+drive_im", "recurrent_int8_read"]
@@ -186,7 +166,7 @@ def test_nodes_reading_a_widened_tensor_are_not_tried_at_int8() -> None:
     # read's input is 16-bit already (a ranked node at int16 reads it too): no int8 graph with
     # it is tried, not even all at once; drive still is.
     cost16, cost8 = {"drive": 0.05, "read": 0.05}, {"drive": 0.0, "read": 0.0}
-    plan = quantise_recurrent_compute(_plan(), [["drive"], ["read"]], _evaluator(cost16, cost16, cost8=cost8),
+    plan = quantise_recurrent_compute(recurrent_plan(), [["drive"], ["read"]], recurrent_evaluator(cost16, cost16, cost8=cost8),
                                       no_int8={"read"})
     assert plan.int8 == ["drive"] and plan.int16 == ["x", "read"]
     assert [t["label"] for t in plan.trials][1:] == ["recurrent_int16_all", "recurrent_int8_drive"]
@@ -195,7 +175,7 @@ def test_nodes_reading_a_widened_tensor_are_not_tried_at_int8() -> None:
 
 def test_units_must_be_sequences_of_names() -> None:
     with pytest.raises(TypeError, match="units are sequences of node names"):
-        quantise_recurrent_compute(_plan(), ["drive", "read"], _evaluator({}, {}))
+        quantise_recurrent_compute(recurrent_plan(), ["drive", "read"], recurrent_evaluator({}, {}))
 
 
 def test_shared_input_units_group_the_readers_of_one_activation() -> None:
@@ -217,10 +197,10 @@ def test_shared_input_units_group_the_readers_of_one_activation() -> None:
 
 
 def test_recurrent_stage_spends_nothing_when_the_plan_is_over_its_target() -> None:
-    over = _plan(error=0.8, target=0.7)
-    assert quantise_recurrent_compute(over, [["drive"]], _evaluator({"drive": 0.0}, {"drive": 0.0})) is over
-    fits = _plan()
-    assert quantise_recurrent_compute(fits, [], _evaluator({}, {})) is fits
+    over = recurrent_plan(error=0.8, target=0.7)
+    assert quantise_recurrent_compute(over, [["drive"]], recurrent_evaluator({"drive": 0.0}, {"drive": 0.0})) is over
+    fits = recurrent_plan()
+    assert quantise_recurrent_compute(fits, [], recurrent_evaluator({}, {})) is fits
 
 
 def test_a_state_read_gets_its_own_copy_and_the_function_is_unchanged() -> None:
