@@ -11,7 +11,7 @@ def recurrent_plan(error: float = 0.5, target: float = 0.7) -> PrecisionPlan:
 
 
 def recurrent_evaluator(cost16: dict[str, float], cost_w16: dict[str, float], base: float = 0.5,
-               cost8: dict[str, float] | None = None):
+                        cost8: dict[str, float] | None = None):
     """A graph error from injected per-node costs at each precision (float costs nothing);
     8 bits cost 1.0 per node unless `cost8` says otherwise (nothing fits there by default)."""
     cost8 = cost8 if cost8 is not None else dict.fromkeys(cost16, 1.0)

@@ -22,6 +22,7 @@ from e3dpsm.quantize.ranges import (
     choose_range,
     collect_histograms,
     expected_squared_error,
+    select_ranges,
     summarise,
     with_zero,
 )
@@ -256,13 +257,18 @@ def test_with_zero_widens_only_to_hold_zero(low, high, expected) -> None:
     assert with_zero(low, high) == expected
 
 
+def _relu_values(feeds: list[dict[str, np.ndarray]]) -> np.ndarray:
+    """Every value the one-MatMul graph's quantised activation h = relu(x) takes, by numpy."""
+    return np.concatenate([np.maximum(f["x"], 0.0).ravel() for f in feeds])
+
+
 def test_histograms_count_every_feed(tmp_path) -> None:
     """collect_histograms over several feeds: the counts of np.histogram of all the values
     the tensor took (here relu(x), computed by numpy), on its min-max range widened to 0."""
     _one_matmul_graph(tmp_path / "g.onnx")
     rng = np.random.default_rng(10)
     feeds = [{"x": rng.normal(0.5, 1.0, (32, 8)).astype(np.float32)} for _ in range(3)]
-    relu = np.concatenate([np.maximum(f["x"], 0.0).ravel() for f in feeds])
+    relu = _relu_values(feeds)
     low, high = float(relu.min()), float(relu.max())
     hist = collect_histograms(tmp_path / "g.onnx", {"h": (low, high)}, feeds, bins=64)["h"]
     assert (hist.low, hist.high) == (0.0, high)
@@ -285,15 +291,13 @@ def test_summary_counts_the_winners_and_the_median_gain() -> None:
 def test_choices_are_scored_on_the_8_bit_grid_by_default(tmp_path) -> None:
     """choose_range's and select_ranges' default is the U8 grid: the chosen range's error is
     the 256-level expected error, as the model's written scale (range / 255) makes it."""
-    from e3dpsm.quantize.ranges import select_ranges
-
     x = np.random.default_rng(11).laplace(0.0, 1.0, 200_000)
     hist = _histogram(x)
     chosen = choose_range(hist)
     assert chosen.mse == expected_squared_error(hist, chosen.low, chosen.high, 256)
     _one_matmul_graph(tmp_path / "g.onnx")
     feeds = [{"x": np.random.default_rng(12).laplace(0, 1, (64, 8)).astype(np.float32)} for _ in range(4)]
-    relu = np.concatenate([np.maximum(f["x"], 0.0).ravel() for f in feeds])
+    relu = _relu_values(feeds)
     minmax = {"h": (float(relu.min()), float(relu.max()))}
     selected = select_ranges(tmp_path / "g.onnx", minmax, feeds)["h"]
     assert selected == choose_range(collect_histograms(tmp_path / "g.onnx", minmax, feeds)["h"], 256)
