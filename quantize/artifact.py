@@ -10,6 +10,7 @@ import onnx
 from e3dpsm.errors import E3DPSMError
 from e3dpsm.export.onnx_export import ALLOWED_DOMAINS, foreign_ops
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.quantize.openvino_compat import openvino_compatible
 from e3dpsm.utils.io import atomic_path
 
 MAX_IR_VERSION = 10  # ONNX Runtime 1.31 reads up to 13; 10 keeps older runtimes working too
@@ -20,10 +21,13 @@ class QuantizeError(E3DPSMError):
 
 
 def finalize(model: onnx.ModelProto, source_meta: GraphMetadata, info: dict[str, Any]) -> onnx.ModelProto:
-    """Set metadata and IR version in place; raise if the graph left the default domain."""
+    """Set metadata and IR version in place; raise if the graph left the default domain.
+    Every artifact and search trial passes here, so each also gets the Reshape guards
+    OpenVINO needs (openvino_compat.py; ONNX Runtime's numbers unchanged)."""
     foreign = foreign_ops(model)
     if foreign:
         raise QuantizeError(f"quantised graph uses non-standard operators {foreign}")
+    openvino_compatible(model)
     opsets = [o for o in model.opset_import if o.domain in ALLOWED_DOMAINS]
     needed = onnx.helper.find_min_ir_version_for(opsets, ignore_unknown=True)
     if needed > MAX_IR_VERSION:
