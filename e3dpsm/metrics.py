@@ -21,8 +21,8 @@ import numpy as np
 
 from e3dpsm.errors import InputError
 
-__all__ = ["joint_errors", "pa_joint_errors", "smooth_errors", "procrustes_align",
-           "mpjpe", "pa_mpjpe", "e_smooth", "masked_mean"]
+__all__ = ["joint_errors", "pa_joint_errors", "smooth_errors", "jitter_errors", "procrustes_align",
+           "mpjpe", "pa_mpjpe", "e_smooth", "jitter", "masked_mean"]
 
 
 def _check_pair(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,6 +90,21 @@ def smooth_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     speed_gt = np.linalg.norm(np.diff(gt, axis=0), axis=-1)
     speed_pred = np.linalg.norm(np.diff(pred, axis=0), axis=-1)
     return np.abs(speed_gt - speed_pred)
+
+
+def jitter_errors(pred: np.ndarray) -> np.ndarray:
+    """Norm of each joint's second difference for frames 3..N of one continuous sequence,
+    `[N - 2, J]` in mm per frame^2. Needs no ground truth: it measures how much a pose
+    stream shakes, which a compressed graph must not raise."""
+    pred = np.asarray(pred, dtype=np.float64)
+    if pred.ndim != 3 or pred.shape[-1] != 3:
+        raise InputError(f"expected poses of shape [N, J, 3], got {pred.shape}")
+    return np.linalg.norm(pred[2:] - 2.0 * pred[1:-1] + pred[:-2], axis=-1)
+
+
+def jitter(pred: np.ndarray) -> float:
+    """Mean norm of the second difference of one continuous pose sequence (mm per frame^2)."""
+    return masked_mean(jitter_errors(pred))
 
 
 def mpjpe(pred: np.ndarray, gt: np.ndarray, visible: np.ndarray | None = None) -> float:
