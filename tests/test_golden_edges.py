@@ -1,16 +1,19 @@
-"""`golden check` limits at their edges (issue 25, part 6: mutations that passed every test).
+"""`golden check` limits at their edges.
 
-A hand-made golden record (GoldenWriter, in memory) and a fake runner that returns the
-golden outputs and states with errors chosen per step, so each limit of a tolerance
-profile (the spike factor, the state RMS bound, the growth bound) and each step the
-verdict names is checked on both sides of its edge against hand-computed numbers.
+A hand-made golden record (GoldenWriter, in memory, with ground truth) and a fake runner that
+returns the golden outputs and states with errors chosen per step, so each limit (the host
+rollout's kernel-parity tolerance, the state RMS bound, the growth bound, the accuracy budget)
+and each step the verdict names is checked on both sides of its edge against hand-computed
+numbers, and each of a compressed graph's two questions fails on its own.
 """
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from e3dpsm.golden.check import MIN_GROWTH_STEPS, TensorCheck, check_golden
+from e3dpsm.budget import TaskBudget
+from e3dpsm.golden.check import HOST_MEASURE, MIN_GROWTH_STEPS, TensorCheck, check_golden
+from e3dpsm.golden.host import HostRollout, KernelParity
 from e3dpsm.golden.tolerances import PROFILES
 from e3dpsm.golden.store import GoldenRecord, GoldenWriter
 from e3dpsm.graph_metadata import GraphMetadata
@@ -20,13 +23,15 @@ J = 16
 FRAME = (2, 4, 4)
 STATE = "s"
 STATE_SHAPE = (6,)
-SCALE_MM = 100.0  # the golden's MPJPE scale: the int8 budget (1%) is 1 mm, its spike limit 10 mm
+GT_OFFSET_MM = 100.0  # the golden poses sit 100 mm from the ground truth along y: its MPJPE
+# ... and a fixed error in shape too, along z (+-10 mm by joint), so that PA-MPJPE is not zero
+SHAPE_ERROR = np.stack([np.zeros(J), np.zeros(J), 10.0 * (-1.0) ** np.arange(J)], axis=1).astype(np.float32)
 STEPS = 40  # quarters of 10 steps
 
 
 def _golden_pose(step: int) -> np.ndarray:
     base = np.linspace(-800.0, 1200.0, 3 * J, dtype=np.float32).reshape(J, 3)
-    return base + np.float32(step)
+    return base + np.float32(step + 20.0 * np.sin(step / 3.0))  # moving, with a second difference
 
 
 def _golden_state(step: int) -> np.ndarray:
@@ -38,10 +43,11 @@ def make_golden(steps: int = STEPS) -> GoldenRecord:
     rng = np.random.default_rng(0)
     for step in range(steps):
         frame = (rng.random(FRAME) < 0.2).astype(np.float16)
-        writer.add(frame, 20.0, None, {"pose": _golden_pose(step)[None]}, {STATE: _golden_state(step)[None]})
+        gt = _golden_pose(step) + np.float32([0.0, GT_OFFSET_MM, 0.0]) + SHAPE_ERROR
+        writer.add(frame, 20.0, gt, {"pose": _golden_pose(step)[None]}, {STATE: _golden_state(step)[None]})
     manifest = {"steps": steps, "frame_shape": list(FRAME), "outputs": ["pose"],
                 "states": [{"name": STATE, "shape": [-1, *STATE_SHAPE]}],
-                "source": {"variant": "fake"}, "mpjpe_scale_mm": SCALE_MM}
+                "source": {"variant": "fake"}, "mpjpe_scale_mm": GT_OFFSET_MM}
     return GoldenRecord(manifest, writer.arrays())
 
 
@@ -71,8 +77,15 @@ class FakeRunner:
         return {"pose": pose[None].astype(np.float32)}, {STATE: new_state[None].astype(np.float32)}
 
 
-def _run(profile: str, pose_mm, state_rel, steps: int = STEPS):
-    return check_golden(FakeRunner(pose_mm, state_rel), make_golden(steps), PROFILES[profile])
+def _run(profile: str, pose_mm, state_rel, steps: int = STEPS, **kwargs):
+    return check_golden(FakeRunner(pose_mm, state_rel), make_golden(steps), PROFILES[profile], **kwargs)
+
+
+def _host(shift_mm, steps: int = STEPS, kind: str = "vnni") -> HostRollout:
+    """The host's rollout: the golden pose moved `shift_mm` (per step) along x."""
+    poses = np.stack([_golden_pose(k) for k in range(steps)]).astype(np.float64)
+    poses[:, :, 0] += np.broadcast_to(np.asarray(shift_mm, float), (steps,))[:, None]
+    return HostRollout({"graph": "g.onnx", "runtime": "onnxruntime", "isa": {"kind": kind}}, {"pose": poses})
 
 
 def _tensor(result, kind: str) -> TensorCheck:
@@ -89,51 +102,80 @@ def test_fake_record_measures_what_it_injects():
     assert result.passed
 
 
-# -- 1. the spike limit: step_factor (10) budgets ------------------------------------------
-@pytest.mark.parametrize("spike_budgets, passed", [(9.0, True), (11.0, False)])
-def test_one_spike_over_ten_budgets_fails_under_the_mean_budget(spike_budgets, passed):
-    budget_mm = PROFILES["int8"].budget_pct / 100.0 * SCALE_MM
-    assert budget_mm == pytest.approx(1.0)
-    pose = np.full(STEPS, 0.5 * budget_mm)
-    pose[17] = spike_budgets * budget_mm
-    assert pose.mean() < budget_mm  # the mean budget alone would pass: only the spike decides
-    result = _run("int8", pose, np.zeros(STEPS))
-    out = _tensor(result, "output")
-    assert result.passed is passed
-    assert out.first_failing_step == (None if passed else 17)
-    assert out.step_limit == pytest.approx(10.0 * budget_mm)
-    if not passed:
-        assert result.first_failure["step"] == 17 and result.first_failure["tensor"] == "pose"
+# -- 1. a compressed graph's two questions, each failing on its own -------------------------
+def test_over_budget_but_the_same_as_the_host_fails_on_the_budget_alone():
+    # 30 mm along x beside 100 mm along y and 10 along z: MPJPE sqrt(100^2 + 10^2 + 30^2) against sqrt(100^2 + 10^2)
+    result = _run("int8", np.full(STEPS, 30.0), np.zeros(STEPS), host=_host(30.0), isa_kind="vnni")
+    assert result.questions == {"within_budget": False, "same_as_host": True} and not result.passed
+    mpjpe = result.budget.metric("mpjpe")
+    assert mpjpe.change_pct == pytest.approx(100 * (np.sqrt(100.0**2 + 10**2 + 30**2) / np.hypot(100.0, 10.0) - 1),
+                                             rel=1e-5)
+    assert result.first_failure is None and "over its accuracy budget" in result.summary()
 
 
-# -- 2. the first failing step of a mean budget ----------------------------------------------
-def test_mean_budget_fails_from_the_step_after_the_running_mean_last_touches_it():
-    # running mean: 2, 1, 2/3, 1/2, 1 (exactly the limit: within), 4/3, 11/7, 7/4 -> over from index 5
-    errors = np.array([2.0, 0.0, 0.0, 0.0, 3.0, 3.0, 3.0, 3.0])
-    check = TensorCheck("pose", "output", "mean_joint_distance_mm", errors, step_limit=10.0, mean_limit=1.0)
-    running = np.cumsum(errors) / np.arange(1, 9)
-    assert running[4] == 1.0 and np.all(running[5:] > 1.0)
-    assert not check.mean_passed and check.first_failing_step == 5
-    # never under the budget: it fails from the first step
-    always = TensorCheck("pose", "output", "mean_joint_distance_mm", np.full(8, 2.0), 10.0, mean_limit=1.0)
+def test_within_budget_but_not_what_the_host_computed_fails_on_the_host_alone():
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(0.3), isa_kind="vnni")
+    assert result.questions == {"within_budget": True, "same_as_host": False} and not result.passed
+    host = next(t for t in result.tensors if t.measure == HOST_MEASURE)
+    assert host.mean == pytest.approx(0.3, abs=1e-4) and host.mean_limit == KernelParity().same_kind_mean_mm
+    assert result.first_failure["tensor"] == "pose" and result.first_failure["measure"] == HOST_MEASURE
+
+
+@pytest.mark.parametrize("kind, shift, passed", [("vnni", 0.009, True), ("vnni", 0.011, False),
+                                                 ("avx2", 0.49, True), ("avx2", 0.51, False)])
+def test_the_host_tolerance_knows_the_isa(kind, shift, passed):
+    """The host recorded on a vnni host; this device is vnni: the same kernels, 0.01 mm; this
+    device is another kind: the kernel-parity tolerance, 0.5 mm (mean)."""
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="vnni" if kind == "vnni" else "arm")
+    assert result.questions["same_as_host"] is passed and result.passed is passed
+
+
+def test_one_step_over_the_host_step_limit_fails_from_that_step():
+    shift = np.zeros(STEPS)
+    shift[17] = 5.5  # mean 0.1375 mm, under 0.5; the step limit (5 mm) decides
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="arm")
+    host = next(t for t in result.tensors if t.measure == HOST_MEASURE)
+    assert host.mean_passed and host.first_failing_step == 17 and not result.passed
+
+
+def test_without_a_host_rollout_the_second_question_is_not_asked():
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS))
+    assert result.questions == {"within_budget": True, "same_as_host": None} and result.passed
+    assert not any(t.measure == HOST_MEASURE for t in result.tensors)
+
+
+def test_the_distance_to_fp32_is_reported_never_judged():
+    result = _run("int8", np.full(STEPS, 3.0), np.zeros(STEPS), budget=TaskBudget(mpjpe_pct=50, pa_mpjpe_pct=50))
+    fidelity = _tensor(result, "output")
+    assert fidelity.mean == pytest.approx(3.0, abs=1e-4) and fidelity.step_limit == np.inf and result.passed
+
+
+# -- 2. the first failing step of a mean limit ----------------------------------------------
+def test_mean_limit_fails_from_the_step_after_the_running_mean_last_touches_it():
+    errors = np.array([2.0, 0.0, 0.0, 2.0, 2.0])  # running mean: 2, 1, 0.67, 1, 1.2
+    check = TensorCheck("pose", "output", HOST_MEASURE, errors, step_limit=10.0, mean_limit=1.0)
+    assert not check.mean_passed and check.first_failing_step == 4
+    # never under the limit: it fails from the first step
+    always = TensorCheck("pose", "output", HOST_MEASURE, np.full(8, 2.0), 10.0, mean_limit=1.0)
     assert always.first_failing_step == 0
-    # over only at the very last step: that step
-    last = TensorCheck("pose", "output", "mean_joint_distance_mm", np.array([1.0] * 7 + [1.5]), 10.0, mean_limit=1.0)
-    assert last.first_failing_step == 7
+    # exactly at the limit is within
+    last = TensorCheck("pose", "output", HOST_MEASURE, np.array([1.0] * 7 + [1.5]), 10.0, mean_limit=1.0)
+    assert not last.mean_passed and last.first_failing_step == 7
+    assert TensorCheck("pose", "output", HOST_MEASURE, np.ones(8), 10.0, mean_limit=1.0).passed
 
 
-def test_mean_budget_first_failure_through_check_golden():
-    """The same verdict end to end: a rollout whose running mean (1 mm budget) starts
-    over, dips under it and rises again fails from the step after its last dip."""
-    pose = np.full(STEPS, 2.0)
-    pose[:6] = [4.0, 0.0, 0.0, 0.0, 0.0, 1.5]
-    # running mean: 4, 2, 4/3, 1, 0.8, 5.5/6 = 0.917 (under), then 7.5/7 = 1.07, 9.5/8, ... -> 73.5/40
-    running = np.cumsum(pose) / np.arange(1, STEPS + 1)
+def test_mean_limit_first_failure_through_check_golden():
+    """End to end: a host distance whose running mean (limit 1 mm) starts over, dips under it
+    and rises again fails from the step after its last dip."""
+    shift = np.full(STEPS, 2.0)
+    shift[:6] = [4.0, 0.0, 0.0, 0.0, 0.0, 1.5]
+    running = np.cumsum(shift) / np.arange(1, STEPS + 1)
     assert running[4] == 0.8 and running[5] < 1.0 and np.all(running[6:] > 1.07)
-    result = _run("int8", pose, np.zeros(STEPS))
-    out = _tensor(result, "output")
-    assert out.mean == pytest.approx((4.0 + 1.5 + 34 * 2.0) / STEPS, abs=1e-4)
-    assert not out.mean_passed and out.first_failing_step == 6 and result.first_failure["step"] == 6
+    parity = KernelParity(same_kind_mean_mm=1.0, same_kind_step_mm=10.0)
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="vnni", parity=parity)
+    host = next(t for t in result.tensors if t.measure == HOST_MEASURE)
+    assert host.mean == pytest.approx((4.0 + 1.5 + 34 * 2.0) / STEPS, abs=1e-4)
+    assert not host.mean_passed and host.first_failing_step == 6 and result.first_failure["step"] == 6
 
 
 # -- 3. the int8 state bound: relative RMS 0.5 -----------------------------------------------

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.cli._common import add_force, add_threads, positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -31,9 +31,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     rec.add_argument("--all-states", action="store_true",
                      help="keep every state in full at every step (large); default: sampled elements at every "
                           "step, whole states at steps 0, 1, 2, 5, 10, 20, 50, ... and the last")
-    rec.add_argument("--threads", type=int, default=2)
+    rec.add_argument("--also", nargs="+", default=[], metavar="GRAPH",
+                     help="compressed graphs whose host rollouts are kept too, so that `golden check` on a device "
+                          "can tell whether it computes what this host computed for them")
+    rec.add_argument("--also-runtime", nargs="+", choices=("onnxruntime", "openvino"), default=["onnxruntime"],
+                     help="runtimes the --also graphs are rolled out on (default onnxruntime)")
+    add_threads(rec)
     rec.add_argument("--out", required=True, help="golden folder to write")
-    rec.add_argument("--force", action="store_true", help="replace an existing --out folder")
+    add_force(rec)
     rec.set_defaults(func=run_record)
 
     chk = actions.add_parser("check", help="check a graph against a golden record (torch-free)")
@@ -52,8 +57,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     chk.add_argument("--profile", choices=("fp32", "fp16", "int8", "bf16"), default=None,
                      help="tolerance profile (default: the graph's precision from its metadata)")
     chk.add_argument("--budget-pct", type=positive_float, default=None,
-                     help="accuracy budget of the fp16/int8 profiles (default: the profile's, 0.1 / 1 %%)")
-    chk.add_argument("--threads", type=int, default=2)
+                     help="allowed rise of MPJPE and PA-MPJPE over the fp32 golden for compressed graphs, %% "
+                          "(default: the budget the graph carries, else 1)")
+    add_threads(chk)
     chk.set_defaults(func=run_check)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
     return p
@@ -65,6 +71,11 @@ def run_record(args: argparse.Namespace) -> int:
     from e3dpsm.utils.env import report_header
 
     data = PreparedData.open(args.data)  # bad data fails before any model loads
+    for graph in args.also:
+        if not Path(graph).is_file():
+            from e3dpsm.errors import DataError
+
+            raise DataError(f"--also: {graph} does not exist")
     if args.model:
         reference = onnx_reference(args.model, threads=args.threads)
     else:
@@ -72,14 +83,20 @@ def run_record(args: argparse.Namespace) -> int:
 
         from e3dpsm.cli._common import load_model_from_args
 
-        torch.set_num_threads(args.threads)
+        if args.threads:
+            torch.set_num_threads(args.threads)
         model = load_model_from_args(args)
         reference = torch_reference(model, "checkpoint" if args.checkpoint else "variant", args.checkpoint)
     window_ms = args.window_ms or data.window_ms
     header = report_header("golden record", {k: v for k, v in vars(args).items() if k != "func"})
     manifest = record_golden(reference, args.data, args.out, steps=args.steps, window_ms=window_ms, split=args.split,
                              all_states=args.all_states, force=args.force, header=header, progress=True)
-    size = sum(f.stat().st_size for f in Path(args.out).iterdir())
+    if args.also:
+        from e3dpsm.golden.host import record_host_rollouts
+
+        for entry in record_host_rollouts(args.out, args.also, args.also_runtime, threads=args.threads):
+            print(f"golden record: host rollout of {entry['graph']} on {entry['runtime']} -> {entry['file']}")
+    size = sum(f.stat().st_size for f in Path(args.out).rglob("*") if f.is_file())
     print(f"golden record: {manifest['steps']} steps of {reference.variant} ({reference.kind}) at {window_ms:g} ms, "
           f"{size / 1e6:.2f} MB in {args.out} ({manifest['record_seconds']:.1f} s)")
     return 0
@@ -92,6 +109,8 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
     for tensor in result.tensors:
         if tensor.kind == "output" or not tensor.passed:
             print("  " + tensor.line())
+    for line in _question_lines(result):
+        print("  " + line)
     states_ok = sum(t.passed for t in result.tensors if t.kind == "state")
     states = sum(t.kind == "state" for t in result.tensors)
     print(f"  states within limits: {states_ok}/{states}; {report['ms_per_step']:.2f} ms per step; "
@@ -104,6 +123,22 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
     note = budget_runtime_note(report["budget_runtimes"])
     if note:
         print("  " + note)
+
+
+def _question_lines(result) -> list[str]:
+    """A compressed graph's two answers, one line each."""
+    if result.budget is None:
+        return []
+    b = result.budget
+    changes = ", ".join(f"{m.name} {m.change_pct:+.2f}% (upper {m.upper_pct:+.2f}%, limit +{m.limit_pct:g}%)"
+                        for m in b.metrics)
+    host = result.questions["same_as_host"]
+    same = ("not asked: the golden holds no host rollout of this graph on this runtime (record one with "
+            "`golden record --also GRAPH --also-runtime RUNTIME`)" if host is None else
+            f"{'yes' if host else 'NO'}, against the host rollout of {result.host['graph']} made on a "
+            f"{result.host['isa']['kind']} host")
+    return [f"within its accuracy budget: {'yes' if b.within else 'NO'} ({changes}; {b.frames} frames)",
+            f"computes what the host computed: {same}"]
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -139,7 +174,7 @@ def run_check(args: argparse.Namespace) -> int:
             pose = next(t for t in result.tensors if t.name == "pose")
             verdicts.append({
                 "model": model, "runtime": runtime, "status": "passed" if result.passed else "failed",
-                "profile": result.profile.name, "first_failure": result.first_failure,
+                "profile": result.profile.name, "first_failure": result.first_failure, **result.questions,
                 "pose_max": float(pose.errors.max()), "pose_mean": pose.mean, "pose_measure": pose.measure,
                 "ms_per_step": report["ms_per_step"], "report": str(folder / "check.json"),
             })
@@ -155,15 +190,17 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def summary_markdown(verdicts: list[dict]) -> str:
-    lines = ["| graph | runtime | profile | verdict | pose error (max / mean) | first failure | ms/step |",
-             "|---|---|---|---|---:|---|---:|"]
+    lines = ["| graph | runtime | profile | verdict | within budget | same as host | pose error (max / mean) "
+             "| first failure | ms/step |", "|---|---|---|---|---|---|---:|---|---:|"]
+    answer = {True: "yes", False: "**no**", None: "-"}
     for v in verdicts:
         if v["status"] == "skipped":
-            lines.append(f"| {Path(v['model']).name} | {v['runtime']} | - | skipped: {v['reason']} | - | - | - |")
+            lines.append(f"| {Path(v['model']).name} | {v['runtime']} | - | skipped: {v['reason']} | - | - | - | - | - |")
             continue
-        unit = "mm max abs" if v["pose_measure"] == "max_abs_mm" else "mm to golden"
+        unit = "mm max abs" if v["pose_measure"] == "max_abs_mm" else "mm to the fp32 golden"
         first = v["first_failure"]
         where = f"step {first['step']}, {first['tensor']}" if first else "-"
         lines.append(f"| {Path(v['model']).name} | {v['runtime']} | {v['profile']} | **{v['status']}** | "
+                     f"{answer[v.get('within_budget')]} | {answer[v.get('same_as_host')]} | "
                      f"{v['pose_max']:.3g} / {v['pose_mean']:.3g} {unit} | {where} | {v['ms_per_step']:.1f} |")
     return "\n".join(lines) + "\n"

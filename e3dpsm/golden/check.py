@@ -4,6 +4,13 @@ user runs on the device after copying `step.onnx` and `golden/` there.
 
 Checks run in a fixed order: layout (variant, frame shape, output and state names and
 shapes; a mismatch is bad input, exit 2), then values step by step.
+
+An fp32 graph must reproduce the golden at the parity tolerances. A compressed graph answers
+two questions, each on its own: is it within its accuracy budget (its task metrics against
+the golden's fp32 poses on the golden's ground truth, e3dpsm/budget.py), and does this
+device compute what the host computed for the same graph (its outputs against the host's
+rollout of that graph, host.py, at a tolerance that knows the ISA). Its states must also stay
+bounded. Its distance to the fp32 poses is reported, a fidelity figure, not a verdict.
 """
 from __future__ import annotations
 
@@ -15,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from e3dpsm.errors import DataError
+from e3dpsm.golden.host import HostRollout, KernelParity
 from e3dpsm.golden.store import GoldenRecord
 from e3dpsm.golden.tolerances import ToleranceProfile
 from e3dpsm.graph_metadata import GraphMetadata
@@ -22,6 +30,8 @@ from e3dpsm.metrics import joint_errors
 from e3dpsm.runtime.stepping import GraphStepper
 
 REPORT_STEPS = (1, 10, 100)  # errors reported at these steps (1-based) and at the last one
+FIDELITY_MEASURE = "mean_joint_distance_mm"  # a compressed graph's outputs to the fp32 golden: reported
+HOST_MEASURE = "host_distance_mm"            # ... to the host's rollout of the same graph: judged
 MIN_GROWTH_STEPS = 20  # growth compares quarters of the rollout: shorter ones are not judged
 TINY = 1e-12
 
@@ -117,10 +127,19 @@ class GoldenCheck:
     tensors: list[TensorCheck]
     steps: int
     seconds: float
+    budget: Any = None                  # e3dpsm.budget.BudgetCheck of a compressed graph (ground truth needed)
+    host: dict[str, Any] | None = None  # the host rollout the outputs were held to, if recorded
 
     @property
     def passed(self) -> bool:
-        return all(t.passed for t in self.tensors)
+        return all(t.passed for t in self.tensors) and (self.budget is None or self.budget.within)
+
+    @property
+    def questions(self) -> dict[str, Any]:
+        """A compressed graph's two answers: within its budget; the same as the host computed."""
+        host = [t for t in self.tensors if t.measure == HOST_MEASURE]
+        return {"within_budget": None if self.budget is None else self.budget.within,
+                "same_as_host": all(t.passed for t in host) if host else None}
 
     @property
     def first_failure(self) -> dict[str, Any] | None:
@@ -135,11 +154,17 @@ class GoldenCheck:
         if self.passed:
             return f"PASSED: {self.steps} steps within the {self.profile.name} profile"
         f = self.first_failure
+        if f is None:  # every tensor within its limits: the budget failed
+            worst = max(self.budget.metrics, key=lambda m: m.upper_pct / m.limit_pct)
+            return (f"FAILED: over its accuracy budget, {worst.name} {worst.change_pct:+.2f}% (upper bound "
+                    f"{worst.upper_pct:+.2f}%, limit +{worst.limit_pct:g}%)")
         return (f"FAILED: first at step {f['step']}, {f['kind']} {f['tensor']} "
                 f"({f['measure']} {f['error']:.3e}, step limit {f['step_limit']:.2e})")
 
     def to_dict(self) -> dict[str, Any]:
         return {"passed": self.passed, "profile": self.profile.to_dict(), "steps": self.steps,
+                "questions": self.questions, "budget": None if self.budget is None else self.budget.to_dict(),
+                "host_rollout": self.host,
                 "scale_mm": self.scale_mm, "first_failure": self.first_failure, "seconds": round(self.seconds, 3),
                 "ms_per_step": round(1e3 * self.seconds / max(self.steps, 1), 3),
                 "tensors": [t.to_dict() for t in self.tensors]}
@@ -186,53 +211,73 @@ def _state_error(golden: GoldenRecord, name: str, step: int, state: np.ndarray, 
 
 
 def check_golden(runner: GraphStepper, golden: GoldenRecord, profile: ToleranceProfile, *,
-                 progress: bool = False) -> GoldenCheck:
-    """Step `runner` over the golden frames with its own states; compare every step."""
+                 progress: bool = False, host: HostRollout | None = None, budget: Any = None,
+                 isa_kind: str | None = None, parity: KernelParity = KernelParity()) -> GoldenCheck:
+    """Step `runner` over the golden frames with its own states; compare every step. A
+    compressed graph (budget profile) is also held to `budget` (e3dpsm.budget.TaskBudget;
+    None: its default) and, where `host` is given, to the host's rollout of it at `parity`'s
+    tolerance for a device of `isa_kind`."""
     check_layout(golden, runner.meta)
-    steps = golden.steps
     exact = profile.kind == "exact"
-    scale = golden.manifest.get("mpjpe_scale_mm")
-    if not exact and not scale:
-        raise DataError("the golden has no ground truth, so no MPJPE scale for a budget profile; "
+    if not exact and golden.gt_mm is None:
+        raise DataError("the golden has no ground truth, so no accuracy budget for a compressed graph; "
                         "record it from prepared data or check with --profile fp32")
-    out_err = {n: np.zeros(steps) for n in golden.output_names}
-    state_names = golden.state_names
-    state_err = {n: np.zeros(steps) for n in state_names}
+    outputs, state_err, seconds = _step_all(runner, golden, exact, progress, profile.name)
+    tensors: list[TensorCheck] = []
+    for name in golden.output_names:
+        got, ref = outputs[name], golden.output(name).astype(np.float64)
+        if exact:
+            errors = _finite(np.max(np.abs(got - ref), axis=(1, 2)))
+            tensors.append(TensorCheck(name, "output", "max_abs_mm", errors, float(profile.pose_atol_mm)))
+            continue
+        tensors.append(TensorCheck(name, "output", FIDELITY_MEASURE, _finite(joint_errors(got, ref).mean(axis=1)),
+                                   math.inf))
+        if host is not None:
+            mean_limit, step_limit = parity.limits(host.same_kind(isa_kind or ""))
+            errors = _finite(joint_errors(got, host.outputs[name].astype(np.float64)).mean(axis=1))
+            tensors.append(TensorCheck(name, "output", HOST_MEASURE, errors, step_limit, mean_limit=mean_limit))
+    for name, errors in state_err.items():
+        tensors.append(TensorCheck(name, "state", "rel_to_absmax" if exact else "rel_rms", _finite(errors),
+                                   profile.state_rtol, growth_limit=None if exact else profile.max_growth))
+    accuracy = None
+    if not exact:
+        from e3dpsm.budget import TaskBudget, check_budget
+
+        gt = golden.gt_mm.astype(np.float64)
+        accuracy = check_budget([outputs["pose"]], [golden.output("pose").astype(np.float64)], [gt],
+                                budget or TaskBudget())
+    scale = golden.manifest.get("mpjpe_scale_mm")
+    return GoldenCheck(profile, float(scale) if scale else None, tensors, golden.steps, seconds, accuracy,
+                       dict(host.entry) if host is not None else None)
+
+
+def _finite(errors: np.ndarray) -> np.ndarray:
+    errors = np.asarray(errors, dtype=np.float64).copy()
+    errors[~np.isfinite(errors)] = math.inf
+    return errors
+
+
+def _step_all(runner: GraphStepper, golden: GoldenRecord, exact: bool, progress: bool,
+              name: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+    """Every output of `runner` at every step ([N, J, 3] float64) and every state's error."""
+    steps = golden.steps
+    outputs = {n: np.zeros((steps, *golden.output(n).shape[1:])) for n in golden.output_names}
+    state_err = {n: np.zeros(steps) for n in golden.state_names}
     snapshot_rows = {int(s): i for i, s in enumerate(golden.snapshot_steps)}
     iterator: Any = range(steps)
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(iterator, desc=f"golden check ({profile.name})", unit="step", leave=False, disable=None)
+        iterator = tqdm(iterator, desc=f"golden check ({name})", unit="step", leave=False, disable=None)
     started = time.perf_counter()
     state = runner.init_state(1)
     for step in iterator:
-        outputs, state = runner.step(golden.frame(step), state, golden.window_ms(step))
-        for name in golden.output_names:
-            got = np.asarray(outputs[name], dtype=np.float64)[0]
-            ref = golden.output(name)[step].astype(np.float64)
-            if exact:
-                out_err[name][step] = float(np.max(np.abs(got - ref)))
-            else:
-                out_err[name][step] = float(np.mean(joint_errors(got[None], ref[None])))
-        for name in state_names:
-            state_err[name][step] = _state_error(golden, name, step, np.asarray(state[name]),
-                                                  snapshot_rows.get(step), exact)
-    seconds = time.perf_counter() - started
-    for errors in (*out_err.values(), *state_err.values()):
-        errors[~np.isfinite(errors)] = math.inf
-    tensors: list[TensorCheck] = []
-    for name, errors in out_err.items():
-        if exact:
-            tensors.append(TensorCheck(name, "output", "max_abs_mm", errors, float(profile.pose_atol_mm)))
-        else:
-            budget_mm = profile.budget_pct / 100.0 * float(scale)
-            tensors.append(TensorCheck(name, "output", "mean_joint_distance_mm", errors,
-                                       profile.step_factor * budget_mm, mean_limit=budget_mm))
-    for name, errors in state_err.items():
-        tensors.append(TensorCheck(name, "state", "rel_to_absmax" if exact else "rel_rms", errors, profile.state_rtol,
-                                   growth_limit=None if exact else profile.max_growth))
-    return GoldenCheck(profile, float(scale) if scale else None, tensors, steps, seconds)
+        got, state = runner.step(golden.frame(step), state, golden.window_ms(step))
+        for n in golden.output_names:
+            outputs[n][step] = np.asarray(got[n], dtype=np.float64)[0]
+        for n in golden.state_names:
+            state_err[n][step] = _state_error(golden, n, step, np.asarray(state[n]), snapshot_rows.get(step), exact)
+    return outputs, state_err, time.perf_counter() - started
 
 
 def plot_check(result: GoldenCheck, path: Any, title: str = "") -> None:

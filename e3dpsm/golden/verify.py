@@ -35,10 +35,9 @@ def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threa
 
 
 def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golden_manifest: dict[str, Any],
-                    budget_pct: float | None = None, runtime: str = "onnxruntime") -> ToleranceProfile:
+                    runtime: str = "onnxruntime") -> ToleranceProfile:
     """The named profile (default: the graph's own precision, or bf16 for an fp32 graph run in
-    bf16), with the values the golden was recorded for, and the graph's own accuracy budget
-    where its metadata names one."""
+    bf16), with the values the golden was recorded for."""
     if name is None:
         name = profile_for_quantization(quantization)
         if runtime == "openvino-bf16" and name == "fp32":
@@ -46,9 +45,19 @@ def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golde
     if name not in PROFILES:
         raise InputError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}")
     recorded = golden_manifest.get("tolerances", {}).get(name)
-    profile = ToleranceProfile.from_dict(recorded) if recorded else PROFILES[name]
-    own_budget = (quantization or {}).get("budget_pct")
-    return profile.with_budget(budget_pct if budget_pct is not None else own_budget)
+    return ToleranceProfile.from_dict(recorded) if recorded else PROFILES[name]
+
+
+def resolve_budget(quantization: dict[str, Any] | None, budget_pct: float | None = None) -> Any:
+    """The task budget a compressed graph is held to: `budget_pct` for MPJPE and PA-MPJPE where
+    given, else the budget its metadata carries (`quantize` writes it), else the default."""
+    from dataclasses import replace
+
+    from e3dpsm.budget import TaskBudget
+
+    fields = dict((quantization or {}).get("budget") or {})
+    budget = TaskBudget(**{k: v for k, v in fields.items() if k in TaskBudget.__dataclass_fields__})
+    return budget if budget_pct is None else replace(budget, mpjpe_pct=budget_pct, pa_mpjpe_pct=budget_pct)
 
 
 def isa_comparison(quantization: dict[str, Any] | None) -> dict[str, Any]:
@@ -92,13 +101,19 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
     from e3dpsm.golden.record import sha256_file
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
+    from e3dpsm.golden.host import host_rollout_for
+    from e3dpsm.utils.isa import detect_isa
+
     golden = golden_dir if isinstance(golden_dir, GoldenRecord) else load_golden(golden_dir)
     runner = open_runner(model, runtime, threads=threads, providers=providers)
-    chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, budget_pct, runtime)
-    result = check_golden(runner, golden, chosen, progress=progress)
+    chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, runtime)
+    digest = sha256_file(model)
+    host = host_rollout_for(golden, digest, runtime) if chosen.kind == "budget" else None
+    result = check_golden(runner, golden, chosen, progress=progress, host=host,
+                          budget=resolve_budget(runner.meta.quantization, budget_pct), isa_kind=detect_isa().kind)
     report = {
         **(header or {}),
-        "model": {"path": str(model), "sha256": sha256_file(model), "variant": runner.meta.config.get("variant"),
+        "model": {"path": str(model), "sha256": digest, "variant": runner.meta.config.get("variant"),
                   "quantization": runner.meta.quantization},
         "golden": {"path": str(golden.folder), "source": golden.manifest.get("source"), "steps": golden.steps,
                    "window_ms": golden.manifest.get("window_ms")},
