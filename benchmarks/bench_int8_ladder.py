@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from e3dpsm.checkpoint import load_checkpoint
     from e3dpsm.export import export_step
-    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen, simulated_float_outputs
+    from e3dpsm.training.qat_ranges import learned_with_weights_frozen, simulated_float_outputs
     from e3dpsm.profiles.latency import measure_side_by_side
 
     model, _ = load_checkpoint(args.checkpoint)

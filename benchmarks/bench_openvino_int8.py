@@ -1,5 +1,5 @@
 """Benchmark: an INT8 graph of `quantize` on OpenVINO against ONNX Runtime, with and without
-the Reshape guards of quantize/openvino_compat.py (accuracy, not speed).
+the Reshape guards of export/openvino_compat.py (accuracy, not speed).
 
     python benchmarks/bench_openvino_int8.py --model q/step_int8.onnx --fp32 exp/step.onnx \
         --data P [--frames 100] [--threads 2] [--out benchmarks/results/openvino_int8_paper]
@@ -35,7 +35,7 @@ def _distance(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, d
 def _unguarded_copy(model_path: Path, work: Path) -> tuple[Path, list[str]]:
     import onnx
 
-    from e3dpsm.quantize.openvino_compat import remove_guards
+    from e3dpsm.export.openvino_compat import remove_guards
 
     model = onnx.load(str(model_path))
     removed = remove_guards(model)

@@ -29,7 +29,7 @@ import numpy as np
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.metrics import joint_errors, mpjpe
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
-from e3dpsm.quantize.qat_ranges import simulated_float_outputs
+from e3dpsm.training.qat_ranges import simulated_float_outputs
 from e3dpsm.quantize.static import saturates_u8s8
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic

@@ -1,19 +1,23 @@
 """Quantisation of the E-3DPSM step graph: INT8 static with state-aware calibration (QDQ,
-per-channel), FP16, dynamic INT8; recurrent parts kept in float; held-out accuracy check;
-`--exclude auto` picks the fastest candidate graph within the accuracy budget (front.py).
+per-channel), FP16, dynamic INT8; recurrent parts kept in float; the graph judged on the
+task metrics (e3dpsm/budget.py) on frames neither calibration nor search saw.
 
 Entry point: `quantize_graph(model, data_dir, out_dir, QuantizeOptions(...))`; CLI
-`e3dpsm quantize`.
+`e3dpsm quantize`; the passes in pipeline.py's order: docs/quantize.md. Importing the package
+is light (the CLI reads its options without loading torch): `quantize_graph` loads on use.
 """
-from e3dpsm.quantize.api import MODES, QuantizeOptions, artifact_name, quantize_graph
-from e3dpsm.quantize.calibration import (
-    MIN_CALIBRATION_FRAMES, CalibrationSet, FeedListReader, record_calibration_set,
-)
-from e3dpsm.quantize.front import OBJECTIVES
-from e3dpsm.quantize.graph_groups import NodeGroup, candidate_groups, recurrent_groups
-from e3dpsm.quantize.step_timer import SideBySideTimer, StepTimer
+from typing import Any
 
-__all__ = [
-    "MIN_CALIBRATION_FRAMES", "MODES", "OBJECTIVES", "CalibrationSet", "SideBySideTimer", "StepTimer", "FeedListReader", "NodeGroup", "QuantizeOptions",
-    "artifact_name", "candidate_groups", "quantize_graph", "record_calibration_set", "recurrent_groups",
-]
+from e3dpsm.budget import BudgetCheck, TaskBudget, check_budget
+from e3dpsm.quantize.options import MODES, Advanced, QuantizeOptions, artifact_name
+
+__all__ = ["MODES", "Advanced", "BudgetCheck", "QuantizeOptions", "TaskBudget", "artifact_name", "check_budget",
+           "quantize_graph"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "quantize_graph":
+        from e3dpsm.quantize.pipeline import quantize_graph
+
+        return quantize_graph
+    raise AttributeError(f"module 'e3dpsm.quantize' has no attribute {name!r}")

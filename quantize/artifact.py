@@ -10,7 +10,7 @@ import onnx
 from e3dpsm.errors import E3DPSMError
 from e3dpsm.export.onnx_export import ALLOWED_DOMAINS, foreign_ops
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.quantize.openvino_compat import openvino_compatible
+from e3dpsm.export.openvino_compat import openvino_compatible
 from e3dpsm.utils.io import atomic_path
 
 MAX_IR_VERSION = 10  # ONNX Runtime 1.31 reads up to 13; 10 keeps older runtimes working too

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import onnx
 
@@ -75,20 +75,3 @@ def isolate_state_reads(model: onnx.ModelProto, nodes: Iterable[str]) -> list[st
             rewired.append(node.name)
         index += 1
     return rewired
-
-
-def shared_input_units(model: onnx.ModelProto, nodes: Sequence[str]) -> list[list[str]]:
-    """`nodes` grouped where they read a common activation tensor (not an initializer), in
-    their given order. Such nodes leave 8 bits together: ONNX Runtime's quantiser gives a
-    tensor one Q/DQ pair, so when one of its readers takes 16-bit activations every reader
-    reads them (S5's drive_re and drive_im read the same LayerNorm output)."""
-    initializers = {i.name for i in model.graph.initializer}
-    wanted = list(dict.fromkeys(nodes))
-    reads = {n.name: {t for t in n.input if t and t not in initializers} for n in model.graph.node if n.name in wanted}
-    units: list[list[str]] = []
-    for name in wanted:
-        joined = [u for u in units if any(reads.get(name, set()) & reads.get(other, set()) for other in u)]
-        merged = [n for u in joined for n in u] + [name]
-        units = [u for u in units if u not in joined] + [merged]
-    order = {n: i for i, n in enumerate(wanted)}
-    return sorted((sorted(u, key=order.__getitem__) for u in units), key=lambda u: order[u[0]])

@@ -11,7 +11,7 @@ import os
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 import numpy as np
 import onnx
@@ -31,12 +31,9 @@ log = logging.getLogger(__name__)
 # "mse": each activation's own range, the one with the lowest expected quantisation error on
 # its calibration histogram (ranges.py); the others are ONNX Runtime's rules, one per graph.
 CALIBRATION_METHODS: tuple[str, ...] = ("minmax", "entropy", "percentile", "mse")
-# The compute-heavy ops only. Measured (benchmarks/results/quantize.changes.md; ORT 1.31, 2
-# threads, AVX2 without VNNI): also quantising the CNN blocks' Add/Mul/Sigmoid, with BatchNorm
-# rewritten as a depthwise Conv (ELEMENTWISE_OP_TYPES + batchnorm_as_conv), made `paper` ~6%
-# faster (1.21x -> 1.28x over fp32) but moved the trained tiny's poses further from fp32
-# (10.4% -> 11.3% of MPJPE with only the recurrence in float), so it stays opt-in.
-ELEMENTWISE_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm", "Add", "Mul", "Sigmoid")
+# The compute-heavy ops only. Quantising the CNN blocks' Add/Mul/Sigmoid too (with BatchNorm
+# as a depthwise Conv) made `paper` ~6% faster on an AVX2 host but moved the trained tiny's
+# poses further from fp32 (10.4% -> 11.3% of MPJPE): benchmarks/results/quantize.changes.md.
 DEFAULT_OP_TYPES: tuple[str, ...] = ("Conv", "MatMul", "Gemm")
 # CPU kinds an INT8 graph can be quantised for ("unknown" hosts as for int8 dot-product
 # units, ONNX Runtime's default).
@@ -75,8 +72,6 @@ class StaticConfig:
     weight_type: str = "QInt8"
     op_types: tuple[str, ...] = DEFAULT_OP_TYPES
     percentile: float = 99.999
-    # Rewrite inference-mode BatchNorm as depthwise 1x1 Conv before quantising (batchnorm.py).
-    batchnorm_as_conv: bool = False
     # 7-bit weights (ONNX Runtime's reduce_range): recommended by ONNX Runtime "for better
     # accuracy on non-VNNI CPUs", whose U8S8 kernels add pairs of u8 x s8 products in
     # saturating 16-bit arithmetic; 7-bit weights keep such a pair inside 16 bits.
@@ -87,19 +82,19 @@ class StaticConfig:
             raise ConfigError(f"unknown calibration {self.calibration!r}; choose from {list(CALIBRATION_METHODS)}")
 
     @classmethod
-    def for_target(cls, target_isa: str, **fields) -> "StaticConfig":
-        """The config for a target CPU kind (`utils.isa.CpuIsa.kind`): 7-bit weights where the
-        target has no int8 dot-product units (AVX2 and other x86), 8-bit elsewhere."""
-        return cls(reduce_range=saturates_u8s8(target_isa), **fields)
+    def for_target(cls, target: str, isa: str, **fields) -> "StaticConfig":
+        """The config for a target (`options.TARGETS`) on a CPU kind (`utils.isa.CpuIsa.kind`):
+        7-bit weights where a CPU target has no int8 dot-product units (AVX2 and other x86),
+        8-bit elsewhere, and always for an NPU, whose integer kernels do not saturate so."""
+        return cls(reduce_range=target != "npu" and saturates_u8s8(isa), **fields)
 
     def to_dict(self) -> dict:
         return {**asdict(self), "format": "QDQ", "op_types": list(self.op_types)}
 
 
-def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticConfig | None = None) -> None:
+def preprocess(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """ORT's recommended pre-pass: symbolic shape inference and basic graph optimisation
-    (constant folding, redundant nodes), so the quantiser sees shapes for every tensor;
-    then the config's own graph rewrites (None: the default config's)."""
+    (constant folding, redundant nodes), so the quantiser sees shapes for every tensor."""
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     quant_pre_process(str(src), str(dst), skip_optimization=False, skip_onnx_shape=False,
@@ -110,11 +105,6 @@ def preprocess(src: str | os.PathLike, dst: str | os.PathLike, config: StaticCon
     # "batch" under PYTHONHASHSEED 0, 1 and 4 and "unk__0" under 2, 3 and 5 (ORT 1.31), so two
     # runs of `quantize` wrote artifacts whose interface differed.
     restore_interface_types(model, onnx.load(str(src), load_external_data=False))
-    if (config or StaticConfig()).batchnorm_as_conv:
-        from e3dpsm.quantize.batchnorm import batchnorm_as_depthwise_conv
-
-        model, count = batchnorm_as_depthwise_conv(model)
-        log.info("%d BatchNormalization node(s) rewritten as depthwise 1x1 Conv", count)
     onnx.save(model, str(dst))
 
 
@@ -202,46 +192,6 @@ def int16_tensors(model: onnx.ModelProto, nodes: Iterable[str], cache: str | os.
     return sorted(set(found))
 
 
-def _weight_inputs(model: onnx.ModelProto, nodes: Iterable[str]) -> Iterator[tuple[onnx.NodeProto, int, str]]:
-    """(node, input index, tensor) for each initializer among the first two inputs of `nodes`."""
-    initializers = {init.name for init in model.graph.initializer}
-    wanted = set(nodes)
-    for node in model.graph.node:
-        if node.name in wanted:
-            for index, tensor in enumerate(node.input[:2]):
-                if tensor in initializers:
-                    yield node, index, tensor
-
-
-def int16_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str]) -> dict[str, list[dict]]:
-    """TensorQuantOverrides giving the weights of `nodes` 16 bits, symmetric per tensor: at
-    65,535 levels one scale per tensor rounds finer than 8 bits per channel by two orders of
-    magnitude, and ONNX Runtime then widens a weight scale where the int32 bias would overflow
-    (its QDQ quantiser's bias check). Full range: ONNX Runtime's reduce_range would make them
-    15-bit, for kernels that never read them (`full_range_weight_overrides`)."""
-    from onnxruntime.quantization import QuantType
-
-    return {tensor: [{"quant_type": QuantType.QInt16, "symmetric": True, "reduce_range": False}]
-            for _, _, tensor in _weight_inputs(model, nodes)}
-
-
-def full_range_weight_overrides(model: onnx.ModelProto, nodes: Iterable[str], per_channel: bool) -> dict[str, list[dict]]:
-    """TensorQuantOverrides giving the 8-bit weights of 16-bit-activation `nodes` the full
-    8-bit range where the config reduces it (`StaticConfig.reduce_range`). The 7-bit range
-    guards the U8S8 kernels' 16-bit pair sums, and only a node whose activations are 8-bit
-    reaches those kernels: with a 16-bit input, ONNX Runtime and OpenVINO run the node in
-    float behind its DequantizeLinear, and a 7-bit weight would double its rounding step for
-    nothing. An override without an axis makes ONNX Runtime quantise the weight per tensor,
-    so a per-channel config names each weight's channel axis (`weight_channel_axis`)."""
-    overrides: dict[str, list[dict]] = {}
-    for node, index, tensor in _weight_inputs(model, nodes):
-        if index != 1:
-            continue
-        axis = weight_channel_axis(node) if per_channel else None
-        overrides[tensor] = [{"reduce_range": False, **({"axis": axis} if axis is not None else {})}]
-    return overrides
-
-
 def weight_channel_axis(node: onnx.NodeProto) -> int | None:
     """The output-channel axis of a Conv/MatMul/Gemm weight (input 1), as ONNX Runtime's QDQ
     quantiser chooses it per channel (its operators' default axes); None for other ops.
@@ -280,21 +230,15 @@ def quantize_int8(
     src: str | os.PathLike, dst: str | os.PathLike, config: StaticConfig, *,
     exclude: Iterable[str] = (), calibration: CalibrationSet | None = None, cache: str | os.PathLike,
     learned: Mapping[str, Mapping[str, Any]] | None = None, int16_nodes: Iterable[str] = (),
-    int16w16_nodes: Iterable[str] = (),
 ) -> None:
     """Quantise the pre-processed graph `src` to `dst` with the ranges of `cache`, calibrating
     first (`calibrate`) if there is no cache yet: `calibration` is needed then only.
 
     `learned`: {tensor: {"scale", "zero_point"}} written as they are (QAT ranges,
     qat_ranges.py); `int16_nodes`: nodes whose activations are quantised to 16 bits (QUInt16;
-    the graph must be at opset 21 already, `ensure_opset`), their 8-bit weights at the full
-    range where the config reduces it (`full_range_weight_overrides`); `int16w16_nodes`: the same, and
-    their weights 16-bit too (`int16_weight_overrides`). All go through ONNX Runtime's
-    TensorQuantOverrides. A node named at 16 bits is quantised even where `exclude` names it
-    too (a recurrent group's projection, kept in float with its group otherwise)."""
+    the graph must be at opset 21 already, `ensure_opset`), through ONNX Runtime's
+    TensorQuantOverrides. A node named at 16 bits is quantised even where `exclude` names it."""
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
-
-    from e3dpsm.quantize.qat_ranges import ort_overrides
 
     cache = Path(cache)
     if not cache.is_file():
@@ -302,17 +246,13 @@ def quantize_int8(
             raise ValueError("no calibration cache yet: pass the calibration set")
         calibrate(src, config, calibration, cache)
     int16: list[str] = []
-    weights16: dict[str, list[dict]] = {}
-    sixteen_bit = [*int16_nodes, *int16w16_nodes]
+    sixteen_bit = list(int16_nodes)
     if sixteen_bit:
         model = onnx.load(str(src))
         if graph_opset(model) < INT16_OPSET:
             raise ValueError(f"{src} is below opset {INT16_OPSET}: convert it with ensure_opset before calibrating")
         int16 = int16_tensors(model, sixteen_bit, cache)
-        weights16 = int16_weight_overrides(model, int16w16_nodes)
-        if config.reduce_range:
-            weights16.update(full_range_weight_overrides(model, int16_nodes, config.per_channel))
-    overrides = {**ort_overrides(learned or {}, int16, int16_ranges(cache, int16)), **weights16}
+    overrides = ort_overrides(learned or {}, int16, int16_ranges(cache, int16))
     quantize_static(
         str(src), str(dst),
         calibration_data_reader=None,  # the ranges come from the cache written above
@@ -339,3 +279,23 @@ def quantised_node_count(model: onnx.ModelProto) -> dict[str, int]:
         if node.op_type in counts:
             counts[node.op_type] += 1
     return counts
+
+
+def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),
+                  int16_ranges: Mapping[str, tuple[float, float]] | None = None) -> dict[str, list[dict]]:
+    """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations
+    (with `int16_ranges` (rmin, rmax) where given). A tensor both learned and 16-bit keeps
+    16 bits (calibrated): a U8 range has no 16-bit form."""
+    from onnxruntime.quantization import QuantType
+
+    out: dict[str, list[dict]] = {}
+    for name, q in learned.items():
+        if name not in int16:
+            out[name] = [{"scale": np.array(q["scale"], np.float32), "zero_point": np.array(q["zero_point"], np.uint8)}]
+    for name in int16:
+        rng = (int16_ranges or {}).get(name)
+        extra = {"rmin": np.array(rng[0], np.float32), "rmax": np.array(rng[1], np.float32)} if rng else {}
+        out[name] = [{"quant_type": QuantType.QUInt16, **extra}]
+    return out
+
+

@@ -1,4 +1,4 @@
-"""Step latency of candidate graphs for the latency-aware exclusion search.
+"""Step latency of graphs timed side by side: the quantiser's verdict.
 
 A `StepTimer` takes {label: graph path} and returns {label: p50 step milliseconds}. The
 default one runs every graph on the same held-out frames, states carried, at the same
@@ -19,7 +19,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from e3dpsm.runtime.session import CarriedStateRunner, StepSession
+from e3dpsm.runtime.session import CarriedStateRunner
 
 StepTimer = Callable[[Mapping[str, "os.PathLike | str"]], Mapping[str, float]]
 # The share of bootstrap speed-ups an interval spans (10th to 90th percentile).
@@ -73,11 +73,11 @@ class SideBySideTimer:
     """
 
     def __init__(self, frames: np.ndarray, window_ms: float, threads: int | None = None, *,
-                 steps: int = 30, warmup: int = 5, chunk: int = 10) -> None:
+                 steps: int = 30, warmup: int = 5, chunk: int = 10, runtime: str = "onnxruntime") -> None:
         if len(frames) == 0:
             raise ValueError("the timer needs at least one frame")
         self.frames = np.asarray(frames, dtype=np.float32)
-        self.window_ms, self.threads = window_ms, threads
+        self.window_ms, self.threads, self.runtime = window_ms, threads, runtime
         self.steps, self.warmup, self.chunk = steps, warmup, chunk
 
     def __call__(self, graphs: Mapping[str, os.PathLike | str]) -> dict[str, float]:
@@ -96,11 +96,12 @@ class SideBySideTimer:
     def _seconds(self, graphs: Mapping[str, os.PathLike | str], steps: int) -> dict[str, np.ndarray]:
         """Per-step seconds of each graph, in step order (measure_side_by_side)."""
         from e3dpsm.profiles.latency import measure_side_by_side
+        from e3dpsm.quantize.holdout import open_stepper
 
-        runners = {label: CarriedStateRunner(StepSession(path, threads=self.threads), self.window_ms)
+        runners = {label: CarriedStateRunner(open_stepper(path, self.runtime, self.threads), self.window_ms)
                    for label, path in graphs.items()}
         return measure_side_by_side(runners, self.frames, steps, self.warmup, chunk=self.chunk)
 
     def describe(self) -> dict:
-        return {"kind": "side_by_side", "threads": self.threads, "steps": self.steps, "warmup": self.warmup,
+        return {"kind": "side_by_side", "runtime": self.runtime, "threads": self.threads, "steps": self.steps, "warmup": self.warmup,
                 "chunk": self.chunk, "frames": int(len(self.frames))}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -13,14 +14,27 @@ from e3dpsm.data.layout import write_dataset_index, write_synthetic_sequence
 from e3dpsm.data.prepare import prepare_dataset
 from e3dpsm.data.synth.generator import SynthConfig, generate_sequence
 
+if TYPE_CHECKING:
+    from e3dpsm.budget import TaskBudget
+    from e3dpsm.quantize import QuantizeOptions
+
 SPLITS = {"train": ["seq_0000", "seq_0001"], "val": ["seq_0002"], "test": ["seq_0003"]}
 TRAINED_TINY = Path(__file__).parent / "fixtures" / "tiny_trained" / "checkpoint.pt"
 # One ONNX Runtime intra-op thread (a default session adds a pool thread per core that spins
-# between steps, against the test itself under `pytest -n`), 5 timed steps per search
-# candidate and 20 for the verdict's timing of the artifact: the tests check what a graph
-# computes, never how fast (benchmarks do).
-RUNTIME = dict(threads=1, timing_steps=5, artifact_timing_steps=20)
-FAST = dict(frames=16, holdout_frames=40, rank_frames=20, max_rounds=1, **RUNTIME)
+# between steps, against the test itself under `pytest -n`), few frames per stage and 10 steps
+# for the verdict's timing: the tests check what a graph computes, never how fast (benchmarks do).
+FAST_ADVANCED = dict(search_frames=40, rank_frames=20, max_trials=8, timing_steps=10)
+
+
+def fast(**fields) -> "QuantizeOptions":
+    """QuantizeOptions for the tests: top-level and advanced fields by name, the fast defaults
+    (16 calibration frames, one thread) where not given."""
+    from e3dpsm.quantize import Advanced, QuantizeOptions
+
+    advanced = {k: fields.pop(k) for k in list(fields) if k in Advanced.__dataclass_fields__}
+    fields.setdefault("frames", 16)
+    fields.setdefault("threads", 1)
+    return QuantizeOptions(**fields, advanced=Advanced(**{**FAST_ADVANCED, **advanced}))
 
 
 def make_prepared(root: Path, seconds: float = 1.0) -> Path:
@@ -91,50 +105,49 @@ def calibrated_tiny(tmp_path_factory, trained_graph, quant_data) -> dict:  # noq
 
 
 @pytest.fixture(scope="session")
-def int8_recurrent_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
-    """The trained tiny in INT8 with only the recurrence in float (no search)."""
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+def full_integer_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
+    """The trained tiny in INT8, every Conv/MatMul/Gemm outside the recurrence at 8 bits (no search)."""
+    from e3dpsm.quantize import quantize_graph
 
-    out = tmp_path_factory.mktemp("q") / "int8_recurrent_float"
-    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(**RECURRENT_FLOAT))
+    out = tmp_path_factory.mktemp("q") / "full_integer"
+    quantize_graph(trained_graph, quant_data, out, fast(mode="int8", exclude="recurrent"))
     return out
 
 
-# Every output pair kept, as the search's base trial keeps them (QuantizeOptions.float_outputs):
-# the test budget is half that trial's error.
-RECURRENT_FLOAT = dict(mode="int8", exclude="recurrent", frames=FAST["frames"], holdout_frames=FAST["holdout_frames"],
-                       float_outputs="none", **RUNTIME)
+@pytest.fixture(scope="session")
+def int8_test_budget(full_integer_dir, trained_graph, quant_data) -> "TaskBudget":  # noqa: F811
+    """A budget the full-integer graph misses on the search split, measured on this host, so
+    that the search has work to do on every kind of CPU (INT8 error depends on the kernels:
+    e3dpsm/utils/isa.py): half the largest upper bound of its task metrics, the other limits wide."""
+    from e3dpsm.budget import TaskBudget
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.quantize.holdout import held_out, judge
+
+    search = held_out(trained_graph, PreparedData.open(quant_data).split("val"), 20.0,
+                      FAST_ADVANCED["search_frames"], "val", threads=1)
+    check = judge(full_integer_dir / "step_int8.onnx", search, TaskBudget(), ("onnxruntime",), threads=1).worst
+    worst = max(check.metrics, key=lambda m: m.upper_pct)
+    assert worst.upper_pct > 0, "quantising the trained tiny raised none of its task metrics"
+    limits = {"mpjpe_pct": 100.0, "pa_mpjpe_pct": 100.0, "jitter_pct": 100.0}
+    limits[f"{worst.name}_pct"] = round(worst.upper_pct / 2, 4)
+    return TaskBudget(**limits)
 
 
 @pytest.fixture(scope="session")
-def int8_test_budget_pct(int8_recurrent_dir) -> float:  # noqa: F811
-    """Half the trained tiny's INT8 error with only the recurrence in float, measured on this
-    host, so that the search has work to do and a result to find on every kind of CPU.
-
-    That error depends on the CPU (e3dpsm/utils/isa.py): 10.4% of MPJPE on AVX2 hosts, whose
-    U8S8 kernels add product pairs in saturating 16-bit arithmetic, and 2.19% on a Xeon with
-    AVX-512 VNNI and AMX. A fixed 5% budget sat below the first and above the second, where
-    the search then had nothing to do and the tests expecting it to work failed."""
-    import json
-
-    return round(json.loads((int8_recurrent_dir / "report.json").read_text())["holdout"]["bound_pct"] / 2, 4)
-
-
-@pytest.fixture(scope="session")
-def int8_dir(tmp_path_factory, trained_graph, quant_data, int8_test_budget_pct) -> Path:  # noqa: F811
-    """The trained tiny quantised to INT8 under the test budget (shared by the quantise and
-    golden tests)."""
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+def int8_dir(tmp_path_factory, trained_graph, quant_data, int8_test_budget) -> Path:  # noqa: F811
+    """The trained tiny quantised to INT8 by the default search under the test budget (shared
+    by the quantise and golden tests)."""
+    from e3dpsm.quantize import quantize_graph
 
     out = tmp_path_factory.mktemp("q") / "int8"
-    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="int8", budget_pct=int8_test_budget_pct, **FAST))
+    quantize_graph(trained_graph, quant_data, out, fast(mode="int8", budget=int8_test_budget))
     return out
 
 
 @pytest.fixture(scope="session")
 def fp16_dir(tmp_path_factory, trained_graph, quant_data) -> Path:  # noqa: F811
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
     out = tmp_path_factory.mktemp("q") / "fp16"
-    quantize_graph(trained_graph, quant_data, out, QuantizeOptions(mode="fp16", **FAST))
+    quantize_graph(trained_graph, quant_data, out, fast(mode="fp16"))
     return out

@@ -144,7 +144,7 @@ def cycles(edges: dict[str, set[str]]) -> list[tuple[str, ...]]:
 
 def test_the_walk_sees_the_whole_package():
     modules = package_modules()
-    for name in ("e3dpsm.runtime.session", "e3dpsm.export.parity", "e3dpsm.quantize.api", "e3dpsm.profiles.flops",
+    for name in ("e3dpsm.runtime.session", "e3dpsm.export.parity", "e3dpsm.quantize.pipeline", "e3dpsm.profiles.flops",
                  "e3dpsm.golden.diagnose", "e3dpsm.onnx_groups", "e3dpsm.cli"):
         assert name in modules, name
     edges = import_edges(modules)

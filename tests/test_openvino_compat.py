@@ -1,4 +1,4 @@
-"""quantize/openvino_compat.py: the Reshapes OpenVINO's low precision transformations misread
+"""export/openvino_compat.py: the Reshapes OpenVINO's low precision transformations misread
 after an 8-bit 2-D product (a compile error, or silently wrong scales), guarded so that
 OpenVINO compiles the graph and computes what ONNX Runtime and numpy compute."""
 from __future__ import annotations
@@ -11,8 +11,8 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from _quantize_helpers import RUNTIME, quant_data  # noqa: F401 (fixture)
-from e3dpsm.quantize.openvino_compat import GUARD_SUFFIX, openvino_compatible, remove_guards, row_splitting_reshapes
+from _quantize_helpers import fast, quant_data  # noqa: F401 (fixture)
+from e3dpsm.export.openvino_compat import GUARD_SUFFIX, openvino_compatible, remove_guards, row_splitting_reshapes
 
 X_SCALE, X_ZERO = np.float32(0.02), np.uint8(128)
 ATTENTION = [-1, 48, 64, 4, 8]  # `paper`'s value projection at 192 x 256: 48 rows of 32 channels
@@ -201,15 +201,15 @@ def test_paper_full_integer_at_192x256_compiles_and_runs_on_openvino(quant_data,
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.export import export_step
     from e3dpsm.metrics import joint_errors
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
     from e3dpsm.runtime import StepSession
     from e3dpsm.runtime.openvino_session import OpenVINOStepSession
     from e3dpsm.validation.streams import onnx_stream_outputs
 
     graph = export_step(e3dpsm.create_model("paper").eval(), tmp_path / "step.onnx")
-    report = quantize_graph(graph, quant_data, tmp_path / "int8", QuantizeOptions(
-        mode="int8", exclude="none", frames=16, holdout_frames=8, runtimes=("onnxruntime", "openvino"), **RUNTIME))
-    assert set(report["holdout"]["bound_pct_by_runtime"]) == {"onnxruntime", "openvino"}
+    report = quantize_graph(graph, quant_data, tmp_path / "int8", fast(
+        mode="int8", exclude="none", holdout_frames=8, runtimes=("onnxruntime", "openvino")))
+    assert set(report["check"]["by_runtime"]) == {"onnxruntime", "openvino"}
     artifact = tmp_path / "int8" / report["artifact"]
     model = onnx.load(str(artifact))
     guards = {n.name for n in model.graph.node if n.name.endswith(GUARD_SUFFIX)}

@@ -160,7 +160,7 @@ def test_stateful_runtime_imports_no_torch():
 def int8_graph(tmp_path_factory, tiny_step_graph) -> Path:  # noqa: F811
     """The tiny graph as INT8 QDQ as `e3dpsm quantize` makes it by default (recurrence kept in
     float), calibrated on frames 8-23 of an fp32 rollout with the states it carried."""
-    from e3dpsm.quantize import recurrent_groups
+    from e3dpsm.quantize.graph_groups import recurrent_groups
     from e3dpsm.quantize.artifact import finalize, save_model
     from e3dpsm.quantize.calibration import CalibrationSet
     from e3dpsm.quantize.static import StaticConfig, preprocess, quantize_int8

@@ -1,32 +1,36 @@
-"""The pipeline index's line on how far the INT8 budget carried to unseen data."""
+"""The pipeline index: the INT8 verdict on top, its budget table, the serve command."""
 from __future__ import annotations
 
 import json
 
-from e3dpsm.pipeline.report import budget_gap
+from e3dpsm.pipeline.report import int8_section, write_index
 
 
-def _check(folder, runtime: str, means: list[float], scale_mm: float) -> None:
-    folder.mkdir(parents=True)
-    tensors = [{"kind": "output", "name": n, "mean": m} for n, m in zip(("pose", "pose_direct", "pose_delta"), means)]
-    tensors.append({"kind": "state", "name": "fusion_pose", "mean": None})
-    (folder / "check.json").write_text(json.dumps({"runtime": runtime, "scale_mm": scale_mm, "tensors": tensors}))
+def _quantize_report() -> dict:
+    metric = lambda name, change, upper, limit: {"name": name, "change_pct": change, "upper_pct": upper,  # noqa: E731
+                                                 "limit_pct": limit, "within": upper <= limit}
+    metrics = {"mpjpe": metric("mpjpe", 0.2, 0.6, 1.0), "pa_mpjpe": metric("pa_mpjpe", -0.1, 0.3, 1.0),
+               "jitter": metric("jitter", 4.0, 5.5, 5.0)}
+    return {"verdict": {"headline": "Verdict: over budget, do not ship: jitter ..."},
+            "check": {"data": "prepared/test", "frames": 200, "within": False,
+                      "by_runtime": {"openvino": {"metrics": metrics}}}}
 
 
-def test_gap_between_the_search_and_the_golden_checks(tmp_path) -> None:
-    report = {"holdout": {"bound_pct": 0.5, "split": "val", "frames": 100}, "quantization": {"budget_pct": 1.0}}
-    # worst output / scale: 1.5 / 200 = 0.75% on ORT (1.5x the search's 0.5%), 0.25 / 200 on OpenVINO
-    _check(tmp_path / "golden/checks/step_int8-onnxruntime", "onnxruntime", [1.0, 1.5, 0.2], 200.0)
-    _check(tmp_path / "golden/checks/step_int8-openvino", "openvino", [0.25, 0.1, 0.05], 200.0)
-    _check(tmp_path / "golden/checks/step_fp16-onnxruntime", "onnxruntime", [9.0, 9.0, 9.0], 200.0)  # not int8
-    line = budget_gap(tmp_path, report)
-    assert "measured 0.500% on `val` (100 frames)" in line
-    assert "0.750% on onnxruntime (1.50x), 0.125% on openvino (0.25x)" in line and line.endswith("budget 1%.")
+def test_int8_section_lists_each_metric_against_its_limit() -> None:
+    lines = int8_section(_quantize_report())
+    assert lines[0] == "## INT8 against its budget" and "On 200 held-out frames (prepared/test)" in lines[2]
+    assert "| openvino | mpjpe | +0.200 | +0.600 | +1 | yes |" in lines
+    assert "| openvino | jitter | +4.000 | +5.500 | +5 | **no** |" in lines
+    assert int8_section({}) == [] and int8_section({"check": {"by_runtime": {}}}) == []
 
 
-def test_no_golden_check_no_line(tmp_path) -> None:
-    assert budget_gap(tmp_path, {"holdout": {"bound_pct": 0.5, "split": "val", "frames": 100}}) is None
-    assert budget_gap(tmp_path, {}) is None
+def test_index_opens_with_the_int8_verdict(tmp_path) -> None:
+    (tmp_path / "quantize/int8").mkdir(parents=True)
+    (tmp_path / "quantize/int8/report.json").write_text(json.dumps(_quantize_report()))
+    write_index(tmp_path, {"variant": "tiny", "seed": 1, "window_ms": 20, "threads": 2}, [])
+    text = (tmp_path / "report/index.md").read_text().splitlines()
+    assert text[2] == "**Verdict: over budget, do not ship: jitter ...**"
+    assert "## INT8 against its budget" in text
 
 
 def test_index_gives_the_serve_command_for_the_held_out_sequence(tmp_path) -> None:
@@ -50,22 +54,3 @@ def test_index_gives_the_serve_command_for_the_held_out_sequence(tmp_path) -> No
     assert "e3dpsm serve" in (out / "report/index.html").read_text()
 
 
-def test_gap_names_a_lowest_budget_reference(tmp_path) -> None:
-    report = {"holdout": {"bound_pct": 0.8, "split": "val", "frames": 100, "budget_reference": "lowest",
-                          "budget_mpjpe_mm": 101.04, "fp32_mpjpe_mm": 352.08}, "quantization": {"budget_pct": 1.0}}
-    _check(tmp_path / "golden/checks/step_int8-onnxruntime", "onnxruntime", [0.3, 0.6, 0.1], 170.0)
-    line = budget_gap(tmp_path, report)
-    assert "(100 frames, relative to 101.0 mm, the lowest fp32 MPJPE of any sequence it measured; `val` pooled: " \
-           "352.1 mm)" in line
-    assert "0.353% on onnxruntime (0.44x)" in line
-
-
-def test_gap_names_each_runtime_the_search_measured_on(tmp_path) -> None:
-    report = {"holdout": {"bound_pct": 0.4614, "split": "val", "frames": 100,
-                          "bound_pct_by_runtime": {"onnxruntime": 0.4614, "openvino": 0.4370}},
-              "quantization": {"budget_pct": 1.0}}
-    _check(tmp_path / "golden/checks/step_int8-openvino", "openvino", [0.3, 0.4, 0.1], 200.0)
-    line = budget_gap(tmp_path, report)
-    assert "measured 0.461% on `val` (the worse of onnxruntime 0.461%, openvino 0.437%; 100 frames)" in line
-    report["holdout"]["bound_pct_by_runtime"] = {"onnxruntime": 0.4614}  # one runtime: nothing to name
-    assert "measured 0.461% on `val` (100 frames)" in budget_gap(tmp_path, report)

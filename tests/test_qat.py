@@ -130,7 +130,7 @@ def test_full_integer_fake_quant_covers_the_recurrent_path_too() -> None:
     """--qat-full-integer simulates `quantize --exclude none`: the delta head and the fusion's
     pose embedding are fake-quantised as well, and the S5 states the readouts read (graph
     outputs, renamed by ONNX Runtime's quantiser) are named as the graph names them."""
-    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX, qat_plan
+    from e3dpsm.training.qat_ranges import GRAPH_OUTPUT_SUFFIX, qat_plan
 
     model = e3dpsm.create_model("tiny", height=96, width=128).eval()
     full = [name for name, _ in quantised_modules(model, full_integer=True)]
@@ -155,7 +155,7 @@ def test_quantised_activations_name_quantised_graph_outputs_as_the_graph_does(tm
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.training.qat_ranges import quantised_activations
 
     w = numpy_helper.from_array(np.eye(4, dtype=np.float32), "w")
     graph = helper.make_graph(

@@ -16,7 +16,7 @@ from e3dpsm.training.qat import QATConfig, attach_fake_quant
 from e3dpsm.training.qat_lsq import LearnedQuantizer
 from e3dpsm.training.qat_sites import match_groups
 
-from _quantize_helpers import RUNTIME, TRAINED_TINY
+from _quantize_helpers import TRAINED_TINY, fast
 
 
 def numpy_qdq_u8(x: np.ndarray, scale: np.float32, zero: int) -> np.ndarray:
@@ -134,7 +134,7 @@ def _quantised_tensor(name: str) -> str:
     """The graph tensor a QuantizeLinear input stands for: an S5 readout quantises its copy of
     the state (`<node>/<state>/state_read`, graph_groups.isolate_state_reads), not the state."""
     from e3dpsm.quantize.graph_groups import STATE_READ_SUFFIX
-    from e3dpsm.quantize.qat_ranges import GRAPH_OUTPUT_SUFFIX
+    from e3dpsm.training.qat_ranges import GRAPH_OUTPUT_SUFFIX
 
     if name.endswith(STATE_READ_SUFFIX):
         return name.removesuffix(STATE_READ_SUFFIX).rsplit("/", 1)[1]
@@ -144,10 +144,10 @@ def _quantised_tensor(name: str) -> str:
 def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str], list[str]]:
     """Quantise the full-integer QAT tiny with `--exclude none --ranges-from-checkpoint`:
     (the recurrent path's learned tensors, those whose graph range is not the learned one)."""
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
-    report = quantize_graph(run["graph"], quant_data, work / "q", QuantizeOptions(
-        mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"]), **RUNTIME))
+    report = quantize_graph(run["graph"], quant_data, work / "q", fast(
+        mode="int8", exclude="none", holdout_frames=20, ranges_from_checkpoint=str(run["checkpoint"])))
     groups = list(zip(run["handle"].groups, run["handle"].quantizers))
     by_tensor = {t: q.qparams() for g, q in groups for t in g.tensors}
     recurrent = [t for g, _ in groups for t in g.tensors
@@ -159,8 +159,8 @@ def _recurrent_ranges(run: dict, quant_data: Path, work: Path) -> tuple[list[str
     wrong = [t for t in recurrent if not (written[t][0] == np.float32(by_tensor[t][0])
                                           and int(written[t][1]) == by_tensor[t][1])]
     # The fine-tune simulated `--float-outputs matmul` (QATConfig's default for the full-integer
-    # graph) and the checkpoint says so: quantize builds that graph without being told.
-    assert report["quantization"]["float_outputs"] == ["MatMul", "Gemm"], report["quantization"]["float_outputs"]
+    # graph), the checkpoint says so, and it is quantize's default too.
+    assert report["learned_ranges"]["float_outputs"] == report["quantization"]["float_outputs"] == "matmul"
     return recurrent, wrong
 
 
@@ -194,18 +194,16 @@ def test_qat_checkpoint_carries_learned_ranges_that_moved(qat_tiny) -> None:
 
 
 def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quant_data: Path, tmp_path: Path) -> None:
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
     out = tmp_path / "q"
-    report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
-        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"]),
-        **RUNTIME))
-    block = report["qat_ranges"]
+    report = quantize_graph(qat_tiny["graph"], quant_data, out, fast(
+        mode="int8", exclude="recurrent", holdout_frames=20, ranges_from_checkpoint=str(qat_tiny["checkpoint"])))
+    block = report["learned_ranges"]
     assert block["calibrated_tensors"] == 0 and block["uncovered"] == [], block["uncovered"]  # every range learned
-    assert (f"{block['learned_tensors']} of the {block['learned_tensors']} quantised tensors take"
+    assert (f"{block['learned_tensors']} of the {block['learned_tensors']} 8-bit activations take"
             in (out / "report.md").read_text())
-    # a fine-tune of the weights: the distance is to its own fp32 graph, and the report says so
-    assert block["weights_frozen"] is False and "how far the fine-tune moved" in (out / "report.md").read_text()
+    assert block["weights_frozen"] is False
     learned = {}
     for q in read_checkpoint(qat_tiny["checkpoint"])["qat_ranges"]["quantizers"]:
         for site in q["sites"]:
@@ -231,18 +229,12 @@ def test_qat_graph_quantisation_parameters_equal_the_learned_ones(qat_tiny, quan
     assert checked >= block["learned_tensors"] * 0.9 and checked > 50
 
 
-def test_ranges_learned_with_the_weights_frozen_are_judged_by_the_budget_in_the_report() -> None:
-    from e3dpsm.quantize.front_report import qat_ranges_lines
-    from e3dpsm.quantize.qat_ranges import learned_with_weights_frozen
+def test_ranges_learned_with_the_weights_frozen_are_told_from_a_fine_tune() -> None:
+    from e3dpsm.training.qat_ranges import learned_with_weights_frozen
 
     assert learned_with_weights_frozen({"distill_config": {"qat": True, "qat_ranges_only": True}})
     assert not learned_with_weights_frozen({"distill_config": {"qat": True}})
     assert not learned_with_weights_frozen({"train_args": {}})  # `train --qat` has no distill_config
-    block = {"checkpoint": "c.pt", "learned_tensors": 3, "calibrated_tensors": 0, "uncovered": []}
-    frozen = "\n".join(qat_ranges_lines({**block, "weights_frozen": True}))
-    tuned = "\n".join(qat_ranges_lines({**block, "weights_frozen": False}))
-    assert "the measure the budget holds" in frozen and "how far the fine-tune moved" not in frozen
-    assert "how far the fine-tune moved" in tuned and "the measure the budget holds" not in tuned
 
 
 COMMITTED_QAT = Path(__file__).resolve().parents[1] / "benchmarks" / "checkpoints" / "small_qat" / "checkpoint.pt"
@@ -252,7 +244,7 @@ def test_committed_qat_checkpoint_names_only_modules_the_model_has() -> None:
     """A module renamed after a QAT fine-tune silently returns its tensors to calibrated
     ranges (the deformable offsets did, 2026-12-01): the committed fine-tune must name only
     sites this version has, and a renamed one is found."""
-    from e3dpsm.quantize.qat_ranges import read_ranges, unknown_sites
+    from e3dpsm.training.qat_ranges import read_ranges, unknown_sites
 
     model, payload = load_checkpoint(COMMITTED_QAT)
     learned = read_ranges(payload, str(COMMITTED_QAT))
@@ -265,7 +257,7 @@ def test_committed_qat_checkpoint_names_only_modules_the_model_has() -> None:
 
 
 def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant_data: Path, tmp_path: Path) -> None:
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
     payload = read_checkpoint(qat_tiny["checkpoint"])
     quantizers = payload["qat_ranges"]["quantizers"]
@@ -274,9 +266,9 @@ def test_a_renamed_site_is_reported_and_keeps_a_calibrated_range(qat_tiny, quant
     stale_ckpt = tmp_path / "stale.pt"
     torch.save(payload, stale_ckpt)
     out = tmp_path / "q"
-    report = quantize_graph(qat_tiny["graph"], quant_data, out, QuantizeOptions(
-        mode="int8", exclude="recurrent", frames=16, holdout_frames=20, ranges_from_checkpoint=str(stale_ckpt), **RUNTIME))
-    block = report["qat_ranges"]
+    report = quantize_graph(qat_tiny["graph"], quant_data, out, fast(
+        mode="int8", exclude="recurrent", holdout_frames=20, ranges_from_checkpoint=str(stale_ckpt)))
+    block = report["learned_ranges"]
     assert block["unknown_sites"] == victim["sites"]
     assert block["calibrated_tensors"] >= 1
     assert "repeat the QAT fine-tune" in (out / "report.md").read_text()
@@ -302,7 +294,7 @@ def test_quantised_activations_include_the_state_read_copies(trained_graph: Path
     were found (the ladder's QAT default-search row, 2026-12-01)."""
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.quantize.graph_groups import STATE_READ_SUFFIX, isolate_state_reads, recurrent_groups
-    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.training.qat_ranges import quantised_activations
     from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
 
     pre = tmp_path / "pre.onnx"
@@ -323,7 +315,7 @@ def test_qat_covers_every_tensor_the_graph_quantises(fixture: str, request: pyte
     whose tensors have no module and so kept calibrated ranges (layers/products.py)."""
     from e3dpsm.graph_metadata import GraphMetadata
     from e3dpsm.quantize.graph_groups import recurrent_groups
-    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.training.qat_ranges import quantised_activations
     from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
 
     run = request.getfixturevalue(fixture)
@@ -405,7 +397,7 @@ SIMULATION_TOLERANCE = 0.3
 
 
 def _simulation_gap(run: dict, graph: Path) -> dict[str, float]:
-    from e3dpsm.quantize.qat_ranges import probe_feed, tensor_values
+    from e3dpsm.training.qat_ranges import probe_feed, tensor_values
 
     model, handle = run["handle"].model, run["handle"]
     outputs = ("pose", "pose_direct", "pose_delta")
@@ -438,7 +430,7 @@ def _largest_weight_integer(graph: Path) -> int:
 
 def test_fake_quantised_step_is_the_full_integer_graphs_step(qat_tiny_full_integer, quant_data: Path,
                                                               tmp_path: Path) -> None:
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
     run = qat_tiny_full_integer
     graphs, reports = {}, {}
@@ -448,14 +440,10 @@ def test_fake_quantised_step_is_the_full_integer_graphs_step(qat_tiny_full_integ
     # so the comparison holds on either kind of host.
     for name, ranges, isa in (("learned", str(run["checkpoint"]), "vnni"), ("calibrated", None, "vnni"),
                               ("learned_avx2", str(run["checkpoint"]), "avx2")):
-        reports[name] = quantize_graph(run["graph"], quant_data, tmp_path / name, QuantizeOptions(
-            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=ranges,
-            target_isa=isa, **RUNTIME))
+        reports[name] = quantize_graph(run["graph"], quant_data, tmp_path / name, fast(
+            mode="int8", exclude="none", holdout_frames=20, ranges_from_checkpoint=ranges, target=isa))
         graphs[name] = tmp_path / name / reports[name]["artifact"]
-    assert reports["learned"]["qat_ranges"]["weights"] == {"trained_bits": 8, "graph_bits": 8, "target_isa": "vnni"}
-    assert reports["learned_avx2"]["qat_ranges"]["weights"] == {"trained_bits": 8, "graph_bits": 7,
-                                                                "target_isa": "avx2"}
-    assert "where the fine-tune simulated 8-bit" in (tmp_path / "learned_avx2" / "report.md").read_text()
+    assert reports["learned"]["learned_ranges"]["trained_weight_bits"] == 8
     assert _largest_weight_integer(graphs["learned"]) == 127
     assert _largest_weight_integer(graphs["learned_avx2"]) <= 64
     learned = _simulation_gap(run, graphs["learned"])
@@ -520,7 +508,7 @@ def test_full_integer_qat_learns_no_range_where_its_graph_leaves_an_output_float
     """QATConfig(full_integer=True) simulates `quantize --exclude none` as quantize builds it,
     MatMul/Gemm outputs that no quantised op reads in float (--float-outputs matmul). Catches:
     quantisers learned (and rounding simulated) on outputs the graph never rounds."""
-    from e3dpsm.quantize.qat_ranges import quantised_activations
+    from e3dpsm.training.qat_ranges import quantised_activations
     from e3dpsm.quantize.static import DEFAULT_OP_TYPES, preprocess
 
     pre = tmp_path / "pre.onnx"
@@ -535,35 +523,12 @@ def test_full_integer_qat_learns_no_range_where_its_graph_leaves_an_output_float
     assert not any(producers.get(t) == "Conv" for t in dropped)
 
 
-def test_a_7_bit_fine_tune_is_what_an_avx2_graph_computes_and_is_flagged_for_vnni(qat_tiny_full_integer,
-                                                                                 quant_data: Path, tmp_path: Path) -> None:
-    """The checkpoint's `qat_ranges.weight_bits` reaches the report: a fine-tune that simulated
-    7-bit weights matches the graph of a target without int8 dot-product units, and is flagged
-    on a `vnni` target (8-bit weights). Catches: the trained bits taken as 8 whatever the
-    checkpoint says, or the mismatch text claiming the target lacks dot-product units."""
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
-
-    model, payload = load_checkpoint(qat_tiny_full_integer["checkpoint"])
-    ranges = {**payload["qat_ranges"], "weight_bits": 7}
-    seven = save_checkpoint(tmp_path / "seven.pt", model, qat_ranges=ranges)
-    weights, text = {}, {}
-    for isa in ("avx2", "vnni"):
-        report = quantize_graph(qat_tiny_full_integer["graph"], quant_data, tmp_path / isa, QuantizeOptions(
-            mode="int8", exclude="none", frames=16, holdout_frames=20, ranges_from_checkpoint=str(seven), target_isa=isa,
-            **RUNTIME))
-        weights[isa], text[isa] = report["qat_ranges"]["weights"], (tmp_path / isa / "report.md").read_text()
-    assert weights["avx2"] == {"trained_bits": 7, "graph_bits": 7, "target_isa": "avx2"}
-    assert "Weights: 7-bit, as the fine-tune simulated them." in text["avx2"]
-    assert weights["vnni"] == {"trained_bits": 7, "graph_bits": 8, "target_isa": "vnni"}
-    assert "`--qat-weight-bits 8`" in text["vnni"] and "has no int8 dot-product units" not in text["vnni"]
-
-
 def test_coverage_counts_the_written_graphs_8_bit_activations() -> None:
     """Learned and calibrated ranges are counted over the activations the written graph
     quantises to 8 bits; a 16-bit one is counted apart, a weight (an initializer) not at all."""
     from onnx import TensorProto, helper
 
-    from e3dpsm.quantize.qat_ranges import coverage_in_graph
+    from e3dpsm.training.qat_ranges import coverage_in_graph
 
     def zero_point(name: str, dtype: int) -> onnx.TensorProto:
         return helper.make_tensor(name, dtype, [], [0])

@@ -147,86 +147,36 @@ def test_rounded_weights_lower_each_layers_output_error_and_go_into_the_graph(ti
     assert apply_rounding(model, shifted) == 0
 
 
-def test_reduced_range_graphs_take_each_rounding_where_its_scale_is_the_graphs(calibrated_tiny: dict, tmp_path) -> None:
-    """An AVX2 target's graph (reduce_range) carries 7-bit weights on its 8-bit nodes and full
-    8-bit weights on its 16-bit nodes (static.full_range_weight_overrides): AdaRound's
-    integers chosen at each range (`nodes` limits the second pass to the 16-bit nodes) go in
-    where the graph's scale is theirs, and nowhere else."""
-    from e3dpsm.quantize.adaround import adaround_weights
-    from e3dpsm.quantize.static import StaticConfig, quantize_int8
-
-    reduced, full = StaticConfig(reduce_range=True), StaticConfig()
-    pre = onnx.load(str(calibrated_tiny["pre"]))
-    config = AdaRoundConfig(iterations=30)
-
-    def probe(cfg: StaticConfig, name: str) -> onnx.ModelProto:
-        quantize_int8(calibrated_tiny["pre"], tmp_path / name, cfg, exclude=[], cache=calibrated_tiny["cache"])
-        return onnx.load(str(tmp_path / name))
-
-    narrow = adaround_weights(pre, probe(reduced, "narrow.onnx"), calibrated_tiny["feeds"][:8], config, threads=1)
-    convs = [n.name for n in pre.graph.node if n.op_type == "Conv" and "/stages." in n.name][:4]
-    full_probe = probe(full, "wide.onnx")
-    wide = adaround_weights(pre, full_probe, calibrated_tiny["feeds"][:8], config, threads=1, nodes=convs)
-    layers = find_layers(pre, full_probe)
-    assert sorted(layers[key].node.name for key in wide) == sorted(convs)
-    assert all(np.abs(r.integers).max() > 64 for r in wide.values())  # the full range
-    assert all(np.abs(r.integers).max() <= 64 for r in narrow.values())  # 7-bit
-
-    quantize_int8(calibrated_tiny["pre"], tmp_path / "mixed.onnx", reduced, exclude=[], cache=calibrated_tiny["cache"],
-                  int16_nodes=convs)
-    model = onnx.load(str(tmp_path / "mixed.onnx"))
-    assert apply_rounding(model, wide) == len(convs)
-    assert apply_rounding(model, narrow) == len(narrow) - len(convs)  # every other weight, none twice
-    written = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
-    assert all(np.array_equal(written[k], r.integers) for k, r in wide.items())
-
-
 def test_weight_rounding_refuses_what_it_cannot_do() -> None:
     from e3dpsm.errors import ConfigError
-    from e3dpsm.quantize import QuantizeOptions
+    from e3dpsm.quantize import Advanced, QuantizeOptions
 
-    with pytest.raises(ConfigError, match="--weight-rounding rounds INT8 weights"):
-        QuantizeOptions(mode="fp16", weight_rounding="adaround")
-    with pytest.raises(ConfigError, match="unknown weight rounding"):
-        QuantizeOptions(weight_rounding="stochastic")
+    with pytest.raises(ConfigError, match="--weight-rounding and --ranges-from-checkpoint shape INT8 graphs"):
+        QuantizeOptions(mode="fp16", advanced=Advanced(weight_rounding="adaround"))
+    with pytest.raises(ConfigError, match="unknown --weight-rounding"):
+        Advanced(weight_rounding="stochastic")
+    assert Advanced().weight_rounding == "nearest"  # the default: at 8-bit activations theirs is the error
 
 
-@pytest.mark.slow  # ~50 s; the default INT8 run (int8_dir) takes the same path with AdaRound on
+@pytest.mark.slow  # ~50 s
 def test_quantize_with_adaround_writes_its_integers_and_reports_them(tmp_path: Path, trained_graph: Path,
-                                                                      quant_data: Path, int8_recurrent_dir: Path) -> None:
-    from _quantize_helpers import RECURRENT_FLOAT
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+                                                                      quant_data: Path, full_integer_dir: Path) -> None:
+    from _quantize_helpers import fast
+    from e3dpsm.quantize import quantize_graph
 
-    nearest = json.loads((int8_recurrent_dir / "report.json").read_text())  # the same options, nearest rounding
-    ada = quantize_graph(trained_graph, quant_data, tmp_path / "ada", QuantizeOptions(weight_rounding="adaround",
-                                                                                      **RECURRENT_FLOAT))
-    rounding = ada["weight_rounding"]
+    nearest = json.loads((full_integer_dir / "report.json").read_text())  # the same options, nearest rounding
+    ada = quantize_graph(trained_graph, quant_data, tmp_path / "ada",
+                         fast(mode="int8", exclude="recurrent", weight_rounding="adaround"))
+    rounding = ada["rounding"]
     # Chosen for every weight once; written where this graph quantises it (not the recurrence's).
     assert rounding["method"] == "adaround" and 20 < rounding["applied"] < rounding["weights"]
     assert rounding["median_output_error_ratio"] < 1.0
     assert ada["quantization"]["weight_rounding"] == "adaround" and nearest["quantization"]["weight_rounding"] == "nearest"
     a = {i.name: numpy_helper.to_array(i) for i in onnx.load(str(tmp_path / "ada" / ada["artifact"])).graph.initializer}
     n = {i.name: numpy_helper.to_array(i)
-         for i in onnx.load(str(int8_recurrent_dir / nearest["artifact"])).graph.initializer}
+         for i in onnx.load(str(full_integer_dir / nearest["artifact"])).graph.initializer}
     int8 = [k for k in a if a[k].dtype == np.int8 and a[k].ndim >= 2]
     assert int8 and all(k in n and n[k].shape == a[k].shape for k in int8)  # the same graph, names compacted alike
     changed = [k for k in int8 if not np.array_equal(a[k], n[k])]
     assert len(changed) >= 0.5 * rounding["applied"]
     assert all(np.abs(a[k].astype(int) - n[k]).max() <= 1 for k in changed)
-    assert json.loads((tmp_path / "ada" / "report.json").read_text())["weight_rounding"]["applied"] == rounding["applied"]
-
-
-def test_adaround_is_the_default_where_the_search_may_keep_activations_at_16_bits(int8_dir: Path) -> None:
-    from e3dpsm.quantize import QuantizeOptions
-
-    assert QuantizeOptions().rounding == "adaround"
-    assert QuantizeOptions(exclude="none").rounding == "nearest"  # 8-bit activations dominate there
-    assert QuantizeOptions(exclude="recurrent").rounding == "nearest"
-    assert QuantizeOptions(int16=False).rounding == "nearest"
-    assert QuantizeOptions(search="groups").rounding == "nearest"
-    assert QuantizeOptions(mode="fp16").rounding == "nearest"
-    assert QuantizeOptions(exclude="none", weight_rounding="adaround").rounding == "adaround"
-    assert QuantizeOptions(weight_rounding="nearest").rounding == "nearest"
-    report = json.loads((int8_dir / "report.json").read_text())  # the shared default INT8 run
-    assert report["quantization"]["weight_rounding"] == "adaround"
-    assert report["weight_rounding"]["applied"] > 0 and report["weight_rounding"]["median_output_error_ratio"] < 1

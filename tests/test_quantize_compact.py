@@ -187,15 +187,15 @@ def test_diagnose_plans_the_compacted_graph_as_the_uncompacted_one(quantised_tin
 def test_quantize_writes_the_compacted_artifact_and_reports_it(int8_dir: Path, trained_graph: Path) -> None:
     report = json.loads((int8_dir / "report.json").read_text())
     model = onnx.load(str(int8_dir / report["artifact"]))
-    compaction = report["sizes"]["compaction"]
+    written = report["written"]
+    compaction = written["saved"]["compaction"]
     assert compaction["renamed"] > 100 and compaction["bytes_saved"] > 0
-    sizes = report["sizes"]
-    assert sizes["output_bytes"] == (int8_dir / report["artifact"]).stat().st_size
-    ratio = sizes["output_bytes"] / sizes["source_bytes"]
-    saved = compaction["bytes_saved"] + sizes["retiled_constants"]["bytes_saved"]  # onnx_constants.py too
+    assert written["bytes"] == (int8_dir / report["artifact"]).stat().st_size
+    ratio = written["bytes"] / written["source_bytes"]
+    saved = compaction["bytes_saved"] + written["saved"]["retiled_constants"]["bytes_saved"]  # onnx_constants.py too
     assert f"MB ({ratio:.3f}x), {saved / 1e3:.0f} kB less" in (int8_dir / "report.md").read_text()
     assert not model.graph.value_info
     assert not any(n.name.endswith(("QuantizeLinear", "DequantizeLinear")) for n in model.graph.node)
     assert {n.name for n in onnx.load(str(trained_graph)).graph.node} & {n.name for n in model.graph.node}
     assert json.loads(next(p.value for p in model.metadata_props if p.key == "e3dpsm.quantization"))[
-        "budget_reference"] == report["holdout"]["budget_reference"]
+        "budget"] == report["quantization"]["budget"]

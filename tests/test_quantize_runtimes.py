@@ -7,15 +7,15 @@ import numpy as np
 import onnx
 import pytest
 
-from _quantize_helpers import RECURRENT_FLOAT
+from _quantize_helpers import fast
+from e3dpsm.budget import BudgetCheck, MetricChange, TaskBudget, check_budget
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.quantize import QuantizeOptions, quantize_graph
-from e3dpsm.quantize import api
-from e3dpsm.quantize.front_report import markdown_report, runtimes_clause
-from e3dpsm.quantize.holdout import make_holdout
+from e3dpsm.quantize.holdout import Judgement
+from e3dpsm.runtime import StepSession
 from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 from e3dpsm.validation.streams import onnx_stream_outputs
 
@@ -37,70 +37,43 @@ def test_openvino_refused_in_one_line_where_it_is_not_available(monkeypatch):
     assert QuantizeOptions(runtimes=("onnxruntime",)).runtimes == ("onnxruntime",)  # not asked: not needed
 
 
-def test_the_worst_runtime_counts(monkeypatch, tmp_path):
-    measured = {"onnxruntime": 0.4, "openvino": 1.3}
-    monkeypatch.setattr(api, "accuracy_of", lambda model, holdout, threads, runtime: {
-        "bound_pct": measured[runtime], "mpjpe_mm": 10.0 + measured[runtime]})
-    options = QuantizeOptions(runtimes=("onnxruntime", "openvino"))
-    worst = api.worst_accuracy(tmp_path / "g.onnx", None, options)
-    assert worst["runtime"] == "openvino" and worst["bound_pct"] == 1.3 and worst["mpjpe_mm"] == 11.3
-    assert worst["bound_pct_by_runtime"] == measured
-    measured["onnxruntime"] = 1.31
-    assert api.worst_accuracy(tmp_path / "g.onnx", None, options)["runtime"] == "onnxruntime"
-    only = api.worst_accuracy(tmp_path / "g.onnx", None, options, runtimes=["onnxruntime"])
-    assert only["bound_pct_by_runtime"] == {"onnxruntime": 1.31}
+def _check(upper_pct: float) -> BudgetCheck:
+    metric = MetricChange("mpjpe", 100.0, 100.0 + upper_pct, upper_pct, upper_pct, upper_pct, 0.0, 1.0)
+    return BudgetCheck((metric,), 10, 1, upper_pct, TaskBudget())
 
 
-def test_a_search_trial_counts_openvino_but_the_ranking_does_not(monkeypatch, tmp_path):
-    """The evaluator the search probes with measures each trial on every runtime; the nodes
-    search's ranking only orders nodes, on the first runtime alone."""
-    asked = []
-    monkeypatch.setattr(api, "accuracy_of", lambda model, holdout, threads, runtime: asked.append(runtime) or {
-        "bound_pct": {"onnxruntime": 0.2, "openvino": 0.9}[runtime]})
-    monkeypatch.setattr(api, "finalize", lambda *a, **k: None)
-    monkeypatch.setattr(api, "save_model", lambda model, path: path.write_bytes(b""))
-    options = QuantizeOptions(runtimes=("onnxruntime", "openvino"))
-    trial = api._evaluator(None, None, options, tmp_path, lambda excluded: object())
-    assert trial([], "t") == 0.9 and asked == ["onnxruntime", "openvino"]
-    asked.clear()
-    ranking = api._evaluator(None, None, options, tmp_path, lambda excluded: object(), runtimes=options.runtimes[:1])
-    assert ranking([], "r") == 0.2 and asked == ["onnxruntime"]
+def test_the_worst_runtime_counts():
+    judged = Judgement({"onnxruntime": _check(0.4), "openvino": _check(1.3)})
+    assert judged.worst is judged.by_runtime["openvino"] and judged.worst_share == pytest.approx(1.3)
+    assert not judged.within and judged.to_dict()["by_runtime"]["onnxruntime"]["within"]
+    assert Judgement({"onnxruntime": _check(1.0), "openvino": _check(0.2)}).within  # inclusive, both
+    assert Judgement({"onnxruntime": _check(1.31), "openvino": _check(1.3)}).worst.metrics[0].upper_pct == 1.31
 
 
 def test_quantize_reports_the_budget_on_both_runtimes(tmp_path, trained_graph, quant_data):
-    """The written graph measured on both: the report's distance is the larger, each runtime's
-    figure matches a stream run here on that runtime (an independent loop over OpenVINO's
-    own session), and report.md names both."""
+    """The written graph is checked on both; OpenVINO's figures match an independent loop over
+    its own session on the held-out split; the metadata names both; report.md shows both."""
     out = tmp_path / "int8"
     report = quantize_graph(trained_graph, quant_data, out,
-                            QuantizeOptions(**{**RECURRENT_FLOAT, "runtimes": ("onnxruntime", "openvino")}))
-    h = report["holdout"]
-    assert set(h["bound_pct_by_runtime"]) == {"onnxruntime", "openvino"}
-    assert h["bound_pct"] == max(h["bound_pct_by_runtime"].values())
-    assert h["runtime"] == max(h["bound_pct_by_runtime"], key=h["bound_pct_by_runtime"].get)
-    holdout = make_holdout(trained_graph, PreparedData.open(quant_data).split("val"), 20.0,
-                           RECURRENT_FLOAT["holdout_frames"], 1)
-    session = OpenVINOStepSession(out / "step_int8.onnx", threads=1, precision="f32")
-    distances = []
-    for name in ("pose", "pose_direct", "pose_delta"):
-        ov = np.concatenate([onnx_stream_outputs(session, x, 20.0)[name] for x in holdout.lnes])
-        fp32 = np.concatenate([o[name] for o in holdout.fp32_outputs])
-        distances.append(np.linalg.norm(ov - fp32, axis=-1).mean())
-    expected = 100.0 * max(distances) / holdout.budget_mpjpe
-    assert h["bound_pct_by_runtime"]["openvino"] == pytest.approx(expected, rel=1e-4)
-    # The graph says where its budget was checked (`golden check` compares it with its runtime).
-    assert GraphMetadata.from_onnx(onnx.load(str(out / "step_int8.onnx"))).quantization["checked_on_runtimes"] == [
-        "onnxruntime", "openvino"]
+                            fast(mode="int8", exclude="recurrent", runtimes=("onnxruntime", "openvino")))
+    by_runtime = report["check"]["by_runtime"]
+    assert set(by_runtime) == {"onnxruntime", "openvino"}
+    assert report["check"]["within"] == all(c["within"] for c in by_runtime.values())
+    seq = PreparedData.open(quant_data).split("test")[0]
+    gt = np.asarray(seq.j3d_mm, np.float32)
+    x = np.asarray(seq.lnes, np.float32)
+    fp32 = onnx_stream_outputs(StepSession(trained_graph, threads=1), x, 20.0)["pose"]
+    ov = onnx_stream_outputs(OpenVINOStepSession(out / "step_int8.onnx", threads=1, precision="f32"), x, 20.0)["pose"]
+    expected = check_budget([ov], [fp32], [gt])
+    got = by_runtime["openvino"]["metrics"]
+    for metric in expected.metrics:
+        assert got[metric.name]["change_pct"] == pytest.approx(metric.change_pct, rel=1e-4, abs=1e-6)
+    assert by_runtime["openvino"]["fidelity_mm"] == pytest.approx(expected.fidelity_mm, rel=1e-4)
+    meta = GraphMetadata.from_onnx(onnx.load(str(out / "step_int8.onnx")))
+    assert meta.quantization["checked_on_runtimes"] == ["onnxruntime", "openvino"]
+    assert set(report["verdict"]["timings"]) == {"onnxruntime", "openvino"}
     md = (out / "report.md").read_text()
-    assert "The worst of 2 runtimes (`--runtimes`): ONNX Runtime" in md and "OpenVINO" in md
-    assert markdown_report(report) == md
-
-
-def test_runtimes_clause_only_when_checked_on_more_than_one():
-    assert runtimes_clause({"bound_pct_by_runtime": {"onnxruntime": 0.5}}) == ""
-    assert runtimes_clause({}) == ""
-    assert runtimes_clause({"bound_pct_by_runtime": {"onnxruntime": 0.4123, "openvino": 0.7456}}) == (
-        " The worst of 2 runtimes (`--runtimes`): ONNX Runtime 0.412%, OpenVINO 0.746%.")
+    assert "onnxruntime: distance to the fp32 poses" in md and "openvino: distance to the fp32 poses" in md
 
 
 def test_cli_refuses_an_unknown_runtime(tmp_path, capsys):

@@ -1,7 +1,7 @@
-"""The full-integer INT8 flow (per-tensor ranges, GEGLU scales folded into the weights, every
-Conv/MatMul/Gemm on 8-bit inputs, 16-bit activations where asked) on `paper` and on an
-imported `released` checkpoint, at 64 x 96 so that each runs in seconds. No budget: the
-figures of these weights mean nothing; the structure and the numbers' sanity do."""
+"""The full-integer INT8 flow (per-tensor ranges, every Conv/MatMul/Gemm on 8-bit inputs,
+16-bit activations where asked, learned ranges) on `paper` and on an imported `released`
+checkpoint, at 64 x 96 so that each runs in seconds. No budget: the figures of these weights
+mean nothing; the structure and the numbers' sanity do."""
 from __future__ import annotations
 
 import json
@@ -14,7 +14,7 @@ import torch
 
 import e3dpsm
 from e3dpsm.data.prepare import prepare_dataset
-from _quantize_helpers import RUNTIME
+from _quantize_helpers import fast
 from tests.fixtures.released.weights import lightning_checkpoint, make_state_dict
 
 FIXTURE = Path(__file__).parent / "fixtures" / "released"
@@ -63,37 +63,38 @@ def _reads_8bit(model: onnx.ModelProto, node: onnx.NodeProto, inits: dict[str, o
 @pytest.mark.parametrize("variant", ["paper", "released"])
 def test_full_integer_flow_on_paper_and_released(variant: str, data64: Path, tmp_path: Path) -> None:
     from e3dpsm.export import export_step
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
+    from e3dpsm.quantize.census import compute_precisions
     from e3dpsm.runtime import StepSession
     from e3dpsm.validation.streams import onnx_stream_outputs
     from e3dpsm.data.prepared import PreparedData
 
     graph = export_step(_model(variant, tmp_path), tmp_path / "step.onnx")
-    report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
-        mode="int8", exclude="none", calibration="mse", equalize=True, frames=16, holdout_frames=20, **RUNTIME))
+    report = quantize_graph(graph, data64, tmp_path / "int8", fast(mode="int8", exclude="none", calibration="mse",
+                                                                     holdout_frames=20))
     model = onnx.load(str(tmp_path / "int8" / report["artifact"]))
     inits = {i.name: i for i in model.graph.initializer}
     compute = [n for n in model.graph.node if n.op_type in COMPUTE]
     assert compute and all(_reads_8bit(model, n, inits) for n in compute), \
         [n.name for n in compute if not _reads_8bit(model, n, inits)][:5]
-    assert report["excluded_nodes"] == [] and report["quantization"]["equalized_sites"] > 0
+    assert report["graph"]["fixed_float_nodes"] == 0 and set(compute_precisions(model).values()) == {"int8"}
     # The S5 readouts are quantised too, but read a copy of the new state: the state the graph
     # outputs and carries to the next step is the float one, never its 8-bit rounding.
     from e3dpsm.graph_metadata import GraphMetadata
 
     states = {s.output_name for s in GraphMetadata.from_onnx(model).states}
-    assert report["quantization"]["state_reads"]
+    assert report["graph"]["state_reads"]
     assert not {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"} & states
     producer = {o: n.op_type for n in model.graph.node for o in n.output}
     assert all(producer[s] != "DequantizeLinear" for s in states), {s: producer[s] for s in states}
     # MatMul and Gemm outputs no quantised op reads are left in float (--float-outputs matmul,
     # the default): no QuantizeLinear reads a Gemm's output here (heads, feed-forward outputs).
-    assert report["quantization"]["float_outputs"] == ["MatMul", "Gemm"]
-    assert report["quantization"]["float_output_nodes"] > 0
-    assert f"{report['quantization']['float_output_nodes']} of them write a float output" in \
-        (tmp_path / "int8" / "report.md").read_text()
+    assert report["quantization"]["float_outputs"] == "matmul"
+    gemm_outputs = {o for n in model.graph.node if n.op_type == "Gemm" for o in n.output}
+    assert gemm_outputs and not gemm_outputs & {n.input[0] for n in model.graph.node if n.op_type == "QuantizeLinear"}
     assert report["calibration"]["ranges"]["won_by"]  # per-tensor choices were made
-    assert np.isfinite(report["holdout"]["bound_pct"]) and report["holdout"]["bound_pct"] > 0
+    check = report["check"]["by_runtime"]["onnxruntime"]
+    assert np.isfinite(check["fidelity_mm"]) and check["fidelity_mm"] > 0
     # the INT8 graph streams a held-out sequence with finite poses near the fp32 ones
     lnes = np.asarray(PreparedData.open(data64).split("test")[0].lnes[:10], dtype=np.float32)
     fp32 = onnx_stream_outputs(StepSession(graph, threads=1), lnes, 20.0)["pose"]
@@ -134,27 +135,6 @@ def test_int16_nodes_on_paper_and_released(variant: str, data64: Path, tmp_path:
     assert np.all(np.isfinite(onnx_stream_outputs(StepSession(out, threads=1), lnes, 20.0)["pose"]))
 
 
-def test_int8_elementwise_full_integer_never_rounds_a_graph_output(data64: Path, tmp_path: Path) -> None:
-    """Under --int8-elementwise the Adds that write the S5 states and the poses are quantisable
-    ops; ONNX Runtime would put their Q/DQ pair on the graph output itself, and the step would
-    output (and carry) the 8-bit rounding. They stay float."""
-    from e3dpsm.export import export_step
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
-    from e3dpsm.quantize.static import ELEMENTWISE_OP_TYPES
-
-    graph = export_step(_model("paper", tmp_path), tmp_path / "step.onnx")
-    report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
-        mode="int8", exclude="none", op_types=ELEMENTWISE_OP_TYPES, batchnorm_as_conv=True, frames=16,
-        holdout_frames=10, **RUNTIME))
-    model = onnx.load(str(tmp_path / "int8" / report["artifact"]))
-    producer = {o: n.op_type for n in model.graph.node for o in n.output}
-    outputs = [o.name for o in model.graph.output if o.name in producer]
-    assert outputs and all(producer[o] != "DequantizeLinear" for o in outputs), \
-        {o: producer[o] for o in outputs if producer[o] == "DequantizeLinear"}
-    assert report["excluded_nodes"]  # the writers, named in the report
-    assert any(n.op_type == "QuantizeLinear" for n in model.graph.node)
-
-
 @pytest.mark.parametrize("variant", ["paper", "released"])
 def test_ranges_learned_with_the_weights_frozen_reach_the_full_integer_graph_on_paper_and_released(
         variant: str, data64: Path, tmp_path: Path) -> None:
@@ -164,7 +144,7 @@ def test_ranges_learned_with_the_weights_frozen_reach_the_full_integer_graph_on_
     from e3dpsm.checkpoint import read_checkpoint, save_checkpoint
     from e3dpsm.cli import main
     from e3dpsm.export import export_step
-    from e3dpsm.quantize import QuantizeOptions, quantize_graph
+    from e3dpsm.quantize import quantize_graph
 
     model = _model(variant, tmp_path)
     teacher = save_checkpoint(tmp_path / "teacher.pt", model)
@@ -177,10 +157,9 @@ def test_ranges_learned_with_the_weights_frozen_reach_the_full_integer_graph_on_
     teacher_state = read_checkpoint(teacher)["model"]
     assert all(torch.equal(v, teacher_state[k]) for k, v in payload["model"].items())
     graph = export_step(model, tmp_path / "step.onnx")
-    report = quantize_graph(graph, data64, tmp_path / "int8", QuantizeOptions(
-        mode="int8", exclude="none", frames=16, holdout_frames=20,
-        ranges_from_checkpoint=str(out / "checkpoint.pt"), **RUNTIME))
-    block = report["qat_ranges"]
+    report = quantize_graph(graph, data64, tmp_path / "int8", fast(
+        mode="int8", exclude="none", holdout_frames=20, ranges_from_checkpoint=str(out / "checkpoint.pt")))
+    block = report["learned_ranges"]
     assert block["weights_frozen"] and block["calibrated_tensors"] == 0, block["uncovered"]
     learned = {(np.float32(q["scale"]), q["zero_point"]) for q in payload["qat_ranges"]["quantizers"]}
     written = onnx.load(str(tmp_path / "int8" / report["artifact"]))

@@ -87,6 +87,7 @@ def test_the_timer_reports_median_milliseconds_per_graph() -> None:
 def test_the_timer_describes_itself_and_needs_frames() -> None:
     """What the report records of the timing (its defaults: 30 steps after 5, rounds of 10)."""
     assert SideBySideTimer(np.zeros((3, 1)), 20.0, threads=2).describe() == {
-        "kind": "side_by_side", "threads": 2, "steps": 30, "warmup": 5, "chunk": 10, "frames": 3}
+        "kind": "side_by_side", "runtime": "onnxruntime", "threads": 2, "steps": 30, "warmup": 5, "chunk": 10,
+        "frames": 3}
     with pytest.raises(ValueError, match="at least one frame"):
         SideBySideTimer(np.zeros((0, 1)), 20.0)

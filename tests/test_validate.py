@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from _quantize_helpers import RUNTIME, mean_pose_model
+from _quantize_helpers import fast, mean_pose_model
 from e3dpsm.checkpoint import save_checkpoint
 from e3dpsm.cli import main
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import DataError
 from e3dpsm.joints import JOINT_NAMES
 from e3dpsm.metrics import e_smooth, mpjpe
-from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize import quantize_graph
 from e3dpsm.runtime import StepSession
 from e3dpsm.validation import onnx_stream, validate_variants
 
@@ -24,7 +24,7 @@ FRAMES = 30
 @pytest.fixture(scope="session")
 def fp16_graph(tmp_path_factory, tiny_graph, quant_data):  # noqa: F811
     out = tmp_path_factory.mktemp("v") / "fp16"
-    quantize_graph(tiny_graph, quant_data, out, QuantizeOptions(mode="fp16", holdout_frames=10, **RUNTIME))
+    quantize_graph(tiny_graph, quant_data, out, fast(mode="fp16", exclude="recurrent", holdout_frames=10))
     return out / "step_fp16.onnx"
 
 

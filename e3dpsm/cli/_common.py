@@ -46,3 +46,15 @@ def positive_int(text: str) -> int:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text}")
     return value
+
+
+def add_threads(parser: argparse.ArgumentParser | Any, what: str = "intra-op threads of each runtime and of torch") -> None:
+    """--threads N, one rule for every command: a positive count, default the runtime's own
+    (every core of this machine); benchmarks that compare runs pass it explicitly."""
+    parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                        help=f"{what} (default: every core of this machine)")
+
+
+def add_force(parser: argparse.ArgumentParser | Any, target: str = "--out") -> None:
+    """--force, one wording for every command that refuses to overwrite its output."""
+    parser.add_argument("--force", action="store_true", help=f"replace what {target} already holds")

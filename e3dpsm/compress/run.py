@@ -39,13 +39,13 @@ def _int8(graph: Path, data: str | os.PathLike, out: Path, threads: int) -> Path
     the first split) and checked on `val` (else the last); the quantiser's own report lands
     beside it."""
     from e3dpsm.data.prepared import PreparedData
-    from e3dpsm.quantize.api import QuantizeOptions, artifact_name, quantize_graph
+    from e3dpsm.quantize import Advanced, QuantizeOptions, artifact_name, quantize_graph
 
     splits = PreparedData.open(data).splits
     calib = "train" if "train" in splits else splits[0]
     holdout = "val" if "val" in splits else splits[-1]
     options = QuantizeOptions(mode="int8", exclude="recurrent", frames=100, split=calib, holdout_split=holdout,
-                              holdout_frames=100, threads=threads)
+                              threads=threads, advanced=Advanced(holdout_frames=100, timing_steps=20))
     quantize_graph(graph, data, out, options, force=True)
     return out / artifact_name("int8")
 

@@ -7,7 +7,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.pipeline.stages import GRAPH, INT8, STAGES
+from e3dpsm.pipeline.stages import GRAPH, STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -53,32 +53,23 @@ def key_table(out: Path) -> list[str]:
     return lines
 
 
-def budget_gap(out: Path, int8_report: dict[str, Any]) -> str | None:
-    """How far the INT8 budget carried to data the search never saw: quantize's own figure on
-    its held-out split beside each golden check of the same graph on the test split."""
-    holdout = int8_report.get("holdout")
-    if not holdout:
-        return None
-    checks = []
-    for path in sorted((out / "golden/checks").glob(f"{Path(INT8).stem}-*/check.json")):
-        check = _load(path) or {}
-        means = [t["mean"] for t in check.get("tensors", []) if t.get("kind") == "output" and t.get("mean") is not None]
-        if means and check.get("scale_mm"):
-            pct = 100.0 * max(means) / check["scale_mm"]
-            checks.append(f"{pct:.3f}% on {check.get('runtime')} ({pct / holdout['bound_pct']:.2f}x)"
-                          if holdout["bound_pct"] > 0 else f"{pct:.3f}% on {check.get('runtime')}")
-    if not checks:
-        return None
-    budget = (int8_report.get("quantization") or {}).get("budget_pct")
-    reference = (f", relative to {holdout['budget_mpjpe_mm']:.1f} mm, the lowest fp32 MPJPE of any sequence it "
-                 f"measured; `{holdout['split']}` pooled: {holdout['fp32_mpjpe_mm']:.1f} mm"
-                 if holdout.get("budget_reference") == "lowest" else "")
-    by_runtime = holdout.get("bound_pct_by_runtime") or {}
-    worst_of = (f"the worse of {', '.join(f'{r} {pct:.3f}%' for r, pct in by_runtime.items())}; "
-                if len(by_runtime) > 1 else "")
-    return (f"Budget on unseen data: the search measured {holdout['bound_pct']:.3f}% on `{holdout['split']}` "
-            f"({worst_of}{holdout['frames']} frames{reference}); the golden check of the same graph on the test split measured "
-            f"{', '.join(checks)}; budget {budget:g}%.")
+def int8_section(int8_report: dict[str, Any]) -> list[str]:
+    """The INT8 graph's budget on the held-out split (quantize's report.json): its verdict line
+    is the report's first line, its table here."""
+    check = int8_report.get("check") or {}
+    rows = []
+    for runtime, by_runtime in (check.get("by_runtime") or {}).items():
+        for name, m in by_runtime["metrics"].items():
+            rows.append(f"| {runtime} | {name} | {m['change_pct']:+.3f} | {m['upper_pct']:+.3f} | +{m['limit_pct']:g} | "
+                        f"{'yes' if m['within'] else '**no**'} |")
+    if not rows:
+        return []
+    return ["## INT8 against its budget", "",
+            f"On {check['frames']} held-out frames ({check['data']}) neither calibration nor search saw; change over "
+            "fp32 in %, the budget holding at the upper end of its interval "
+            "([quantize/int8/report.md](../quantize/int8/report.md)).", "",
+            "| runtime | metric | change % | upper bound % | limit % | within |", "|---|---|---:|---:|---:|---|",
+            *rows, ""]
 
 
 def serve_command(out: Path, threads: int | None = None) -> str | None:
@@ -106,9 +97,7 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
     model = (f"Checkpoint `{config['checkpoint']}` (variant `{variant}`, not trained here)" if config.get("checkpoint")
              else f"Variant `{variant}`" + (f" trained {trained} steps here" if trained else ""))
     int8_report = _load(out / "quantize/int8/report.json") or {}
-    from e3dpsm.quantize.front_report import front_table, search_target_phrase, speed_verdict
-
-    verdict = speed_verdict(int8_report) if int8_report else None
+    verdict = (int8_report.get("verdict") or {}).get("headline")
     lines = ["# E-3DPSM pipeline report", "", *([f"**{verdict}**", ""] if verdict else []),
              f"{model}, synthetic data (seed {config.get('seed')}), "
              f"{config.get('window_ms')} ms windows. Accuracy on the held-out test sequences, streamed "
@@ -119,16 +108,7 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
         runs = ", ".join(f"{r['window_ms']:g} ms" for r in parity.get("runs", []))
         lines += [f"Parity ONNX Runtime vs PyTorch ({runs}): **{status}** (details in "
                   "[parity/report.json](../parity/report.json)).", ""]
-    quantised = int8_report.get("search")
-    if quantised:
-        lines += [f"## INT8 exclusion search (objective: {quantised['objective']}, {search_target_phrase(int8_report)})",
-                  "", "Candidate graphs timed side by side with the fp32 graph "
-                  f"({_fmt(quantised['fp32_p50_ms'])} ms/step); the front of (held-out distance to fp32, latency) "
-                  "and the chosen graph ([quantize/int8/report.md](../quantize/int8/report.md)).", "",
-                  front_table(quantised, "front"), ""]
-        gap = budget_gap(out, int8_report)
-        if gap:
-            lines += [gap, ""]
+    lines += int8_section(int8_report)
     golden = _load(out / "golden/checks/summary.json")
     if golden:
         record = _load(out / "golden/record/golden.json") or {}

@@ -12,7 +12,7 @@ Fine-tuning with that rounding in the forward pass (straight-through gradients, 
 al., CVPR 2018) lets the weights adapt to it. The activation ranges are learned (LSQ / LSQ+,
 qat_lsq.py) at exactly the tensors the INT8 graph quantises: `attach_fake_quant` exports
 the model once, finds the tensors that get a QuantizeLinear (recurrent groups in float) and
-the PyTorch sites holding the same numbers (qat_sites.py, quantize/qat_ranges.py), and hooks
+the PyTorch sites holding the same numbers (qat_sites.py, e3dpsm/training/qat_ranges.py), and hooks
 one learned quantiser per such group. The checkpoint carries the learned ranges
 (`qat_ranges`, `FakeQuantHandle.ranges_payload`) beside the plain weights, and
 `quantize --ranges-from-checkpoint` writes them into the graph unchanged.
@@ -291,7 +291,7 @@ class FakeQuantHandle:
     def ranges_payload(self) -> dict:
         """The checkpoint's `qat_ranges`: per learned quantiser its sites, the graph tensors
         it matched and its (scale, zero point) as the forward pass applies them."""
-        from e3dpsm.quantize.qat_ranges import ranges_payload
+        from e3dpsm.training.qat_ranges import ranges_payload
 
         done = [(g, q) for g, q in zip(self.groups, self.quantizers) if bool(q.initialised)]
         payload = ranges_payload([(g, *q.qparams()) for g, q in done], self.config.simulated_float_outputs,
@@ -347,7 +347,7 @@ def attach_fake_quant(model: nn.Module, config: QATConfig | None = None,
     name the graph's quantised tensors and their torch sites."""
     config = config or QATConfig()
     if groups is None and config.activations:
-        from e3dpsm.quantize.qat_ranges import qat_plan
+        from e3dpsm.training.qat_ranges import qat_plan
 
         groups = qat_plan(model, full_integer=config.full_integer, float_outputs=config.simulated_float_outputs)
     return FakeQuantHandle(model, config, groups or ()).attach()

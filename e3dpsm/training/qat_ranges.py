@@ -34,7 +34,6 @@ from e3dpsm.training.qat_sites import QuantSite
 if TYPE_CHECKING:
     import torch
 
-    from e3dpsm.quantize.static import StaticConfig
     from e3dpsm.training.qat_sites import QuantGroup
 
 log = logging.getLogger(__name__)
@@ -230,27 +229,6 @@ def unknown_sites(model: torch.nn.Module, learned: Sequence[Mapping[str, Any]]) 
     return sorted({site for q in learned for site in q["sites"] if QuantSite.parse(site).module not in modules})
 
 
-def qat_weight_bits(config: "StaticConfig", target_isa: str, trained: int = 8) -> dict[str, Any]:
-    """The weights' bits in the graph against the `trained` bits the QAT fine-tune simulated
-    (the checkpoint's `qat_ranges.weight_bits`; 8 for checkpoints that predate the record:
-    S8 symmetric per channel, `training.qat.WEIGHT_QMAX`), for the report. A fine-tune for a
-    target without int8 dot-product units simulates the 7-bit weights its graph gets there.
-
-    A target without int8 dot-product units gets 7-bit weights (`StaticConfig.for_target`)
-    even under learned ranges: there ONNX Runtime's U8S8 kernels saturate with 8-bit weights,
-    so neither choice computes what training simulated, and the 7-bit graph is the closer one
-    (the committed `small_qat`, full integer, 1,000 unseen `val` frames, AMD EPYC with AVX2
-    only: 17.2% of MPJPE from its fp32 poses with 7-bit weights, 19.9% with 8-bit; 17.2% for
-    8-bit weights in exact arithmetic, docs/quantize.md). `--target-isa vnni` keeps 8 bits."""
-    graph = 7 if config.reduce_range else 8
-    if graph != trained:
-        log.warning("the QAT checkpoint trained %d-bit weights; the graph gets %d-bit weights for --target-isa %s "
-                    "(7 where there are no int8 dot-product units: 8-bit weights saturate ONNX Runtime's U8S8 "
-                    "kernels there), so it computes close to, not exactly, what training simulated; fine-tune "
-                    "with --qat-weight-bits %d for this target", trained, graph, target_isa, graph)
-    return {"trained_bits": trained, "graph_bits": graph, "target_isa": target_isa}
-
-
 def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike,
                       quantised: Sequence[str]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """{tensor: {"scale", "zero_point"}} for the graph's quantised tensors a learned
@@ -283,7 +261,8 @@ def learned_overrides(checkpoint: str | os.PathLike, pre_path: str | os.PathLike
             for tensor in group.tensors:
                 overrides[tensor] = {"scale": float(hit["scale"]), "zero_point": int(hit["zero_point"])}
     report = {"checkpoint": str(checkpoint), "trained_weight_bits": simulated_weight_bits(payload),
-              "weights_frozen": learned_with_weights_frozen(payload), "unknown_sites": stale}
+              "weights_frozen": learned_with_weights_frozen(payload), "unknown_sites": stale,
+              "float_outputs": simulated_float_outputs(payload)}
     log.info("QAT ranges: %d of the %d tensors a graph of this model may quantise have learned ranges",
              len(overrides), len(quantised))
     return overrides, report
@@ -302,23 +281,3 @@ def coverage_in_graph(report: dict[str, Any], model: onnx.ModelProto, learned: M
     uncovered = sorted(eight - set(learned))
     report.update(learned_tensors=len(eight) - len(uncovered), calibrated_tensors=len(uncovered),
                   uncovered=uncovered, sixteen_bit_tensors=sum(b == 16 for b in bits.values()))
-
-
-def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),
-                  int16_ranges: Mapping[str, tuple[float, float]] | None = None) -> dict[str, list[dict]]:
-    """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations
-    (with `int16_ranges` (rmin, rmax) where given). A tensor both learned and 16-bit keeps
-    16 bits (calibrated): a U8 range has no 16-bit form."""
-    from onnxruntime.quantization import QuantType
-
-    out: dict[str, list[dict]] = {}
-    for name, q in learned.items():
-        if name not in int16:
-            out[name] = [{"scale": np.array(q["scale"], np.float32), "zero_point": np.array(q["zero_point"], np.uint8)}]
-    for name in int16:
-        rng = (int16_ranges or {}).get(name)
-        extra = {"rmin": np.array(rng[0], np.float32), "rmax": np.array(rng[1], np.float32)} if rng else {}
-        out[name] = [{"quant_type": QuantType.QUInt16, **extra}]
-    return out
-
-

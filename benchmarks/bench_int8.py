@@ -1,0 +1,117 @@
+"""INT8 of the committed trained `small`, judged as its users judge it: the task budget on held-out
+frames no quantiser step saw, on ONNX Runtime and OpenVINO, beside size and speed against fp32.
+
+    python benchmarks/bench_int8.py --checkpoint benchmarks/checkpoints/small/checkpoint.pt \\
+        --data prep96_s8 --holdout-data prep96_s7x8 [--qat-checkpoint benchmarks/checkpoints/small_qat/checkpoint.pt]
+
+Data (commands in benchmarks/checkpoints/small/recipe.md): calibration and search on --data
+(`train`, `val`), the budget on every frame of --holdout-data (`all`). Rows:
+- `quantize --mode int8` with its defaults (full integer first, the fewest nodes back to float);
+- `--exclude none` (every Conv/MatMul/Gemm 8-bit, the recurrence's too);
+- with --qat-checkpoint: its `--exclude none` graph, judged against the *base* fp32 graph (a QAT
+  fine-tune moves the fp32 model; what users get is its INT8 against the model it came from).
+Per row and runtime: MPJPE, PA-MPJPE and jitter change over fp32 with the upper end of the
+budget's interval, the distance to the fp32 poses (fidelity), Conv/MatMul/Gemm out of 8 bits,
+size against fp32, speed against fp32 side by side (interleaved, bootstrap interval).
+Writes benchmarks/results/int8_small_<isa kind>.json and .md; README's figures come from the JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.budget import TaskBudget
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize.holdout import held_out, judge
+from e3dpsm.quantize.step_timer import SideBySideTimer
+from e3dpsm.utils.env import report_header
+from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+from e3dpsm.utils.isa import detect_isa
+
+RESULTS = Path(__file__).resolve().parent / "results"
+RUNTIMES = ("onnxruntime", "openvino")
+
+
+def export(checkpoint: str, out: Path) -> Path:
+    from e3dpsm.checkpoint import load_checkpoint
+    from e3dpsm.export import export_step
+
+    model, _ = load_checkpoint(checkpoint)
+    return export_step(model, out / "step.onnx")
+
+
+def row(label: str, graph: Path, fp32: Path, check, report: dict[str, Any], args: argparse.Namespace) -> dict:
+    judged = judge(graph, check, TaskBudget(), RUNTIMES, args.threads)
+    speed = {r: SideBySideTimer(check.lnes[0], check.window_ms, args.threads, runtime=r).compare(graph, fp32,
+                                                                                              args.timing_steps)
+             for r in RUNTIMES}
+    return {"label": label, "within": judged.within, "by_runtime": {r: c.to_dict() for r, c in judged.by_runtime.items()},
+            "out_of_8_bits": report["written"]["compute_nodes_out_of_8_bits"],
+            "size_ratio": report["written"]["size_ratio"], "bytes": report["written"]["bytes"],
+            "speed": {r: {k: s[k] for k in ("p50_ms", "fp32_p50_ms", "speedup_vs_fp32", "interval")}
+                      for r, s in speed.items()}}
+
+
+def markdown(result: dict) -> str:
+    isa = result["machine"]["isa"]
+    lines = [f"# INT8 of `small` against its task budget ({isa['kind']}: {' '.join(isa['flags'])})", "",
+             f"Held-out: {result['holdout']['frames']} frames of `{result['holdout']['data']}` that neither "
+             "calibration nor search saw; change over fp32 in % with the upper end of the 90% interval "
+             "(the budget: MPJPE and PA-MPJPE +1%, jitter +5%); speed side by side, "
+             f"{result['config']['timing_steps']} steps, {result['config']['threads']} threads.", "",
+             "| graph | runtime | dMPJPE % (upper) | dPA-MPJPE % (upper) | d jitter % (upper) | within | distance to "
+             "fp32 poses % | nodes out of 8 bits | size vs fp32 | speed vs fp32 (80% interval) |",
+             "|---|---|---|---|---|---|---:|---:|---:|---|"]
+    for r in result["rows"]:
+        for runtime, check in r["by_runtime"].items():
+            m = check["metrics"]
+            s = r["speed"][runtime]
+            change = " | ".join(f"{m[k]['change_pct']:+.2f} ({m[k]['upper_pct']:+.2f})" for k in ("mpjpe", "pa_mpjpe", "jitter"))
+            lines.append(f"| {r['label']} | {runtime} | {change} | {'yes' if check['within'] else '**no**'} | "
+                         f"{check['fidelity_pct']:.2f} | {r['out_of_8_bits']} | {r['size_ratio']:.3f}x | "
+                         f"{s['speedup_vs_fp32']:.2f}x ({s['interval']['low']:.2f}-{s['interval']['high']:.2f}) |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--data", required=True, help="prepared: calibration (train) and search (val)")
+    parser.add_argument("--holdout-data", required=True, help="prepared: the budget's frames (every one)")
+    parser.add_argument("--qat-checkpoint", default=None)
+    parser.add_argument("--frames", type=int, default=600, help="calibration frames")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--timing-steps", type=int, default=400)
+    parser.add_argument("--out", default=None, help="results file (default benchmarks/results/int8_small_<isa>.json)")
+    args = parser.parse_args(argv)
+    isa = detect_isa().kind
+    out = Path(args.out) if args.out else RESULTS / f"int8_small_{isa}.json"
+    result = report_header("bench_int8", {k: v for k, v in vars(args).items()})
+    with tempfile.TemporaryDirectory(prefix="bench-int8-") as work:
+        work = Path(work)
+        fp32 = export(args.checkpoint, work / "fp32")
+        check = held_out(fp32, PreparedData.open(args.holdout_data).split("all"), 20.0, 0, args.holdout_data,
+                         args.threads)
+        common = dict(frames=args.frames, holdout_data=args.holdout_data, holdout_split="all",
+                      runtimes=RUNTIMES, threads=args.threads)
+        rows = []
+        for label, graph, options in [("default", fp32, QuantizeOptions(**common)),
+                                      ("--exclude none", fp32, QuantizeOptions(exclude="none", **common)),
+                                      *([("small_qat, --exclude none", export(args.qat_checkpoint, work / "qat"),
+                                          QuantizeOptions(exclude="none", **common))] if args.qat_checkpoint else [])]:
+            q = work / label.replace(" ", "_").replace(",", "")
+            report = quantize_graph(graph, args.data, q, options)
+            rows.append(row(label, q / report["artifact"], fp32, check, report, args))
+            print(markdown({**result, "holdout": {"frames": check.frames, "data": args.holdout_data}, "rows": rows}))
+    result.update(holdout={"frames": check.frames, "data": Path(args.holdout_data).name}, rows=rows)
+    write_json_atomic(out, result)
+    write_text_atomic(out.with_suffix(".md"), markdown(result))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,83 @@
+"""Pass 6, the verdict: is the graph within budget, and is it faster than fp32 here?
+
+The artifact is timed beside the fp32 graph (step_timer.py: interleaved rounds, a bootstrap
+interval of the speed-up) on each runtime it was checked on. The first line of report.md
+says what to do with the graph: ship it for speed, ship it for size and integer-only
+accelerators while naming what is faster on this host, or do not ship it (over budget).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from e3dpsm.budget import BudgetCheck
+
+RUNTIME_NAMES = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    mode: str
+    check: BudgetCheck                       # the final check, worst runtime
+    check_runtime: str
+    size_ratio: float
+    timings: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # runtime -> SideBySideTimer.compare
+    isa: Mapping[str, Any] = field(default_factory=dict)                     # utils.isa.CpuIsa.to_dict()
+
+    @property
+    def within(self) -> bool:
+        return self.check.within
+
+    @property
+    def fastest(self) -> tuple[str, float] | None:
+        """(runtime, speed-up over its own fp32) of the best timed runtime."""
+        timed = [(r, float(t["speedup_vs_fp32"])) for r, t in self.timings.items() if t.get("speedup_vs_fp32")]
+        return max(timed, key=lambda item: item[1]) if timed else None
+
+    def surely_faster(self, runtime: str) -> bool:
+        interval = self.timings.get(runtime, {}).get("interval") or {}
+        return bool(interval and interval.get("low", 0.0) > 1.0)
+
+    def headline(self) -> str:
+        """report.md's first line."""
+        host = f"this {self.isa.get('kind', 'unknown')} host"
+        if not self.within:
+            worst = max(self.check.metrics, key=lambda m: m.upper_pct / m.limit_pct)
+            return (f"Verdict: over budget, do not ship: {worst.name} {worst.change_pct:+.2f}% (upper bound "
+                    f"{worst.upper_pct:+.2f}%, limit +{worst.limit_pct:g}%) on {self.check.frames} held-out frames "
+                    f"({RUNTIME_NAMES.get(self.check_runtime, self.check_runtime)}); keep more nodes float "
+                    "(`--exclude`) or calibrate on more frames.")
+        budget = f"within budget on {self.check.frames} held-out frames, {self.size_ratio:.2f}x fp32's size"
+        best = self.fastest
+        if best is not None and self.surely_faster(best[0]):
+            return (f"Verdict: ship it: {self.mode} {budget}, {best[1]:.2f}x fp32's speed on "
+                    f"{RUNTIME_NAMES.get(best[0], best[0])} on {host}.")
+        speeds = ", ".join(f"{RUNTIME_NAMES.get(r, r)} {float(t['speedup_vs_fp32']):.2f}x"
+                           for r, t in self.timings.items() if t.get("speedup_vs_fp32"))
+        return (f"Verdict: no {self.mode} graph beats fp32 on {host}" + (f" ({speeds} fp32's speed)" if speeds else "")
+                + f"; this one is {budget}: ship it for size and integer-only accelerators. Faster here: "
+                + ", ".join(self.faster_alternatives()) + ".")
+
+    def faster_alternatives(self) -> list[str]:
+        """What pays for speed on a CPU where INT8 does not (docs/compress.md, docs/runtimes.md)."""
+        options = ["structured pruning (`e3dpsm prune`: 3.2x on `small`)",
+                   "OpenVINO with the states inside the IR (`convert openvino --stateful`, fp32)"]
+        if self.isa.get("bf16"):
+            options.insert(1, "bf16 on this CPU's bf16 units (profile target openvino-cpu-bf16)")
+        return options
+
+    def to_dict(self) -> dict[str, Any]:
+        best = self.fastest
+        return {"headline": self.headline(), "within_budget": self.within, "check_runtime": self.check_runtime,
+                "size_ratio": self.size_ratio, "timings": {r: dict(t) for r, t in self.timings.items()},
+                "fastest": {"runtime": best[0], "speedup_vs_fp32": best[1]} if best else None,
+                "surely_faster": bool(best and self.surely_faster(best[0]))}
+
+
+def time_beside_fp32(graph: Any, fp32: Any, frames: Any, window_ms: float, runtimes: tuple[str, ...],
+                     threads: int | None, steps: int) -> dict[str, dict[str, Any]]:
+    """The graph against fp32, side by side, on each runtime (SideBySideTimer.compare)."""
+    from e3dpsm.quantize.step_timer import SideBySideTimer
+
+    return {runtime: SideBySideTimer(frames, window_ms, threads, runtime=runtime).compare(graph, fp32, steps)
+            for runtime in runtimes}
