@@ -27,7 +27,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from e3dpsm.serve.report import percentiles as pct
+from e3dpsm.utils.stats import percentiles as pct
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "benchmarks/checkpoints/small/checkpoint.pt"

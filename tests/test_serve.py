@@ -17,7 +17,6 @@ from _serve_helpers import ServerProcess, write_recording
 from e3dpsm.cli import main
 from e3dpsm.serve import protocol
 from e3dpsm.serve.clients import ClientChannel
-from e3dpsm.serve.report import percentiles
 from e3dpsm.serve.source import RecordingReplay
 
 WINDOWS = 30  # 0.6 s of recording
@@ -151,15 +150,6 @@ def test_a_full_pose_queue_drops_its_oldest_and_keeps_order():
     assert [(kind, text) for kind, text, _ in got] == [
         ("control", "c"), ("pose", '{"seq":7}'), ("pose", '{"seq":8}'), ("pose", '{"seq":9}'), ("frame", "f2")]
     assert (channel.poses_dropped, channel.frames_dropped) == (7, 1)
-
-
-def test_percentiles_match_numpy():
-    values = np.random.default_rng(1).exponential(5.0, 1000)
-    got = percentiles(values.tolist())
-    assert got["count"] == 1000 and got["max"] == pytest.approx(values.max(), abs=1e-3)
-    for q in (50, 90, 99):
-        assert got[f"p{q}"] == pytest.approx(np.percentile(values, q), abs=1e-3)
-    assert percentiles([])["p50"] is None
 
 
 def test_replay_releases_every_event_once_on_its_schedule(recording):

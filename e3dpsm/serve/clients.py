@@ -17,7 +17,7 @@ from typing import Any
 
 from e3dpsm.serve import protocol
 from e3dpsm.serve.protocol import LatencyReport, PoseMessage
-from e3dpsm.serve.report import percentiles
+from e3dpsm.utils.stats import percentiles
 
 MAX_CONTROL = 64  # hello + status + stats + pongs waiting; older ones are dropped beyond it
 MAX_SAMPLES = 200_000  # latency samples kept per client (over an hour at 50 Hz)

@@ -2,25 +2,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from e3dpsm.utils.stats import percentiles
 
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import EngineStats
 
 REPORT_NAME = "serve.report.json"
-
-
-def percentiles(samples: Sequence[float]) -> dict[str, float | int | None]:
-    """count, p50, p90, p99, max (ms) of `samples`; None figures when there are none."""
-    if not len(samples):
-        return {"count": 0, "p50": None, "p90": None, "p99": None, "max": None}
-    values = np.asarray(samples, dtype=np.float64)
-    p50, p90, p99 = np.percentile(values, [50, 90, 99]).tolist()
-    return {"count": int(values.size), "p50": round(p50, 3), "p90": round(p90, 3), "p99": round(p99, 3),
-            "max": round(float(values.max()), 3)}
 
 
 def build_report(config: dict[str, Any], graphs: dict[str, Any], stats: EngineStats, hub: ClientHub,
