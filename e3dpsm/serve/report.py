@@ -1,6 +1,7 @@
 """serve.report.json: what a serving session did, written atomically when it stops."""
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -9,12 +10,14 @@ from e3dpsm.utils.stats import percentiles
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import EngineStats
+    from e3dpsm.serve.security import Refusals
 
 REPORT_NAME = "serve.report.json"
 
 
 def build_report(config: dict[str, Any], graphs: dict[str, Any], stats: EngineStats, hub: ClientHub,
-                 *, started_wall_s: float, stopped_wall_s: float, rss_mb: dict[str, float]) -> dict[str, Any]:
+                 *, started_wall_s: float, stopped_wall_s: float, rss_mb: dict[str, float],
+                 refusals: Refusals) -> dict[str, Any]:
     from e3dpsm.utils.env import report_header
 
     clients = [c.summary() for c in hub.clients]
@@ -40,6 +43,7 @@ def build_report(config: dict[str, Any], graphs: dict[str, Any], stats: EngineSt
         "clients_seen": len(clients),
         "drops": {str(c["client_id"]): {"poses": c["poses_dropped"], "frames": c["frames_dropped"]} for c in clients},
         "clients": clients,
+        "refused": asdict(refusals),  # requests and clients refused, by rule
         "rss_mb": rss_mb,
     }
 
