@@ -159,6 +159,32 @@ def test_a_full_pose_queue_drops_its_oldest_and_keeps_order():
     assert (channel.poses_dropped, channel.frames_dropped) == (7, 1)
 
 
+def test_clients_that_come_and_go_leave_a_bounded_hub_and_every_latency_counted():
+    from e3dpsm.serve.clients import MAX_LISTED_CLOSED, ClientHub
+
+    async def scenario():
+        hub = ClientHub(pose_backlog=10)
+        staying = hub.add("stays")
+        for seq in range(MAX_LISTED_CLOSED + 50):  # one client per pose, gone after it
+            visitor = hub.add(f"visitor {seq}")
+            message = _pose(seq)
+            hub.broadcast_pose(message)
+            for channel in (staying, visitor):
+                kind, text, pose = await channel.next_message()
+                channel.sent(kind, pose)
+            visitor.closed(1000, None)
+            hub.retire(visitor)
+        return hub, staying
+
+    hub, staying = asyncio.run(scenario())
+    visits = MAX_LISTED_CLOSED + 50
+    assert list(hub.open) == [0] and hub.seen == visits + 1 and hub.retired == visits
+    listed = hub.summaries()
+    assert [c["client_id"] for c in listed] == [0, *range(visits + 1 - MAX_LISTED_CLOSED, visits + 1)]  # the latest
+    assert all(c["poses_sent"] == 1 for c in listed[1:]) and staying.poses_sent == visits
+    assert hub.latency_ms("sent").count == 2 * visits  # the unlisted visitors' latencies are still counted
+
+
 def test_replay_releases_every_event_once_on_its_schedule(recording):
     from e3dpsm.data.readers import read_events
 
@@ -218,7 +244,7 @@ def test_poses_match_run_and_the_report_says_what_happened(graph, recording, tmp
 
     report = json.loads((out / "serve.report.json").read_text())
     assert report["command"] == "serve" and report["stop_reason"] == "recording ended"
-    assert report["poses"] == len(poses) and report["clients_seen"] == 1
+    assert report["poses"] == len(poses) and report["clients_seen"] == 1 and report["clients_not_listed"] == 0
     assert report["drops"] == {"0": {"poses": 0, "frames": report["clients"][0]["frames_dropped"]}}
     assert report["clients"][0]["poses_sent"] == len(poses) and report["clients"][0]["last_seq_sent"] == len(poses) - 1
     assert report["step_ms"]["count"] == len(poses) and report["latency_ms"]["sent"]["count"] == len(poses)

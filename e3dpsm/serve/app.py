@@ -127,7 +127,7 @@ def make_app(hub: ClientHub, hello_fields: dict[str, Any], access: Access, refus
         if hub.status is not None:
             channel.put_control(hub.status)
         sender = asyncio.create_task(_send_loop(ws, channel))
-        app[SOCKETS_KEY][channel.client_id] = (ws, sender)
+        app[SOCKETS_KEY][channel.client_id] = (ws, sender, channel)
         try:
             await _receive_loop(ws, channel, refusals)
         finally:
@@ -136,6 +136,7 @@ def make_app(hub: ClientHub, hello_fields: dict[str, Any], access: Access, refus
                 await sender
             channel.closed(ws.close_code, None)
             app[SOCKETS_KEY].pop(channel.client_id, None)
+            hub.retire(channel)
         return ws
 
     app.router.add_get("/", index)
@@ -192,15 +193,14 @@ async def drain_clients(hub: ClientHub, timeout_s: float) -> None:
 
 async def close_all(app: web.Application, code: int, reason: str) -> None:
     """Close every open socket with `code`; a client that does not answer is cut off."""
-    async def close_one(ws: web.WebSocketResponse, sender: asyncio.Task, client_id: int) -> None:
+    async def close_one(ws: web.WebSocketResponse, sender: asyncio.Task, channel: ClientChannel) -> None:
         sender.cancel()
-        hub = app[HUB_KEY]
-        hub.clients[client_id].closed(code, reason)
+        channel.closed(code, reason)
         try:
             await asyncio.wait_for(ws.close(code=code, message=reason.encode("utf-8"), drain=False),
                                    CLOSE_TIMEOUT_S + 0.5)
         except (asyncio.TimeoutError, ConnectionError, RuntimeError):
             pass
 
-    sockets = list(app[SOCKETS_KEY].items())
-    await asyncio.gather(*(close_one(ws, sender, cid) for cid, (ws, sender) in sockets), return_exceptions=True)
+    sockets = list(app[SOCKETS_KEY].values())
+    await asyncio.gather(*(close_one(*socket) for socket in sockets), return_exceptions=True)

@@ -167,7 +167,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
 
 async def _wait_for_clients(hub: ClientHub, count: int, stop: asyncio.Event) -> bool:
     hub.set_status(protocol.status("waiting", f"waiting for {count} client(s) before the replay starts"))
-    while len(hub.clients) < count:
+    while hub.seen < count:
         hub.connected.clear()
         waiters = {asyncio.create_task(hub.connected.wait()), asyncio.create_task(stop.wait())}
         await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
