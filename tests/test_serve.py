@@ -336,9 +336,10 @@ def test_a_live_source_streams_every_pose_and_the_page_hears_it_stopped(graph, r
         while not lines:
             await asyncio.sleep(0.01)
         got = await _collect(lines[0].split()[1].replace("/?token=", "/ws?token="))
-        return await server, got
+        return await server, got, hub
 
-    report, (messages, code) = asyncio.run(scenario())
+    report, (messages, code), hub = asyncio.run(scenario())
+    assert hub.open == {} and hub.retired == hub.seen == 1  # the closed client left the hub
     poses = [m for m in messages if m["type"] == "pose"]
     np.testing.assert_array_equal([m["t_us"] for m in poses], t_ref)
     np.testing.assert_allclose(np.array([m["pose"] for m in poses]), pose_ref, rtol=0, atol=1.1e-3)

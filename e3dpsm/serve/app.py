@@ -45,10 +45,6 @@ def load_page() -> Page:
     return Page(html.replace("/*STYLE*/", style).replace("/*SCRIPT*/", script), (csp_hash(script), csp_hash(style)))
 
 
-def page_html() -> str:
-    return load_page().html
-
-
 def _refusal(status: int, text: str) -> web.Response:
     return web.Response(status=status, text=f"{status}: {text}\n")
 
