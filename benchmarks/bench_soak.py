@@ -190,7 +190,8 @@ def serve_result(report: dict, pages: list[dict], samples: list[dict], reconnect
         "reconnects": None if reconnector is None else {
             "connects": reconnector.connects, "hellos": reconnector.hellos, "failures": reconnector.failures,
             "last_error": reconnector.last_error},
-        "process": steady_state(samples), "server_rss_mb": {k: report["rss_mb"][k] for k in ("start", "end", "max")},
+        "process": steady_state(samples), "process_samples": samples,
+        "server_rss_mb": {k: report["rss_mb"][k] for k in ("start", "end", "max")},
         "load_avg_before": [round(v, 2) for v in load_before], "load_avg_after": [round(v, 2) for v in os.getloadavg()],
     }
 
@@ -241,8 +242,9 @@ def run_soak(model: Path, events: Path, threads: int, work: Path) -> dict:
             "step_ms": report.get("step_ms"), "window_ms": report.get("window_ms"),
             "window_p50_over_step": _ratio(report, "p50"), "window_p99_over_step": _ratio(report, "p99"),
             "mean_step_ms": report["mean_step_ms"], "mean_overhead_ms": report["mean_overhead_ms"],
-            "process": steady_state(sampler.samples),
-            "load_avg_before": [round(v, 2) for v in load_before], "load_avg_after": [round(v, 2) for v in os.getloadavg()]}
+            "process": steady_state(sampler.samples), "process_samples": sampler.samples,
+            "load_avg_before": [round(v, 2) for v in load_before],
+            "load_avg_after": [round(v, 2) for v in os.getloadavg()]}
 
 
 def _ratio(report: dict, q: str) -> float | None:
@@ -286,7 +288,8 @@ def markdown(result: dict) -> str:
         f"{serve['poses']} poses, {serve['late_ticks']} late ticks. Run: {run['windows']} windows "
         f"({result['tiling']['stream_s'] / 3600:.2f} h of stream, {result['tiling']['events']:,} events: every "
         f"{result['tiling']['keep_every']}th event of the recording, tiled) in {run['wall_s']:.0f} s.", "",
-        "| process | RSS after warm-up (MB) | RSS at the end (MB) | growth (MB) | slope (MB/h) | fds after warm-up / end | threads after warm-up / end |",
+        "| process | RSS after warm-up (MB) | RSS at the end (MB) | growth (MB) | slope (MB/h) | "
+        "fds after warm-up / end | threads after warm-up / end |",
         "|---|---:|---:|---:|---:|---:|---:|"]
     for name, p in (("serve", sp), ("run", rp)):
         lines.append(f"| {name} (warm-up {p['warmup_s']:g} s of {p['end_s']:g} s) | {p['rss_mb_after_warmup']} | "
@@ -341,7 +344,8 @@ def main(argv: list[str] | None = None) -> int:
         run = run_soak(model, work / "hour" / "events.npz", args.threads, work)
     config = {"serve_minutes": args.serve_minutes, "run_hours": args.run_hours, "keep_every": args.keep_every,
               "threads": args.threads}
-    result = {**report_header("bench_soak", config), "model": str(args.model or "benchmarks/checkpoints/small (exported)"),
+    result = {**report_header("bench_soak", config),
+              "model": str(args.model or "benchmarks/checkpoints/small (exported)"),
               "events": str(args.events or "synthesised: e3dpsm synth " + " ".join(SYNTH_ARGS)),
               "threads": args.threads, "run_hours": args.run_hours, "note": args.note, "tiling": tiling,
               "serve": serve, "run": run}

@@ -90,7 +90,8 @@ def test_the_rules_of_one_server():
     assert access.request_host("localhost:8766") is None  # another port: another server
     assert access.request_host("rebound.example:8765") is None and access.request_host(None) is None
     assert access.origin_allowed("http://127.0.0.1:8765") and access.origin_allowed("http://localhost:8765")
-    assert access.origin_allowed("https://viewer.example.org") and access.origin_allowed("https://viewer.example.org:443")
+    assert access.origin_allowed("https://viewer.example.org")
+    assert access.origin_allowed("https://viewer.example.org:443")
     for foreign in ("https://127.0.0.1:8765", "http://127.0.0.1:8766", "http://evil.example:8765", "null",
                     "https://viewer.example.org:8443"):
         assert not access.origin_allowed(foreign), foreign

@@ -84,7 +84,8 @@ class StreamStats:
             "events_received": self.events_received, "events_before_start": self.events_before_start,
             "mean_step_ms": self.step_seconds * per_window, "mean_overhead_ms": self.overhead_seconds * per_window,
             "step_seconds": self.step_seconds, "overhead_seconds": self.overhead_seconds,
-            **({"step_ms": self.step_ms.summary(), "window_ms": self.window_ms.summary()} if self.step_ms.count else {}),
+            **({"step_ms": self.step_ms.summary(), "window_ms": self.window_ms.summary()}
+               if self.step_ms.count else {}),
         }
 
 
