@@ -248,7 +248,7 @@ def test_no_token_serves_its_own_pages_only(graph, tmp_path):
     recording = write_recording(tmp_path / "seq", 30)
     with ServerProcess(["--model", str(graph), "--source", str(recording), "--loop", "--threads", "1", "--no-token",
                         "--out", str(tmp_path / "report")]) as server:
-        assert server.token is None and "no token (--no-token, loopback only)" in server.line
+        assert server.token is None and "(no token: --no-token, loopback only; " in server.line
         status, _, text = http_get(server.url)
         assert status == 200 and "pose-count" in text
         own = {"Origin": f"http://127.0.0.1:{server.port}"}

@@ -128,7 +128,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
     runner = web.AppRunner(app, handle_signals=False, access_log=None)  # no access log: URLs may hold the token
     await runner.setup()
     await web.SockSite(runner, sock).start()
-    no_token = "" if config.token else "no token (--no-token, loopback only); "
+    no_token = "" if config.token else "no token: --no-token, loopback only; "
     announce(f"serving {page_url(config, port)} ({no_token}Ctrl-C stops; report -> {report_path(config.out)})")
 
     loop = asyncio.get_running_loop()
