@@ -26,8 +26,9 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
-from e3dpsm.serve.report import percentiles as pct
+from e3dpsm.utils.stats import percentiles as pct
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "benchmarks/checkpoints/small/checkpoint.pt"
@@ -56,12 +57,13 @@ def chromium(profile: Path):
     return webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=options)
 
 
-def stalled_client(port: int) -> socket.socket:
+def stalled_client(port: int, token: str) -> socket.socket:
+    """A raw WebSocket client (no Origin: it gives the token) that completes the handshake and never reads."""
     sock = socket.socket()
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
     sock.connect(("127.0.0.1", port))
     key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall((f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+    sock.sendall((f"GET /ws?token={token} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
                   f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
     head = b""
     while b"\r\n\r\n" not in head:
@@ -82,9 +84,9 @@ def one_run(name: str, model: Path, events: Path, seconds: float, threads: int, 
     line = server.stdout.readline()
     if not line.startswith("serving"):
         raise RuntimeError(f"serve did not start: {line} {server.stderr.read()[-2000:]}")
-    url = line.split()[1]
-    port = int(url.split(":")[2].split("/")[0])
-    held = stalled_client(port) if stalled else None
+    url = line.split()[1]  # carries the token: the pages trade it for a cookie
+    port, token = urlsplit(url).port, parse_qs(urlsplit(url).query)["token"][0]
+    held = stalled_client(port, token) if stalled else None
     drivers = [chromium(work / f"{name}-profile-{i}") for i in range(pages)]
     try:
         for driver in drivers:

@@ -13,6 +13,7 @@ import numpy as np
 
 from e3dpsm.profiles.targets import Target
 from e3dpsm.runtime.session import CarriedStateRunner
+from e3dpsm.utils.stats import percentiles
 
 
 class StepRunner(Protocol):
@@ -154,10 +155,9 @@ def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, 
 
 
 def latency_summary(seconds: np.ndarray) -> dict[str, float]:
-    ms = np.asarray(seconds) * 1e3
-    p50, p90, p99 = np.percentile(ms, [50, 90, 99])
-    return {"p50": float(p50), "p90": float(p90), "p99": float(p99), "mean": float(ms.mean()),
-            "min": float(ms.min()), "steps": int(ms.size)}
+    """Milliseconds per step: the shared percentiles (unrounded), the mean and the minimum."""
+    ms = np.asarray(seconds, dtype=np.float64) * 1e3
+    return {**percentiles(ms, digits=None), "mean": float(ms.mean()), "min": float(ms.min()), "steps": int(ms.size)}
 
 
 def matmul_peak_gflops(threads: int, size: int = 1024, repeats: int = 20) -> dict[str, Any]:

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
@@ -29,7 +30,9 @@ def write_recording(folder: Path, windows: int, seed: int = 3) -> Path:
 
 
 class ServerProcess:
-    """`e3dpsm serve ... --port 0` in a subprocess; `port` from its first stdout line."""
+    """`e3dpsm serve ... --port 0` in a subprocess; `url`, `port` and `token` from its first
+    stdout line (the URL it prints carries the token). `ws` is the socket's URL with the token
+    in its query, as a non-browser client (no cookie, no Origin) must give it."""
 
     def __init__(self, args: list[str], start_timeout_s: float = 60.0) -> None:
         env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -42,9 +45,13 @@ class ServerProcess:
             self.proc.kill()
             _, err = self.proc.communicate(timeout=start_timeout_s)
             raise RuntimeError(f"serve did not start: {line!r} {err[-2000:]}")
+        self.line = line
         self.url = line.split()[1]
-        self.port = int(self.url.split(":")[2].split("/")[0])
+        parts = urlsplit(self.url)
+        self.port = parts.port
+        self.token = parse_qs(parts.query).get("token", [None])[0]
         self.base = f"http://127.0.0.1:{self.port}"
+        self.ws = f"{self.base}/ws" + (f"?token={self.token}" if self.token else "")
 
     def interrupt(self) -> None:
         self.proc.send_signal(signal.SIGINT)

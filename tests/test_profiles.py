@@ -11,7 +11,7 @@ from e3dpsm.cli import main
 from e3dpsm.errors import ConfigError
 from e3dpsm.profiles.devices import Device, bytes_per_step, load_devices, roofline
 from e3dpsm.profiles.inputs import moving_edge_frames
-from e3dpsm.profiles.latency import latency_summary, matmul_peak_gflops, measure_side_by_side
+from e3dpsm.profiles.latency import matmul_peak_gflops, measure_side_by_side
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.targets import Target, availability, load_targets, select_targets
 
@@ -99,14 +99,6 @@ def test_side_by_side_feeds_every_runner_the_same_stream():
     expected = [float(k % 7) for k in range(13)]
     assert runners["a"].seen == expected and runners["b"].seen == expected
     assert {len(t) for t in times.values()} == {10}
-
-
-def test_latency_summary_percentiles():
-    seconds = np.linspace(0.001, 0.100, 100)
-    summary = latency_summary(seconds)
-    assert summary["p50"] == pytest.approx(np.percentile(seconds * 1e3, 50))
-    assert summary["p99"] == pytest.approx(np.percentile(seconds * 1e3, 99))
-    assert summary["steps"] == 100
 
 
 def test_matmul_peak_is_the_best_library_measured():

@@ -242,6 +242,10 @@ def test_cli_writes_poses_and_report(tiny_graph, session, stream, tmp_path, caps
     assert report["windows"] == len(starts) and report["empty_windows"] == int((counts == 0).sum())
     assert report["events"] == int(counts.sum()) and report["events_in_file"] == stream[2].size
     assert report["mean_step_ms"] > 0 and report["overhead_ms"] >= 0
+    step, window = report["step_ms"], report["window_ms"]  # per window: the step, and LNES + feeds + step
+    assert step["count"] == window["count"] == len(starts)
+    assert 0 < step["p50"] <= window["p50"] and step["max"] <= window["max"]
+    assert step["max"] + 1e-3 >= report["mean_step_ms"]  # the largest (exact, 3 decimals) of the steps averaged
     assert sorted(p.name for p in out.parent.iterdir()) == ["poses.csv", "poses.report.json"]
 
 

@@ -1,5 +1,8 @@
 """`e3dpsm serve` in a real browser: headless Chromium (Debian's chromium + chromedriver) driven
-by Selenium opens the page, which must connect, draw skeleton updates and show a rate.
+by Selenium opens the URL the command prints (with its token), which must trade the token for a
+cookie and land on the clean URL, run its script and style under the page's Content-Security-
+Policy, connect, draw skeleton updates and show a rate; reopened at the clean URL, the cookie
+alone must let it draw again.
 Skipped, with the reason, where the browser, its driver or selenium is absent (.ci/run
 installs them when it can)."""
 from __future__ import annotations
@@ -36,7 +39,7 @@ def headless_chromium(user_data_dir: Path):
     return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
 
 
-def test_page_connects_draws_poses_and_shows_the_rate(tmp_path_factory, tmp_path):
+def test_printed_url_draws_poses_under_the_csp_and_the_cookie_reopens_it(tmp_path_factory, tmp_path):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -48,6 +51,7 @@ def test_page_connects_draws_poses_and_shows_the_rate(tmp_path_factory, tmp_path
         with ServerProcess(["--model", str(graph), "--source", str(recording), "--loop", "--wait-clients", "1",
                             "--threads", "1", "--out", str(out)]) as server:
             driver.get(server.url)
+            clean_url = driver.current_url  # after the redirect that set the cookie
             wait = WebDriverWait(driver, 60, poll_frequency=0.1)
             wait.until(lambda d: int(d.find_element(By.ID, "pose-count").text) >= MIN_POSES)
             # The rate readout refreshes once a second: wait for a number there.
@@ -64,11 +68,24 @@ def test_page_connects_draws_poses_and_shows_the_rate(tmp_path_factory, tmp_path
                 ".getImageData(0, 0, c.width, c.height).data; let n = 0; "
                 "for (let i = 3; i < d.length; i += 4) if (d[i]) n++; return n;")
             driver.save_screenshot(str(tmp_path / "serve.png"))
+            cookies = driver.get_cookies()
+            script_sees = driver.execute_script("return document.cookie")
+            background = driver.execute_script("return getComputedStyle(document.body).backgroundColor")
+            driver.get(clean_url)  # a fresh page load: only the cookie carries the token now
+            wait.until(lambda d: int(d.find_element(By.ID, "pose-count").text) >= 5)
+            reopened = driver.execute_script("return {count: e3dpsm.poseCount, gaps: e3dpsm.gaps, "
+                                             "status: document.getElementById('status').textContent}")
             server.interrupt()
             rc, _, stderr = server.wait(timeout_s=30)
     finally:
         driver.quit()
     assert rc == 0, stderr
+    assert clean_url == f"http://127.0.0.1:{server.port}/"  # the token left the address bar
+    assert [(c["name"], c["httpOnly"], c["sameSite"], c["path"]) for c in cookies] == [
+        (f"e3dpsm-serve-{server.port}", True, "Strict", "/")]
+    assert script_sees == "" and server.token not in cookies[0]["value"]  # HttpOnly: no script reads it
+    assert background == "rgb(21, 23, 28)"  # the inlined style ran under the CSP (its hash admitted it)
+    assert reopened["count"] >= 5 and reopened["gaps"] == 0 and "disconnected" not in reopened["status"]
     assert page["count"] >= MIN_POSES and page["received"] >= page["count"] - 1
     assert page["gaps"] == 0 and page["outOfOrder"] == 0
     assert 1 <= hz <= 80  # 50 Hz replay; a loaded machine draws fewer, never more than the server sends

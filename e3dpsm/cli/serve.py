@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import ipaddress
 import math
 from pathlib import Path
 
@@ -27,9 +26,16 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         help="event file (.h5/.hdf5/.npz, and what e3dpsm.data.readers reads) or a live dv://HOST:PORT")
     parser.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0 picks a free one)")
     parser.add_argument("--host", default="127.0.0.1",
-                        help="address to bind (default 127.0.0.1); any other than loopback needs --token")
-    parser.add_argument("--token", default=None,
-                        help="secret the page and socket need as ?token=... (required off loopback)")
+                        help="address to bind (default 127.0.0.1, this machine only; docs/serve.md#security "
+                        "says how to reach the viewer from another one)")
+    access = parser.add_mutually_exclusive_group()
+    access.add_argument("--token", default=None,
+                        help="the secret the page and socket need (default: a random one, printed in the URL)")
+    access.add_argument("--no-token", action="store_true",
+                        help="no token: any local program may watch (allowed only with a loopback --host)")
+    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                        help="another origin whose pages may open the socket, e.g. https://viewer.example.org "
+                        "behind a reverse proxy (repeatable; default: only the page this server serves)")
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed factor of a recording (default 1)")
     parser.add_argument("--compare", default=None, metavar="GRAPH",
                         help="a second step graph run on the same events; its skeleton is overlaid")
@@ -51,24 +57,21 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return parser
 
 
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # a host name: only "localhost" is known to stay on this machine
-        return False
-
-
 def check_options(args: argparse.Namespace) -> None:
     """Refuse bad values before anything is loaded or bound."""
     from e3dpsm.errors import ConfigError
+    from e3dpsm.serve.security import is_loopback, normalise_origin
 
-    if not is_loopback(args.host) and not args.token:
-        raise ConfigError(f"--host {args.host} is reachable from other machines: pass --token SECRET "
-                          "(or bind 127.0.0.1)")
+    if args.no_token and not is_loopback(args.host):
+        raise ConfigError(f"--no-token is allowed on loopback only: --host {args.host} is reachable from other "
+                          "machines; drop --no-token (a token is generated) or bind 127.0.0.1")
     if args.token is not None and not args.token.strip():
         raise ConfigError("--token must not be empty")
+    for origin in args.allow_origin:
+        try:
+            normalise_origin(origin)
+        except ValueError as exc:
+            raise ConfigError(f"--allow-origin: {exc}") from None
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     for name in ("speed", "frame_hz"):
@@ -101,13 +104,15 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.runtime import StepSession
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import ServeEngine
+    from e3dpsm.serve.security import new_token
     from e3dpsm.serve.server import ServeConfig, serve
     from e3dpsm.data.live import is_live_url
 
     out = args.out or default_out()
     check_writable_folder(Path(out))
     config = ServeConfig(
-        model=args.model, source=args.source, out=out, host=args.host, port=args.port, token=args.token,
+        model=args.model, source=args.source, out=out, host=args.host, port=args.port,
+        token=None if args.no_token else (args.token or new_token()), allow_origins=tuple(args.allow_origin),
         speed=args.speed, compare=args.compare, threads=args.threads, window_ms=args.window_ms,
         duration_s=args.duration_s, loop=args.loop, wait_clients=args.wait_clients,
         client_backlog=args.client_backlog, frame_hz=args.frame_hz,

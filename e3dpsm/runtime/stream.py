@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -40,6 +40,7 @@ import numpy as np
 from e3dpsm.errors import InputError
 from e3dpsm.events import events_to_lnes, validate_events, window_bounds, window_us_from_ms
 from e3dpsm.runtime.session import StateArrays, StepSession
+from e3dpsm.utils.stats import LogHistogram
 
 EventChunk = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # x, y, t_us, p
 
@@ -70,14 +71,21 @@ class StreamStats:
     events_before_start: int = 0
     step_seconds: float = 0.0  # inside onnxruntime
     overhead_seconds: float = 0.0  # validation, buffering, windowing and LNES: the runtime's own cost
+    # Per window, in fixed memory however long the stream: inside onnxruntime, and the whole
+    # window (LNES, feeds and the step; not the cutting of chunks into windows, shared by many).
+    # Empty (and left out of to_dict) where windows are stepped in batches (multistream.py).
+    step_ms: LogHistogram = field(default_factory=LogHistogram)
+    window_ms: LogHistogram = field(default_factory=LogHistogram)
 
-    def to_dict(self) -> dict[str, float | int]:
+    def to_dict(self) -> dict[str, float | int | dict]:
         per_window = 1e3 / self.windows if self.windows else float("nan")
         return {
             "windows": self.windows, "empty_windows": self.empty_windows, "events": self.events,
             "events_received": self.events_received, "events_before_start": self.events_before_start,
             "mean_step_ms": self.step_seconds * per_window, "mean_overhead_ms": self.overhead_seconds * per_window,
             "step_seconds": self.step_seconds, "overhead_seconds": self.overhead_seconds,
+            **({"step_ms": self.step_ms.summary(), "window_ms": self.window_ms.summary()}
+               if self.step_ms.count else {}),
         }
 
 
@@ -268,12 +276,16 @@ class StreamingPoseEstimator:
 
     def _step(self, start_us: int, events: EventChunk) -> tuple[PoseEstimate, float]:
         """One window through the graph; also returns the seconds spent inside onnxruntime."""
+        window_began = time.perf_counter()
         x, y, t, p = events
         frame = events_to_lnes(x, y, t, p, start_us, self.window_us, *self.frame_hw, self.sensor_hw)
         feeds = self.session.feeds(frame[np.newaxis], self.state, self._window_feed)
         began = time.perf_counter()
         outputs, self.state = self.session.run_feeds(feeds)
-        seconds = time.perf_counter() - began
+        done = time.perf_counter()
+        seconds = done - began
+        self.stats.step_ms.add(seconds * 1e3)
+        self.stats.window_ms.add((done - window_began) * 1e3)
         self.stats.windows += 1
         self.stats.empty_windows += int(t.size == 0)
         self.stats.events += int(t.size)

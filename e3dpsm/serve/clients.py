@@ -6,6 +6,10 @@ FIFO that drops its OLDEST pose when full (counted; order is never changed, so t
 increasing seq with a gap); and one frame slot, where a new frame replaces a frame not yet sent
 (counted: frames are only worth showing fresh). A client that stops reading blocks only its own
 sender in `send_str` (aiohttp waits for the socket to drain), while its queue stays bounded.
+
+Memory stays bounded however long the server runs and however many clients come and go:
+latencies are kept as fixed-size histograms, and a closed client leaves the hub, its summary
+kept among the latest MAX_LISTED_CLOSED and its latencies merged into the hub's.
 """
 from __future__ import annotations
 
@@ -17,10 +21,10 @@ from typing import Any
 
 from e3dpsm.serve import protocol
 from e3dpsm.serve.protocol import LatencyReport, PoseMessage
-from e3dpsm.serve.report import percentiles
+from e3dpsm.utils.stats import LogHistogram
 
 MAX_CONTROL = 64  # hello + status + stats + pongs waiting; older ones are dropped beyond it
-MAX_SAMPLES = 200_000  # latency samples kept per client (over an hour at 50 Hz)
+MAX_LISTED_CLOSED = 100  # closed clients the report lists one by one (the latest); the rest are counted
 
 
 @dataclass
@@ -36,8 +40,8 @@ class ClientChannel:
     frames_dropped: int = 0
     control_dropped: int = 0
     last_seq_sent: int = -1
-    sent_latency_ms: list[float] = field(default_factory=list)  # window end -> written to the socket
-    page_latency_ms: list[float] = field(default_factory=list)  # window end -> drawn, as the page reports
+    sent_latency_ms: LogHistogram = field(default_factory=LogHistogram)  # window end -> written to the socket
+    page_latency_ms: LogHistogram = field(default_factory=LogHistogram)  # window end -> drawn, as the page reports
     page_report: LatencyReport | None = None
     closed_wall_ms: float | None = None
     close_code: int | None = None
@@ -98,14 +102,12 @@ class ClientChannel:
         if kind == "pose" and pose is not None:
             self.poses_sent += 1
             self.last_seq_sent = pose.seq
-            if len(self.sent_latency_ms) < MAX_SAMPLES:
-                self.sent_latency_ms.append(time.time() * 1e3 - pose.window_end_wall_ms)
+            self.sent_latency_ms.add(time.time() * 1e3 - pose.window_end_wall_ms)
         elif kind == "frame":
             self.frames_sent += 1
 
     def page_reported(self, report: LatencyReport) -> None:
-        room = MAX_SAMPLES - len(self.page_latency_ms)
-        self.page_latency_ms.extend(report.samples_ms[:max(room, 0)])
+        self.page_latency_ms.extend(report.samples_ms)
         self.page_report = report
 
     def closed(self, code: int | None, reason: str | None) -> None:
@@ -124,33 +126,60 @@ class ClientChannel:
             "poses_sent": self.poses_sent, "poses_dropped": self.poses_dropped, "last_seq_sent": self.last_seq_sent,
             "pose_backlog_at_end": self.backlog, "frames_sent": self.frames_sent,
             "frames_dropped": self.frames_dropped, "control_dropped": self.control_dropped,
-            "sent_latency_ms": percentiles(self.sent_latency_ms),
-            "page_latency_ms": percentiles(self.page_latency_ms),
+            "sent_latency_ms": self.sent_latency_ms.summary(),
+            "page_latency_ms": self.page_latency_ms.summary(),
             "page": None if page is None else {"received": page.received, "drawn": page.drawn, "gaps": page.gaps,
                                                "out_of_order": page.out_of_order},
         }
 
 
 class ClientHub:
-    """Every client seen: the open ones get each broadcast; all are kept for the report."""
+    """The open clients get each broadcast; every client seen is counted, and summarised in the report."""
 
     def __init__(self, pose_backlog: int) -> None:
         self.pose_backlog = pose_backlog
-        self.clients: list[ClientChannel] = []
+        self.open: dict[int, ClientChannel] = {}
+        self.seen = 0
+        self.retired = 0  # closed clients that left the hub
+        self.closed_summaries: deque[dict[str, Any]] = deque(maxlen=MAX_LISTED_CLOSED)
+        self.closed_latency_ms = {"sent": LogHistogram(), "page": LogHistogram()}  # of the retired clients
         self.connected = asyncio.Event()  # set on each new client (for --wait-clients)
         self.status: str | None = None  # the latest status message, sent to clients joining later
 
     def add(self, remote: str) -> ClientChannel:
-        channel = ClientChannel(len(self.clients), remote, self.pose_backlog)
-        self.clients.append(channel)
+        channel = ClientChannel(self.seen, remote, self.pose_backlog)
+        self.seen += 1
+        self.open[channel.client_id] = channel
         self.connected.set()
         return channel
 
+    def retire(self, channel: ClientChannel) -> None:
+        """A closed client leaves: its summary is kept (the latest MAX_LISTED_CLOSED), its latencies merged."""
+        if self.open.pop(channel.client_id, None) is None:
+            return
+        self.retired += 1
+        self.closed_summaries.append(channel.summary())
+        self.closed_latency_ms["sent"].merge(channel.sent_latency_ms)
+        self.closed_latency_ms["page"].merge(channel.page_latency_ms)
+
     def open_clients(self) -> list[ClientChannel]:
-        return [c for c in self.clients if c.open]
+        return [c for c in self.open.values() if c.open]
 
     def count_open(self) -> int:
-        return sum(c.open for c in self.clients)
+        return len(self.open_clients())
+
+    def summaries(self) -> list[dict[str, Any]]:
+        """Every client still in the hub and the latest retired ones, by id."""
+        listed = [*self.closed_summaries, *(c.summary() for c in self.open.values())]
+        return sorted(listed, key=lambda summary: summary["client_id"])
+
+    def latency_ms(self, kind: str) -> LogHistogram:
+        """"sent" or "page" latencies of every client seen, merged."""
+        merged = LogHistogram()
+        merged.merge(self.closed_latency_ms[kind])
+        for channel in self.open.values():
+            merged.merge(channel.sent_latency_ms if kind == "sent" else channel.page_latency_ms)
+        return merged
 
     def broadcast_pose(self, message: PoseMessage) -> None:
         for channel in self.open_clients():

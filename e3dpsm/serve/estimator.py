@@ -18,23 +18,27 @@ import numpy as np
 
 from e3dpsm.serve import protocol
 from e3dpsm.serve.source import Tick
+from e3dpsm.utils.stats import LogHistogram
 
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.runtime import PoseEstimate, StepSession
     from e3dpsm.runtime.render_stream import GroundTruthTrack
     from e3dpsm.serve.clients import ClientHub
 
-MAX_SAMPLES = 200_000
+RECENT_STEPS = 50  # the stats message's median step is over the latest ones
 
 
 @dataclass
 class EngineStats:
+    """Counters and fixed-size histograms: the same memory after a minute or a week."""
+
     poses: int = 0
     passes: int = 0
     events: int = 0
-    step_ms: list[float] = field(default_factory=list)
-    compare_step_ms: list[float] = field(default_factory=list)
-    ready_latency_ms: list[float] = field(default_factory=list)  # window end -> pose message built
+    step_ms: LogHistogram = field(default_factory=LogHistogram)
+    compare_step_ms: LogHistogram = field(default_factory=LogHistogram)
+    ready_latency_ms: LogHistogram = field(default_factory=LogHistogram)  # window end -> pose message built
+    recent_step_ms: deque[float] = field(default_factory=lambda: deque(maxlen=RECENT_STEPS))
     late_ticks: int = 0  # ticks handled more than one window after their scheduled time
     stop_reason: str | None = None
 
@@ -146,11 +150,11 @@ class ServeEngine:
             self._seq += 1
             self.stats.poses += 1
             self._recent_wall.append(now_ms)
-            if len(self.stats.step_ms) < MAX_SAMPLES:
-                self.stats.step_ms.append(per_pose_ms)
-                self.stats.ready_latency_ms.append(now_ms - tick.wall_ms)
-                if cmp_ms is not None:
-                    self.stats.compare_step_ms.append(cmp_ms)
+            self.stats.step_ms.add(per_pose_ms)
+            self.stats.recent_step_ms.append(per_pose_ms)
+            self.stats.ready_latency_ms.add(now_ms - tick.wall_ms)
+            if cmp_ms is not None:
+                self.stats.compare_step_ms.add(cmp_ms)
         await self._maybe_frame(poses[-1], offset)
         self._maybe_stats()
 
@@ -172,7 +176,7 @@ class ServeEngine:
         self._last_stats = now
         wall = time.time() * 1e3
         recent = [t for t in self._recent_wall if wall - t <= 1e3]
-        recent_steps = self.stats.step_ms[-50:]
+        recent_steps = list(self.stats.recent_step_ms)
         self.hub.broadcast_stats(poses=self.stats.poses, server_hz=len(recent),
                                  step_ms=float(np.median(recent_steps)) if recent_steps else None,
                                  clients=self.hub.count_open(), passes=self.stats.passes)

@@ -29,8 +29,14 @@ CLOSE_INVALID = 1007  # text that is not a JSON object
 CLOSE_POLICY = 1008  # an unknown type or a bad field
 CLOSE_TOO_SLOW = 4000  # the client's pose backlog stayed over the bound (--client-backlog)
 
-MAX_CLIENT_MESSAGE_BYTES = 64 * 1024  # larger messages: aiohttp closes with 1009
+CLOSE_TOO_BIG = 1009  # a message over MAX_CLIENT_MESSAGE_BYTES (aiohttp closes it)
+
+MAX_CLIENT_MESSAGE_BYTES = 64 * 1024
 MAX_LATENCY_SAMPLES = 512  # per "latency" message
+# A page sends a hello, then one latency report a second (a few more after its timers were
+# throttled in a background tab): a client over this rate is flooding and is closed (1008).
+CLIENT_MESSAGES_PER_S = 10.0
+CLIENT_MESSAGE_BURST = 40
 
 
 class ProtocolError(Exception):

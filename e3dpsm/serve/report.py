@@ -1,34 +1,24 @@
 """serve.report.json: what a serving session did, written atomically when it stops."""
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import EngineStats
+    from e3dpsm.serve.security import Refusals
 
 REPORT_NAME = "serve.report.json"
 
 
-def percentiles(samples: Sequence[float]) -> dict[str, float | int | None]:
-    """count, p50, p90, p99, max (ms) of `samples`; None figures when there are none."""
-    if not len(samples):
-        return {"count": 0, "p50": None, "p90": None, "p99": None, "max": None}
-    values = np.asarray(samples, dtype=np.float64)
-    p50, p90, p99 = np.percentile(values, [50, 90, 99]).tolist()
-    return {"count": int(values.size), "p50": round(p50, 3), "p90": round(p90, 3), "p99": round(p99, 3),
-            "max": round(float(values.max()), 3)}
-
-
 def build_report(config: dict[str, Any], graphs: dict[str, Any], stats: EngineStats, hub: ClientHub,
-                 *, started_wall_s: float, stopped_wall_s: float, rss_mb: dict[str, float]) -> dict[str, Any]:
+                 *, started_wall_s: float, stopped_wall_s: float, rss_mb: dict[str, float],
+                 refusals: Refusals) -> dict[str, Any]:
     from e3dpsm.utils.env import report_header
 
-    clients = [c.summary() for c in hub.clients]
-    page_samples = [s for c in hub.clients for s in c.page_latency_ms]
+    clients = hub.summaries()
     return {
         **report_header("serve", config),
         "graphs": graphs,
@@ -38,18 +28,20 @@ def build_report(config: dict[str, Any], graphs: dict[str, Any], stats: EngineSt
         "passes": stats.passes,
         "events": stats.events,
         "late_ticks": stats.late_ticks,
-        "step_ms": percentiles(stats.step_ms),
-        "compare_step_ms": percentiles(stats.compare_step_ms) if stats.compare_step_ms else None,
+        "step_ms": stats.step_ms.summary(),
+        "compare_step_ms": stats.compare_step_ms.summary() if stats.compare_step_ms.count else None,
         "latency_ms": {
             "definition": "from the window end's arrival (scheduled replay time, or a live chunk's arrival) "
                           "on the server's wall clock",
-            "ready": percentiles(stats.ready_latency_ms),  # pose message built (after the step)
-            "sent": percentiles([s for c in hub.clients for s in c.sent_latency_ms]),  # written to a socket
-            "page": percentiles(page_samples),  # drawn, as the pages report it
+            "ready": stats.ready_latency_ms.summary(),  # pose message built (after the step)
+            "sent": hub.latency_ms("sent").summary(),  # written to a socket
+            "page": hub.latency_ms("page").summary(),  # drawn, as the pages report it
         },
-        "clients_seen": len(clients),
+        "clients_seen": hub.seen,
+        "clients_not_listed": hub.retired - len(hub.closed_summaries),  # closed before the latest listed ones
         "drops": {str(c["client_id"]): {"poses": c["poses_dropped"], "frames": c["frames_dropped"]} for c in clients},
         "clients": clients,
+        "refused": asdict(refusals),  # requests and clients refused, by rule
         "rss_mb": rss_mb,
     }
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import signal
+import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ from e3dpsm.serve.app import close_all, drain_clients, make_app
 from e3dpsm.serve.clients import ClientHub
 from e3dpsm.serve.estimator import ServeEngine
 from e3dpsm.serve.report import build_report, report_path
+from e3dpsm.serve.security import WILDCARD_HOSTS, Access, Refusals
 
 DRAIN_S = 1.0  # at the end of a recording, how long clients get to receive what is queued
 RSS_PERIOD_S = 1.0
@@ -31,7 +33,8 @@ class ServeConfig:
     out: str
     host: str = "127.0.0.1"
     port: int = 8765
-    token: str | None = None
+    token: str | None = None  # None: no token (--no-token, loopback only)
+    allow_origins: tuple[str, ...] = ()
     speed: float = 1.0
     compare: str | None = None
     threads: int | None = None
@@ -45,7 +48,37 @@ class ServeConfig:
     def for_report(self) -> dict[str, Any]:
         config = asdict(self)
         config["token"] = None if self.token is None else "(set)"  # never written to disk
+        config["allow_origins"] = list(self.allow_origins)
         return config
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """A listening socket on `host`:`port` (an IPv4 address first when the name has both), bound
+    before the app is built so that the app's rules know the real port (`--port 0`)."""
+    from e3dpsm.errors import ConfigError
+
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        family, kind, proto, _, address = sorted(infos, key=lambda info: info[0] != socket.AF_INET)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise ConfigError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+        sock.setblocking(False)
+    except OSError as exc:
+        sock.close()
+        raise ConfigError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    return sock
+
+
+def page_url(config: ServeConfig, port: int) -> str:
+    """The URL to open: bound to every interface, the machine's name (reachable from others)."""
+    host = socket.gethostname() if config.host in WILDCARD_HOSTS else config.host
+    host = f"[{host}]" if ":" in host else host
+    return f"http://{host}:{port}/" + (f"?token={config.token}" if config.token else "")
 
 
 class _RssSampler:
@@ -83,20 +116,20 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
 
     rss = _RssSampler()
     rss.sample()
-    app = make_app(hub, hello_fields, config.token)
-    runner = web.AppRunner(app, handle_signals=False, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, config.host, config.port)
+    sock = listen_socket(config.host, config.port)
+    port = sock.getsockname()[1]  # the real one when --port 0
     try:
-        await site.start()
-    except OSError as exc:
-        await runner.cleanup()
-        from e3dpsm.errors import ConfigError
-
-        raise ConfigError(f"cannot listen on {config.host}:{config.port}: {exc.strerror or exc}") from exc
-    port = site._server.sockets[0].getsockname()[1]  # the real one when --port 0
-    query = "?token=" + config.token if config.token else ""
-    announce(f"serving http://{config.host}:{port}/{query} (Ctrl-C stops; report -> {report_path(config.out)})")
+        access = Access.for_server(config.host, port, config.token, config.allow_origins)
+    except Exception:
+        sock.close()
+        raise
+    refusals = Refusals()
+    app = make_app(hub, hello_fields, access, refusals)
+    runner = web.AppRunner(app, handle_signals=False, access_log=None)  # no access log: URLs may hold the token
+    await runner.setup()
+    await web.SockSite(runner, sock).start()
+    no_token = "" if config.token else "no token: --no-token, loopback only; "
+    announce(f"serving {page_url(config, port)} ({no_token}Ctrl-C stops; report -> {report_path(config.out)})")
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
@@ -125,7 +158,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
         rss_task.cancel()
         rss.sample()
     report = build_report(config.for_report(), graphs, stats, hub, started_wall_s=started,
-                          stopped_wall_s=time.time(), rss_mb=rss.summary())
+                          stopped_wall_s=time.time(), rss_mb=rss.summary(), refusals=refusals)
     write_json_atomic(report_path(config.out), report)
     if error is not None:
         raise error
@@ -134,7 +167,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
 
 async def _wait_for_clients(hub: ClientHub, count: int, stop: asyncio.Event) -> bool:
     hub.set_status(protocol.status("waiting", f"waiting for {count} client(s) before the replay starts"))
-    while len(hub.clients) < count:
+    while hub.seen < count:
         hub.connected.clear()
         waiters = {asyncio.create_task(hub.connected.wait()), asyncio.create_task(stop.wait())}
         await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)

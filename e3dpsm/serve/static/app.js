@@ -5,6 +5,9 @@
   const COLORS = { pose: "#f2c230", compare: "#38c6f4", gt: "#4cd964" };
   const REPORT_PERIOD_MS = 1000;
   const MAX_REPORT_SAMPLES = 500; // the server accepts at most 512 per message
+  // A background tab's timers are throttled (down to once a minute): the samples kept for the
+  // next report are capped, so that the report stays a few messages under the server's rate limit.
+  const MAX_PENDING_SAMPLES = 8 * MAX_REPORT_SAMPLES;
   const MAX_KEPT_SAMPLES = 100000;
   const $ = (id) => document.getElementById(id);
   const nowMs = () => performance.timeOrigin + performance.now(); // same clock as the server's time.time()
@@ -170,6 +173,7 @@
     if (recent.length) $("latency").textContent = `${percentile(recent, 0.5).toFixed(1)} / ${percentile(recent, 0.99).toFixed(1)}`;
     $("gaps").textContent = String(state.gaps);
     $("out-of-order").textContent = String(state.outOfOrder);
+    if (state.pending.length > MAX_PENDING_SAMPLES) state.pending.splice(0, state.pending.length - MAX_PENDING_SAMPLES);
     if (socket && socket.readyState === WebSocket.OPEN && (state.pending.length || state.received)) {
       while (true) {
         const samples = state.pending.splice(0, MAX_REPORT_SAMPLES);
@@ -181,11 +185,11 @@
   }
   setInterval(tick, REPORT_PERIOD_MS);
 
-  // ---- connection, reconnecting after any close ----
+  // ---- connection, reconnecting after any close; the token travels in the page's cookie ----
   let socket = null;
   let retryMs = 500;
   function connect() {
-    const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${location.search}`;
+    const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`;
     socket = new WebSocket(url);
     socket.onopen = () => {
       state.connected = true; state.lastSeq = null; retryMs = 500;
