@@ -112,7 +112,7 @@ def _read_npz_no_size(path: Path) -> tuple[dict[str, np.ndarray], None]:
 
 
 def _read_aedat4(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
-    from e3dpsm.data.formats.inivation import read_aedat4  # imports dv-processing only when used
+    from e3dpsm.data.formats.inivation import read_aedat4
 
     return read_aedat4(path)
 
