@@ -82,7 +82,7 @@ def test_io_header_fields_and_their_defaults():
 
 
 def test_io_header_without_an_event_stream_or_with_bad_xml_is_refused():
-    with pytest.raises(DataError, match="has no event stream"):
+    with pytest.raises(DataError, match="h: no event stream"):
         parse_io_header(io_header(1, -1, XML.replace(b"EVTS", b"FRME")), "h", 18)
     with pytest.raises(DataError, match=r"h: the IO header at byte 18 holds no valid stream description"):
         parse_io_header(io_header(1, -1, XML[:-3]), "h", 18)

@@ -80,7 +80,7 @@ def _event_stream(info: bytes, label: str, at: int) -> tuple[int, tuple[int, int
         if attrs.get("typeIdentifier") == "EVTS" and (node.get("name") or "").isdigit():
             found[int(node.get("name"))] = node
     if not found:
-        raise DataError(f"{label}: the AEDAT4 file has no event stream (no 'EVTS' output in its IO header)")
+        raise DataError(f"{label}: no event stream (no 'EVTS' output in the IO header's stream description)")
     stream = min(found)
     size = {a.get("key"): (a.text or "").strip() for a in found[stream].iterfind("./node[@name='info']/attr")}
     if "sizeX" not in size or "sizeY" not in size:
@@ -154,7 +154,7 @@ def decode_event_packet(payload: bytes | memoryview, compression: str) -> np.nda
         table = root_table(memoryview(buf)[4:], b"EVTS")
         found = vector(table, 0, EVENT_DTYPE.itemsize)
     except FlatBufferError as exc:
-        raise ValueError(f"{exc} (byte {exc.offset} of the decompressed packet)") from exc
+        raise ValueError(f"{exc} (byte {4 + exc.offset} of the decompressed packet)") from exc
     if found is None:
         return np.zeros(0, EVENT_DTYPE)
     start, count = found
