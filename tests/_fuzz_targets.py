@@ -42,3 +42,47 @@ def run_cli(argv: list[str]) -> tuple[int, str, str]:
 
 def ping() -> Any:
     return "pong"
+
+
+# For tests/test_isolate.py: what a reader in the helper process may do.
+def typed_arrays(n: str) -> dict[str, Any]:
+    import numpy as np
+
+    count = int(n)
+    return {"i32": np.arange(count, dtype=np.int32) - 7, "u8": (np.arange(count) % 251).astype(np.uint8),
+            "f64_2d": np.arange(2 * count, dtype=np.float64).reshape(count, 2) / 3, "empty": np.zeros(0, np.int64),
+            "hw": [480, 640], "name": "x"}
+
+
+def segfault() -> None:
+    import ctypes
+
+    ctypes.string_at(0)  # reads address 0: SIGSEGV
+
+
+def spin() -> None:
+    while True:
+        pass
+
+
+def refuse(message: str) -> None:
+    from e3dpsm.errors import DataError
+
+    raise DataError(message)
+
+
+def buggy() -> None:
+    raise KeyError("a bug")
+
+
+def pid() -> dict[str, Any]:
+    import os
+
+    return {"pid": os.getpid(), "parent": os.getppid()}
+
+
+def helper_of_this_process() -> int:
+    """The pid of the isolation helper a call from this process runs in."""
+    from e3dpsm.utils.isolate import run_isolated
+
+    return run_isolated("_fuzz_targets:pid", deadline_s=30, what="probe")["parent"]
