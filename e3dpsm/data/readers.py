@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Callable
 
@@ -118,21 +117,10 @@ def _h5_columns(f, path: Path) -> dict[str, np.ndarray]:
     return {k: f[k][()] for k in ("x", "y", "t", "p")}
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            missing = [k for k in ("x", "y", "t", "p") if k not in archive.files]
-            if missing:
-                raise DataError(f"{path}: missing arrays {missing}; expected x, y, t, p")
-            return {k: archive[k] for k in ("x", "y", "t", "p")}
-    except DataError:
-        raise
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile, KeyError) as exc:
-        raise DataError(f"{path}: cannot read .npz file (truncated or corrupted?): {exc}") from exc
+def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], None]:
+    from e3dpsm.data.formats.npz import read_npz
 
-
-def _read_npz_no_size(path: Path) -> tuple[dict[str, np.ndarray], None]:
-    return _read_npz(path), None
+    return read_npz(path), None
 
 
 def _read_aedat4(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
@@ -156,7 +144,7 @@ def _read_dat(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None
 Reader = Callable[[Path], "tuple[dict[str, np.ndarray], tuple[int, int] | None]"]
 # suffix -> reader returning (raw columns x, y, t, p[, frame_index], sensor (h, w) the file states)
 READERS: dict[str, Reader] = {
-    ".h5": _read_h5, ".hdf5": _read_h5, ".npz": _read_npz_no_size,
+    ".h5": _read_h5, ".hdf5": _read_h5, ".npz": _read_npz,
     ".aedat4": _read_aedat4, ".raw": _read_raw, ".dat": _read_dat,
 }
 EVENT_SUFFIXES = tuple(READERS)
