@@ -7,7 +7,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from _camera_formats import camera_stream
+from _camera_formats import camera_stream, encode_evt3
 from e3dpsm.data.readers import read_events
 from e3dpsm.errors import DataError
 
@@ -26,4 +26,16 @@ def test_npz_whose_deflate_data_is_damaged_is_one_error_line(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(DataError, match=r"ev\.npz: cannot read \.npz file \(truncated or corrupted\?\): Error -3 "
                                         r"while decompressing data: invalid block type$"):
+        read_events(path)
+
+
+@pytest.mark.parametrize("header", [["format EVT3;height=480;width=\x00640"], ["format EVT3;height=-480;width=640"],
+                                    ["evt 3.0", "geometry 640x0"]])
+def test_raw_header_whose_sensor_size_is_not_a_positive_number_is_one_error_line(tmp_path, header):
+    """int() of "\\x00640" raised ValueError out of the RAW reader (the geometry line already
+    had its message; the format line and DAT's Width/Height had none)."""
+    path = tmp_path / "rec.raw"
+    path.write_bytes(encode_evt3(camera_stream(n=50, seed=1), [*header, "end"]))
+    with pytest.raises(DataError, match=r"rec\.raw: header line '% (format|geometry) .*' does not state a sensor "
+                                        r"size in positive whole numbers$"):
         read_events(path)
