@@ -2,6 +2,7 @@
 showed it. Each failed before its fix: a traceback where one DataError line belongs."""
 from __future__ import annotations
 
+import json
 import zipfile
 
 import numpy as np
@@ -39,3 +40,64 @@ def test_raw_header_whose_sensor_size_is_not_a_positive_number_is_one_error_line
     with pytest.raises(DataError, match=r"rec\.raw: header line '% (format|geometry) .*' does not state a sensor "
                                         r"size in positive whole numbers$"):
         read_events(path)
+
+
+# the golden store ------------------------------------------------------------------------------
+JOINTS = [f"j{i}" for i in range(16)]
+
+
+def small_golden(folder, steps: int = 3):
+    """A golden record written by the project's writer (GoldenWriter): 2 x 4 x 4 frames, one
+    output, one state of 100 elements (sampled: 32 of them)."""
+    from e3dpsm.golden.store import GoldenWriter
+
+    rng = np.random.default_rng(0)
+    writer = GoldenWriter((2, 4, 4), ["pose"], {"s": (100,)}, steps)
+    for _ in range(steps):
+        frame = (rng.random((2, 4, 4)) * (rng.random((2, 4, 4)) < 0.3)).astype(np.float16)
+        writer.add(frame, 20.0, rng.normal(size=(16, 3)), {"pose": rng.normal(size=(1, 16, 3))},
+                   {"s": rng.normal(size=(1, 100))})
+    writer.write(folder, {"source": {"kind": "onnx", "variant": "tiny"}, "joints": JOINTS, "window_ms": 20.0,
+                          "states": [{"name": "s", "shape": ["batch", 100]}], "mpjpe_scale_mm": 80.0})
+    return folder
+
+
+def test_a_small_golden_loads(tmp_path):
+    from e3dpsm.golden.store import load_golden
+
+    record = load_golden(small_golden(tmp_path / "g"))
+    assert record.steps == 3 and record.frame(2).shape == (1, 2, 4, 4) and record.state_index("s").shape == (32,)
+
+
+def _edit_manifest(folder, edit) -> None:
+    manifest = json.loads((folder / "golden.json").read_text())
+    edit(manifest)
+    (folder / "golden.json").write_text(json.dumps(manifest))
+
+
+def test_golden_whose_state_has_no_name_is_one_error_line(tmp_path):
+    """KeyError 'name' escaped `golden check` (the fuzz tests deleted states/4/name)."""
+    from e3dpsm.golden.store import load_golden
+
+    folder = small_golden(tmp_path / "g")
+    _edit_manifest(folder, lambda m: m["states"][0].pop("name"))
+    with pytest.raises(DataError, match=r"golden\.json: 'states' is .*, expected a list of \{name, shape: \[batch, "
+                                        r"dims\.\.\.\]\} with distinct names; record the golden again$"):
+        load_golden(folder)
+
+
+def test_golden_whose_arrays_fail_their_crc_is_one_error_line(tmp_path):
+    """zipfile.BadZipFile ("Bad CRC-32 for file 'lnes.mask.npy'") escaped `golden check`."""
+    from e3dpsm.golden.store import load_golden
+
+    folder = small_golden(tmp_path / "g")
+    data = bytearray((folder / "rollout.npz").read_bytes())
+    with zipfile.ZipFile(folder / "rollout.npz") as archive:
+        info = archive.getinfo("window_ms.npy")
+    local = info.header_offset
+    start = local + 30 + int.from_bytes(data[local + 26:local + 28], "little") + int.from_bytes(
+        data[local + 28:local + 30], "little")
+    data[start + info.compress_size - 5] ^= 0x01  # near the end of its deflate data: a CRC or zlib error
+    (folder / "rollout.npz").write_bytes(bytes(data))
+    with pytest.raises(DataError, match=r"rollout\.npz: cannot read the arrays \(truncated or corrupted\?\): .*"):
+        load_golden(folder)

@@ -10,6 +10,7 @@ allocated. Damage that zip or zlib detect while reading comes back as one DataEr
 from __future__ import annotations
 
 import lzma
+import math
 import os
 import zipfile
 import zlib
@@ -28,26 +29,34 @@ READ_ERRORS = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, lz
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """The arrays x, y, t, p of an .npz file, checked before they are read (module docstring)."""
+    """The one-dimensional arrays x, y, t, p of an events .npz file, checked before they are read."""
+    return load_arrays(path, KEYS, ndim=1)
+
+
+def load_arrays(path: str | os.PathLike, keys: tuple[str, ...] | None = None, ndim: int | None = None,
+                what: str = ".npz file") -> dict[str, np.ndarray]:
+    """Arrays of an .npz (`keys`, default all), each checked against its zip member before it
+    is read (module docstring); `ndim` fixes their number of dimensions. DataError names the
+    file, as `what`, and the damage."""
     path = Path(path)
     try:
         with zipfile.ZipFile(path) as archive:
             members = {info.filename.removesuffix(".npy"): info for info in archive.infolist()}
-            missing = [k for k in KEYS if k not in members]
+            missing = [k for k in keys if k not in members] if keys is not None else []
             if missing:
-                raise DataError(f"{path}: missing arrays {missing}; expected x, y, t, p")
-            for key in KEYS:
-                _check_member(archive, members[key], key, path)
+                raise DataError(f"{path}: missing arrays {missing}; expected {', '.join(keys)}")
+            for key in keys if keys is not None else list(members):
+                _check_member(archive, members[key], key, ndim, path)
         with np.load(path, allow_pickle=False) as archive:
-            return {k: archive[k] for k in KEYS}
+            return {k: archive[k] for k in (keys if keys is not None else archive.files)}
     except DataError:
         raise
     except READ_ERRORS as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"{path}: cannot read .npz file (truncated or corrupted?): {reason}") from exc
+        raise DataError(f"{path}: cannot read {what} (truncated or corrupted?): {reason}") from exc
 
 
-def _check_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, path: Path) -> None:
+def _check_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, ndim: int | None, path: Path) -> None:
     if info.compress_type != zipfile.ZIP_STORED and info.file_size > DEFLATE_MAX_RATIO * info.compress_size + 1024:
         raise DataError(f"{path}: array {key} claims {info.file_size} bytes from {info.compress_size} compressed; "
                         "more than deflate can expand (corrupted?)")
@@ -60,8 +69,9 @@ def _check_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, pat
         header_bytes = member.tell()
     if dtype.hasobject or dtype.kind not in "biuf":
         raise DataError(f"{path}: array {key} has dtype {dtype}; expected numbers (object arrays would be pickles)")
-    if len(shape) != 1:
-        raise DataError(f"{path}: array {key} has shape {shape}; expected one dimension")
-    if header_bytes + shape[0] * dtype.itemsize != info.file_size:
-        raise DataError(f"{path}: array {key} declares {shape[0]} values of {dtype} but its member holds "
+    if ndim is not None and len(shape) != ndim:
+        raise DataError(f"{path}: array {key} has shape {shape}; expected {'one dimension' if ndim == 1 else f'{ndim} dimensions'}")
+    values = math.prod(shape)
+    if header_bytes + values * dtype.itemsize != info.file_size:
+        raise DataError(f"{path}: array {key} declares {values} values of {dtype} but its member holds "
                         f"{info.file_size - header_bytes} bytes of data (truncated or corrupted?)")
