@@ -207,3 +207,43 @@ def write_input(folder: Path, seed: Seed, data: bytes) -> Path:
     path = folder / seed.name
     path.write_bytes(data)
     return path
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats() | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    max_leaves=6)
+DELETE = object()
+
+
+def json_paths(node: Any, prefix: tuple = ()) -> list[tuple]:
+    """The key path of every value in a JSON document (the root is ())."""
+    paths = [prefix]
+    children = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for key, child in children:
+        paths += json_paths(child, (*prefix, key))
+    return paths
+
+
+@st.composite
+def json_damaged(draw: st.DrawFn, seed: Seed) -> Damaged:
+    """1-3 values of a JSON seed replaced by other JSON values (any type, NaN, huge numbers)
+    or deleted: the damage a hand edit or a bug in another writer makes, which byte-level
+    mutations of JSON text rarely reach (they mostly break the syntax)."""
+    document = json.loads(seed.data)
+    done = []
+    for _ in range(draw(st.integers(1, 3))):
+        path = draw(st.sampled_from(json_paths(document)))
+        value = draw(JSON_VALUES | st.just(DELETE))
+        if not path:
+            document = {} if value is DELETE else value
+        else:
+            parent = document
+            for key in path[:-1]:
+                parent = parent[key]
+            if value is DELETE:
+                del parent[path[-1]]
+            else:
+                parent[path[-1]] = value
+        done.append(f"{'/'.join(map(str, path)) or '(root)'} -> {'deleted' if value is DELETE else repr(value)[:40]}")
+    return Damaged(json.dumps(document).encode(), tuple(done))

@@ -86,3 +86,35 @@ def helper_of_this_process() -> int:
     from e3dpsm.utils.isolate import run_isolated
 
     return run_isolated("_fuzz_targets:pid", deadline_s=30, what="probe")["parent"]
+
+
+def read_released(path: str) -> tuple[str, int]:
+    """(what the file was, number of tensors) of a released checkpoint read as `import` reads it."""
+    from e3dpsm.importers.released import read_released_state_dict
+
+    state, kind = read_released_state_dict(path)
+    return kind, len(state)
+
+
+_RELEASED_MODEL: list = []
+
+
+def import_released(path: str) -> int:
+    """Released tensors mapped onto the `released` variant (the model is built once per process)."""
+    import e3dpsm
+    from e3dpsm.importers.released import import_released as map_onto, read_released_state_dict
+
+    if not _RELEASED_MODEL:
+        _RELEASED_MODEL.append(e3dpsm.create_model("released").eval())
+    state, _ = read_released_state_dict(path)
+    return len(map_onto(state, _RELEASED_MODEL[0]).state_dict)
+
+
+def parse_client_message(text: str) -> tuple:
+    """("ok", type) or ("closed", close code, reason) for one client message of the viewer."""
+    from e3dpsm.serve.protocol import ProtocolError, parse_client_message as parse
+
+    try:
+        return "ok", parse(text)[0]
+    except ProtocolError as exc:
+        return "closed", exc.code, exc.reason
