@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from _camera_formats import camera_stream, encode_evt3
+from _fuzz_seeds import small_golden
 from e3dpsm.data.readers import read_events
 from e3dpsm.errors import DataError
 
@@ -43,25 +44,6 @@ def test_raw_header_whose_sensor_size_is_not_a_positive_number_is_one_error_line
 
 
 # the golden store ------------------------------------------------------------------------------
-JOINTS = [f"j{i}" for i in range(16)]
-
-
-def small_golden(folder, steps: int = 3):
-    """A golden record written by the project's writer (GoldenWriter): 2 x 4 x 4 frames, one
-    output, one state of 100 elements (sampled: 32 of them)."""
-    from e3dpsm.golden.store import GoldenWriter
-
-    rng = np.random.default_rng(0)
-    writer = GoldenWriter((2, 4, 4), ["pose"], {"s": (100,)}, steps)
-    for _ in range(steps):
-        frame = (rng.random((2, 4, 4)) * (rng.random((2, 4, 4)) < 0.3)).astype(np.float16)
-        writer.add(frame, 20.0, rng.normal(size=(16, 3)), {"pose": rng.normal(size=(1, 16, 3))},
-                   {"s": rng.normal(size=(1, 100))})
-    writer.write(folder, {"source": {"kind": "onnx", "variant": "tiny"}, "joints": JOINTS, "window_ms": 20.0,
-                          "states": [{"name": "s", "shape": ["batch", 100]}], "mpjpe_scale_mm": 80.0})
-    return folder
-
-
 def test_a_small_golden_loads(tmp_path):
     from e3dpsm.golden.store import load_golden
 
