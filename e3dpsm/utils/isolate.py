@@ -13,8 +13,10 @@ it, and forking the helper is safe where forking the caller is not (the helper h
 thread; the caller may run ONNX Runtime or PyTorch threads holding locks). The helper kills
 a child at the deadline and reports a crash by its signal. Not multiprocessing: its "spawn"
 and "forkserver" children re-run the caller's `__main__` (`python -m e3dpsm` would run the
-command again). Requests and replies are JSON headers plus raw array bytes; nothing is
-unpickled. Without os.fork (Windows) the helper reads itself, still apart from the caller.
+command again). Requests and replies are JSON; the child writes the arrays' raw bytes into one
+file in /dev/shm (tmpfs) that the caller maps copy-on-write and unlinks: no copy through a
+pipe, nothing unpickled. Without os.fork (Windows) the helper reads itself, still apart from
+the caller.
 """
 from __future__ import annotations
 
@@ -22,11 +24,13 @@ import atexit
 import fcntl
 import importlib
 import json
+import math
 import os
 import select
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from multiprocessing.connection import Connection
@@ -36,6 +40,7 @@ import numpy as np
 
 from e3dpsm.errors import DataError
 
+SHARED_MEMORY = "/dev/shm"  # tmpfs: the arrays file never touches a disk (else the temp folder)
 STARTUP_S = 60.0  # the helper's interpreter start and imports, on a loaded machine
 MARGIN_S = 10.0  # the caller waits this much past the deadline the helper enforces
 
@@ -111,19 +116,24 @@ def run_isolated(target: str, *args: str, deadline_s: float, what: str, preload:
         if _helper is None or _helper.process.poll() is not None:
             _helper = _Helper((target.partition(":")[0], *preload))
         helper = _helper
+        fd, arrays_file = tempfile.mkstemp(prefix="e3dpsm-isolate-", dir=SHARED_MEMORY if os.path.isdir(SHARED_MEMORY)
+                                           else None)
+        os.close(fd)
         try:
-            helper.requests.send_bytes(json.dumps({"target": target, "args": list(args),
-                                                   "deadline_s": deadline_s}).encode())
+            helper.requests.send_bytes(json.dumps({"target": target, "args": list(args), "deadline_s": deadline_s,
+                                                   "arrays_file": arrays_file}).encode())
             if helper.replies.poll(deadline_s + MARGIN_S):
-                return _receive(helper.replies, what, deadline_s)
+                return _receive(helper.replies, what, deadline_s, arrays_file)
         except (EOFError, OSError):
             pass  # the helper itself died: start a fresh one next time
+        finally:
+            os.unlink(arrays_file)  # its pages stay mapped by the arrays returned
         helper.kill()
         _helper = None
         raise DataError(f"{what}: the reader's helper process stopped answering; the file may be damaged")
 
 
-def _receive(replies: Connection, what: str, deadline_s: float) -> dict[str, Any]:
+def _receive(replies: Connection, what: str, deadline_s: float, arrays_file: str) -> dict[str, Any]:
     header = json.loads(replies.recv_bytes())
     if "error" in header:
         if header["error"] == "crashed":
@@ -135,13 +145,11 @@ def _receive(replies: Connection, what: str, deadline_s: float) -> dict[str, Any
             raise DataError(header["message"])
         raise IsolatedError(f"{header['error']}: {header['message']}")
     value = dict(header["values"])
-    for key, dtype, shape in header["arrays"]:
-        array = np.empty(shape, dtype=np.dtype(dtype))
-        if array.nbytes:
-            replies.recv_bytes_into(memoryview(array).cast("B"))
+    for key, dtype, shape, offset in header["arrays"]:
+        if math.prod(shape):  # copy-on-write pages of the file: no copy, writable here
+            value[key] = np.asarray(np.memmap(arrays_file, np.dtype(dtype), "c", offset, tuple(shape)))
         else:
-            replies.recv_bytes()
-        value[key] = array
+            value[key] = np.empty(shape, np.dtype(dtype))
     return value
 
 
@@ -160,11 +168,14 @@ def _call(request: dict[str, Any], replies: Connection) -> None:
         replies.send_bytes(json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode())
         return
     arrays = {k: np.ascontiguousarray(v) for k, v in value.items() if isinstance(v, np.ndarray)}
+    layout, offset = [], 0
+    with open(request["arrays_file"], "wb") as fh:  # one file in shared memory: a copy, not a pipe's many
+        for key, array in arrays.items():
+            layout.append([key, array.dtype.str, list(array.shape), offset])
+            fh.write(memoryview(array).cast("B") if array.nbytes else b"")
+            offset += array.nbytes
     values = {k: v for k, v in value.items() if k not in arrays}
-    layout = [[k, a.dtype.str, list(a.shape)] for k, a in arrays.items()]
     replies.send_bytes(json.dumps({"values": values, "arrays": layout}).encode())
-    for array in arrays.values():
-        replies.send_bytes(memoryview(array).cast("B") if array.nbytes else b"")
 
 
 def _wait(pid: int, deadline_s: float) -> int | None:
