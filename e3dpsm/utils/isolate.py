@@ -21,7 +21,6 @@ the caller.
 from __future__ import annotations
 
 import atexit
-import fcntl
 import importlib
 import json
 import math
@@ -236,11 +235,6 @@ def _status_name(status: int) -> str:
 
 def main(argv: list[str]) -> int:
     requests, replies = Connection(int(argv[0]), writable=False), Connection(int(argv[1]), readable=False)
-    if hasattr(fcntl, "F_SETPIPE_SZ"):  # 1 MiB: a large reply in 16x fewer writes and wake-ups
-        try:
-            fcntl.fcntl(int(argv[1]), fcntl.F_SETPIPE_SZ, 1 << 20)
-        except OSError:
-            pass
     for module in argv[2:]:
         importlib.import_module(module)
     replies.send_bytes(json.dumps({"ready": True}).encode())
