@@ -88,6 +88,8 @@ def test_io_header_without_an_event_stream_or_with_bad_xml_is_refused():
         parse_io_header(io_header(1, -1, XML[:-3]), "h", 18)
     with pytest.raises(DataError, match="names compression 9"):
         parse_io_header(io_header(9, -1, XML), "h", 18)
+    with pytest.raises(DataError, match="h: no event stream"):  # a stream id no int() takes (> 4300 digits)
+        parse_io_header(io_header(1, -1, XML.replace(b'name="3"', b'name="' + b"9" * 5000 + b'"')), "h", 18)
 
 
 def _table_pos(buf: bytes) -> int:

@@ -24,6 +24,7 @@ epoch), int16 x, int16 y, bool polarity, 3 bytes padding. Packets end at the Fil
 from __future__ import annotations
 
 import os
+import re
 import struct
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -77,7 +78,7 @@ def _event_stream(info: bytes, label: str, at: int) -> tuple[int, tuple[int, int
     found = {}
     for node in root.iterfind("./node[@name='outInfo']/node"):
         attrs = {a.get("key"): (a.text or "").strip() for a in node.iterfind("attr")}
-        if attrs.get("typeIdentifier") == "EVTS" and (node.get("name") or "").isdigit():
+        if attrs.get("typeIdentifier") == "EVTS" and re.fullmatch(r"[0-9]{1,9}", node.get("name") or ""):
             found[int(node.get("name"))] = node
     if not found:
         raise DataError(f"{label}: no event stream (no 'EVTS' output in the IO header's stream description)")
