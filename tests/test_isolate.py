@@ -2,6 +2,7 @@
 value, or one DataError line on a crash or past its deadline; the caller survives both."""
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from pathlib import Path
@@ -100,3 +101,45 @@ def test_no_arrays_file_is_left_behind_after_a_value_a_crash_or_a_deadline(tmp_p
         with pytest.raises(DataError):
             call(target, deadline_s=deadline)
     assert set(glob.glob(os.path.join(folder, "e3dpsm-isolate-*"))) == before
+
+
+def _group(pgid: int) -> list[int]:
+    """Live processes in process group `pgid` (the helper and the children it forked)."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, _, group = stat.read_text().rsplit(")", 1)[1].split()[:3]
+        except (OSError, IndexError):
+            continue
+        if int(group) == pgid and state != "Z":  # not a child that ended and waits to be reaped
+            members.append(int(stat.parent.name))
+    return members
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_a_read_does_not_outlive_its_helper():
+    """A helper killed while its child spins: the child dies with it (it once spun on, orphaned)."""
+    import signal
+    import threading
+
+    helper = call("pid")["parent"]
+    errors = []
+    reader = threading.Thread(target=lambda: errors.append(pytest.raises(DataError, call, "spin", deadline_s=120)))
+    reader.start()
+    deadline = time.monotonic() + 30
+    while len(_group(helper)) < 2 and time.monotonic() < deadline:  # the helper and its spinning child
+        time.sleep(0.05)
+    child = [pid for pid in _group(helper) if pid != helper]
+    assert child, "the spinning child did not start"
+    try:
+        os.kill(helper, signal.SIGKILL)
+        reader.join(60)
+        deadline = time.monotonic() + 10
+        while _group(helper) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _group(helper) == [], "a child outlived its helper"
+        assert "stopped answering" in str(errors[0].value)
+    finally:
+        for pid in child:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)

@@ -58,9 +58,9 @@ class _Helper:
     def __init__(self, preload: tuple[str, ...]) -> None:
         req_r, req_w = os.pipe()
         res_r, res_w = os.pipe()
-        # its own process group: killing the group also ends a child it forked; stdout/stderr
-        # to /dev/null: a command's output stays its own (one error line on failure)
-        # the caller's sys.path, as multiprocessing gives its children: the target imports the same
+        # The caller's sys.path (as multiprocessing gives its children): the target imports the
+        # same. Its own process group: killing the group also ends a child it forked.
+        # stdout/stderr to /dev/null: a command's output stays its own (one error line on failure).
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "e3dpsm.utils.isolate", str(req_r), str(res_w), *preload],
@@ -104,7 +104,8 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_helper_after_fork)
 
 
-def run_isolated(target: str, *args: str, deadline_s: float, what: str, preload: tuple[str, ...] = ()) -> dict[str, Any]:
+def run_isolated(target: str, *args: str, deadline_s: float, what: str,
+                 preload: tuple[str, ...] = ()) -> dict[str, Any]:
     """`module:function` called with string `args` in a child of the helper process; its value,
     a dict of numpy arrays and JSON values. DataError raised there is raised here; a crash and
     a call past `deadline_s` raise DataError too, each starting with `what`. A new helper
@@ -115,8 +116,8 @@ def run_isolated(target: str, *args: str, deadline_s: float, what: str, preload:
         if _helper is None or _helper.process.poll() is not None:
             _helper = _Helper((target.partition(":")[0], *preload))
         helper = _helper
-        fd, arrays_file = tempfile.mkstemp(prefix="e3dpsm-isolate-", dir=SHARED_MEMORY if os.path.isdir(SHARED_MEMORY)
-                                           else None)
+        shared = SHARED_MEMORY if os.path.isdir(SHARED_MEMORY) else None
+        fd, arrays_file = tempfile.mkstemp(prefix="e3dpsm-isolate-", dir=shared)
         os.close(fd)
         try:
             helper.requests.send_bytes(json.dumps({"target": target, "args": list(args), "deadline_s": deadline_s,
@@ -209,10 +210,12 @@ def _serve(requests: Connection, replies: Connection) -> None:
         if not hasattr(os, "fork"):
             _call(request, replies)
             continue
+        helper = os.getpid()
         pid = os.fork()
         if pid == 0:  # the child: read, reply, leave without running any cleanup of the helper's
             code = 1
             try:
+                _die_with(helper)
                 _call(request, replies)
                 code = 0
             finally:
@@ -222,6 +225,17 @@ def _serve(requests: Connection, replies: Connection) -> None:
             replies.send_bytes(json.dumps({"error": "deadline", "message": ""}).encode())
         elif os.WIFSIGNALED(status) or os.WEXITSTATUS(status):  # it died before replying
             replies.send_bytes(json.dumps({"error": "crashed", "message": _status_name(status)}).encode())
+
+
+def _die_with(helper: int) -> None:
+    """Have the kernel kill this child when the helper dies, however it dies (Linux: prctl
+    PR_SET_PDEATHSIG), so that no read outlives its helper; leave if it is already gone."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
+    if os.getppid() != helper:
+        os._exit(1)
 
 
 def _status_name(status: int) -> str:
