@@ -133,7 +133,8 @@ def zip_fields(data: bytes) -> tuple[tuple[tuple[int, int], ...], tuple[tuple[in
         for info in archive.infolist():
             local = info.header_offset
             fields += [(local + 18, 4), (local + 22, 4), (local + 26, 2), (local + 28, 2)]
-            start = local + 30 + struct.unpack_from("<H", data, local + 26)[0] + struct.unpack_from("<H", data, local + 28)[0]
+            name_length, extra_length = struct.unpack_from("<HH", data, local + 26)
+            start = local + 30 + name_length + extra_length
             hot.append((local, start))
             if info.filename.endswith(".pkl"):
                 hot.append((start, start + info.compress_size))

@@ -13,7 +13,8 @@ import pytest
 from hypothesis import given
 
 from _bounded import BoundedWorker
-from _fuzz import BOUND_S, FUZZ_EXAMPLES, SLOW_EXAMPLES, Counts, Seed, damaged, fuzz_settings, outcome_label, write_input
+from _fuzz import (BOUND_S, FUZZ_EXAMPLES, SLOW_EXAMPLES, Counts, Seed, damaged, fuzz_settings, outcome_label,
+                   write_input)
 from _fuzz_seeds import SEEDS, make_seed, seed_stream
 
 

@@ -124,11 +124,13 @@ def _check_frames(arrays: dict[str, np.ndarray], steps: int, size: int, path: Pa
     pad_set = BITS_SET[mask[:, -1] & ((1 << spare) - 1)] if spare else np.zeros(steps, np.int64)
     if np.any(pad_set) or np.any(marked != nnz):
         step = int(np.flatnonzero(pad_set | (marked != nnz))[0])
-        raise DataError(f"{path}: frame {step}'s mask marks {int(marked[step])} values, lnes.nnz says {int(nnz[step])}; "
+        raise DataError(f"{path}: frame {step}'s mask marks {int(marked[step])} values, lnes.nnz says "
+                        f"{int(nnz[step])}; "
                         f"{FIX}")
     values = arrays["lnes.values"]
     if values.ndim != 1 or values.dtype.kind != "f":
-        raise DataError(f"{path}: array lnes.values is {values.dtype} {list(values.shape)}, expected float values; {FIX}")
+        raise DataError(f"{path}: array lnes.values is {values.dtype} {list(values.shape)}, expected float values; "
+                        f"{FIX}")
     if int(nnz.sum()) != len(values):
         raise DataError(f"{path}: lnes.nnz adds up to {int(nnz.sum())} values, {len(arrays['lnes.values'])} are "
                         f"stored; {FIX}")

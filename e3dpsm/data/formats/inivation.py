@@ -207,7 +207,8 @@ def _file_header(data: bytes, label: str) -> tuple[IOHeader, int]:
         raise DataError(f"{label}: not an AEDAT4 file: no {MAGIC!r} at byte 0")
     at = len(MAGIC)
     if at + 4 > len(data):
-        raise DataError(f"{label}: truncated: the IO header size at byte {at} is missing (file ends at byte {len(data)})")
+        raise DataError(f"{label}: truncated: the IO header size at byte {at} is missing (file ends at byte "
+                        f"{len(data)})")
     (size,) = struct.unpack_from("<i", data, at)
     if size <= 0 or at + 4 + size > len(data):
         raise DataError(f"{label}: truncated or corrupted IO header at byte {at} (declares {size} bytes, file ends "

@@ -70,7 +70,8 @@ def _check_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, ndi
     if dtype.hasobject or dtype.kind not in "biuf":
         raise DataError(f"{path}: array {key} has dtype {dtype}; expected numbers (object arrays would be pickles)")
     if ndim is not None and len(shape) != ndim:
-        raise DataError(f"{path}: array {key} has shape {shape}; expected {'one dimension' if ndim == 1 else f'{ndim} dimensions'}")
+        dims = "one dimension" if ndim == 1 else f"{ndim} dimensions"
+        raise DataError(f"{path}: array {key} has shape {shape}; expected {dims}")
     values = math.prod(shape)
     if header_bytes + values * dtype.itemsize != info.file_size:
         raise DataError(f"{path}: array {key} declares {values} values of {dtype} but its member holds "
