@@ -83,3 +83,58 @@ def test_golden_whose_arrays_fail_their_crc_is_one_error_line(tmp_path):
     (folder / "rollout.npz").write_bytes(bytes(data))
     with pytest.raises(DataError, match=r"rollout\.npz: cannot read the arrays \(truncated or corrupted\?\): .*"):
         load_golden(folder)
+
+
+# `run` and a corrupted timestamp ----------------------------------------------------------------
+def _gap_npz(path, gap_s: float) -> None:
+    """Four events, the last `gap_s` after the third: what one corrupted timestamp makes."""
+    t = np.array([1_000, 2_000, 3_000, 3_000 + int(gap_s * 1e6)], dtype=np.int64)
+    np.savez(path, x=np.array([1, 2, 3, 4]), y=np.array([1, 2, 3, 4]), t=t, p=np.array([0, 1, 0, 1]))
+
+
+@pytest.fixture(scope="module")
+def tiny_graph(tmp_path_factory):
+    from _runtime_helpers import exported_tiny
+
+    return exported_tiny(str(tmp_path_factory.getbasetemp()))[1]
+
+
+def test_run_refuses_an_hour_of_silence_in_seconds_instead_of_stepping_it(tiny_graph, tmp_path):
+    """A 4-event file whose last timestamp sits an hour late kept `run` stepping 180,000 empty
+    windows (over 120 s with the tiny graph; a timestamp with a flipped high bit: forever)."""
+    from _bounded import BoundedWorker
+
+    _gap_npz(tmp_path / "gap.npz", 3600)
+    (tmp_path / "out").mkdir()
+    argv = ["run", "--model", str(tiny_graph), "--events", str(tmp_path / "gap.npz"), "--out",
+            str(tmp_path / "out" / "poses.csv"), "--threads", "1", "--no-progress"]
+    with BoundedWorker(preload=("_fuzz_targets", "e3dpsm.cli.run")) as worker:
+        outcome = worker.call("_fuzz_targets:run_cli", argv, bound_s=60)
+        assert outcome.kind == "returned", outcome
+        code, _, err = outcome.value
+        assert code == 2 and err.splitlines() == [
+            f"e3dpsm run: error: {tmp_path / 'gap.npz'}: events 2 and 3 are 3600 s apart: 180,000 empty 20 ms windows "
+            "to step. No event camera is silent that long: a timestamp is corrupted, or pass --max-gap-s 3600 to run "
+            "it as it is"]
+        assert list((tmp_path / "out").iterdir()) == []
+        np.savez(tmp_path / "fine.npz", x=[1, 2], y=[1, 2], t=[1_000, 500_000], p=[0, 1])  # many files: each checked
+        code, _, err = worker.call("_fuzz_targets:run_cli", ["run", "--model", str(tiny_graph), "--events",
+                                   str(tmp_path / "fine.npz"), str(tmp_path / "gap.npz"), "--out",
+                                   str(tmp_path / "out"), "--no-progress"], bound_s=60).value
+        assert code == 2 and "gap.npz: events 2 and 3 are 3600 s apart" in err and len(err.splitlines()) == 1
+        assert list((tmp_path / "out").iterdir()) == []
+        _gap_npz(tmp_path / "gap.npz", 61)  # just over the default: allowed with --max-gap-s
+        assert worker.call("_fuzz_targets:run_cli", argv, bound_s=60).value[0] == 2
+        outcome = worker.call("_fuzz_targets:run_cli", [*argv, "--max-gap-s", "62", "--window-ms", "200"], bound_s=120)
+    assert outcome.kind == "returned" and outcome.value[0] == 0, outcome
+    assert len((tmp_path / "out" / "poses.csv").read_text().splitlines()) == 1 + 305  # header + every window
+
+
+def test_the_gap_check_spans_chunks_as_the_live_source_delivers_them():
+    from e3dpsm.cli._run_common import check_gaps
+
+    check_gaps(np.array([5_000_000, 6_000_000]), 60, 20, "dv://h:1", previous_us=0)  # 5 s: fine
+    with pytest.raises(DataError, match=r"^dv://h:1: event 0 and the event before it are 70 s apart: 3,500 empty "
+                                        r"20 ms windows"):
+        check_gaps(np.array([70_000_000]), 60, 20, "dv://h:1", previous_us=0)
+    check_gaps(np.array([], dtype=np.int64), 60, 20, "x", previous_us=0)

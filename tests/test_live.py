@@ -213,3 +213,31 @@ def test_run_on_a_silent_server_fails_with_one_line_and_writes_nothing(bounded, 
                                               "within 1 s; is a dv-processing publisher (DV software, a camera) "
                                               "listening there?"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_run_on_a_live_stream_whose_last_packet_jumps_an_hour_fails_with_one_line(bounded, published_bytes, tmp_path,
+                                                                                     tmp_path_factory):
+    """Corrupted timestamps in a live packet: `run` refuses the silence instead of stepping an
+    hour of empty windows (--max-gap-s, the same check as for files)."""
+    import struct
+
+    from e3dpsm.data.formats.flatbuffer import root_table, vector
+
+    header, packets = published_bytes
+    data, at, last = bytearray(packets), 0, 0
+    while at < len(data):  # the last packet
+        last, at = at, at + 8 + struct.unpack_from("<i", data, at + 4)[0]
+    table = root_table(bytes(data[last + 12:at]), b"EVTS")  # the payload without its size prefix
+    start, count = vector(table, 0, 16)
+    for k in range(count - 10, count):  # the last ten events an hour later
+        offset = last + 12 + start + 16 * k
+        struct.pack_into("<q", data, offset, struct.unpack_from("<q", data, offset)[0] + 3_600_000_000)
+    graph = exported_tiny(str(tmp_path_factory.getbasetemp()))[1]
+    with ScriptedPublisher(header + bytes(data), "close") as server:
+        outcome = bounded.call("_fuzz_targets:run_cli", ["run", "--model", str(graph), "--events", server.url,
+                               "--out", str(tmp_path / "poses.csv"), "--threads", "1"], bound_s=60)
+    assert outcome.kind == "returned", outcome
+    code, _, err = outcome.value
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert re.match(rf"e3dpsm run: error: {server.url}: events \d+ and \d+ are 3600 s apart: 180,000 empty", err)
+    assert list(tmp_path.iterdir()) == []
