@@ -138,3 +138,17 @@ def test_the_gap_check_spans_chunks_as_the_live_source_delivers_them():
                                         r"20 ms windows"):
         check_gaps(np.array([70_000_000]), 60, 20, "dv://h:1", previous_us=0)
     check_gaps(np.array([], dtype=np.int64), 60, 20, "x", previous_us=0)
+
+
+def test_npz_whose_npy_header_has_unbalanced_brackets_is_one_error_line(tmp_path):
+    """tokenize.TokenError ("EOF in multi-line statement") escaped numpy's .npy header parser
+    and the reader (found by atheris, tests/fuzz/atheris_readers.py npz, in 565 runs)."""
+    header = b"{'descr': '<i8', 'fortran_order': False, 'shape': (2, }"
+    header += b" " * (63 - (10 + len(header)) % 64) + b"\n"  # the format's 64-byte alignment
+    npy = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(16)
+    with zipfile.ZipFile(tmp_path / "ev.npz", "w") as archive:
+        for key in "xytp":
+            archive.writestr(f"{key}.npy", npy)
+    with pytest.raises(DataError, match=r"ev\.npz: cannot read \.npz file \(truncated or corrupted\?\): .*EOF in "
+                                        r"multi-line statement"):
+        read_events(tmp_path / "ev.npz")

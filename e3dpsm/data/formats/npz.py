@@ -12,6 +12,7 @@ from __future__ import annotations
 import lzma
 import math
 import os
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -23,9 +24,10 @@ from e3dpsm.errors import DataError
 
 KEYS = ("x", "y", "t", "p")
 DEFLATE_MAX_RATIO = 1032  # deflate's limit: 258 bytes from a 2-bit code, at best
-# what zipfile, zlib, lzma and numpy raise on a damaged archive (RuntimeError: "encrypted")
+# what zipfile, zlib, lzma and numpy raise on a damaged archive (RuntimeError: "encrypted";
+# TokenError: numpy tokenises an .npy header with unbalanced brackets and lets the error out)
 READ_ERRORS = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, lzma.LZMAError, KeyError,
-               NotImplementedError, RuntimeError)
+               NotImplementedError, RuntimeError, tokenize.TokenError, SyntaxError)
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
