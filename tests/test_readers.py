@@ -174,3 +174,62 @@ def test_ee3d_missing_pose_keys_is_a_data_error(tmp_path):
     (tmp_path / "seq_b" / "synced_local_pose_gt.pickle").write_bytes(pickle.dumps([{"j3d": 1}] * 4))
     with pytest.raises(DataError, match="frame 0 needs 'ego_j3d'"):
         read_ee3d_sequence(tmp_path / "seq_b")
+
+
+# .npz: no pickles, work bounded by the file --------------------------------------------------------
+
+def test_npz_with_a_pickled_object_array_is_refused_without_running_it(tmp_path):
+    marker = tmp_path / "pwned"
+    stream = random_stream(10)
+    np.savez(tmp_path / "ev.npz", x=stream.x, y=stream.y, t=stream.t_us,
+             p=np.array([_Exploit(marker)] * 10, dtype=object))
+    with pytest.raises(DataError, match=r"ev\.npz: array p has dtype object; expected numbers \(object arrays would "
+                                        r"be pickles\)$"):
+        read_events(tmp_path / "ev.npz")
+    assert not marker.exists()
+
+
+def test_npz_with_a_two_dimensional_array_is_refused(tmp_path):
+    stream = random_stream(10)
+    np.savez(tmp_path / "ev.npz", x=stream.x.reshape(2, 5), y=stream.y, t=stream.t_us, p=stream.p)
+    with pytest.raises(DataError, match=r"array x has shape \(2, 5\); expected one dimension$"):
+        read_events(tmp_path / "ev.npz")
+
+
+def test_npz_whose_header_claims_more_values_than_its_member_holds_is_refused_before_reading(tmp_path):
+    """A damaged shape is named, not allocated (10^15 int64 values would be 8 PB). The archive is
+    written by zipfile with a correct CRC: the damage is in the .npy header alone."""
+    import io
+    import zipfile
+
+    stream = random_stream(100)
+    with zipfile.ZipFile(tmp_path / "ev.npz", "w") as archive:
+        for key, values in (("x", stream.x), ("y", stream.y), ("t", stream.t_us), ("p", stream.p)):
+            npy = io.BytesIO()
+            np.save(npy, values)
+            data = npy.getvalue()
+            if key == "t":
+                old = b"'shape': (100,), }" + b" " * 13
+                assert data.count(old) == 1
+                data = data.replace(old, b"'shape': (1000000000000000,), }")  # the same header length
+            archive.writestr(f"{key}.npy", data)
+    with pytest.raises(DataError, match=r"array t declares 1000000000000000 values of int64 but its member holds "
+                                        r"800 bytes of data"):
+        read_events(tmp_path / "ev.npz")
+
+
+def test_npz_member_claiming_more_than_deflate_can_expand_is_refused(tmp_path):
+    stream = random_stream(100)
+    np.savez_compressed(tmp_path / "ev.npz", x=stream.x, y=stream.y, t=stream.t_us, p=stream.p)
+    data = bytearray((tmp_path / "ev.npz").read_bytes())
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "ev.npz") as archive:
+        names = [info.filename for info in archive.infolist()]
+    entry = data.index(b"PK\x01\x02")  # the central directory's first entry: x.npy
+    assert names[0] == "x.npy"
+    data[entry + 24:entry + 28] = (2**31).to_bytes(4, "little")  # its uncompressed size
+    (tmp_path / "ev.npz").write_bytes(bytes(data))
+    with pytest.raises(DataError, match=r"array x claims 2147483648 bytes from \d+ compressed; more than deflate can "
+                                        r"expand"):
+        read_events(tmp_path / "ev.npz")

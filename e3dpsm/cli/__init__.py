@@ -75,6 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def error_line(command: str, exc: BaseException) -> str:
+    """`e3dpsm CMD: error: MESSAGE` on one line, always: a message may quote a library's own
+    multi-line text (h5py, onnxruntime, torch)."""
+    return f"e3dpsm {command}: error: " + " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -89,7 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except E3DPSMError as exc:
         if args.verbose:
             raise
-        print(f"e3dpsm {args.command}: error: {exc}", file=sys.stderr)
+        print(error_line(args.command, exc), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"e3dpsm {args.command}: interrupted", file=sys.stderr)

@@ -1,12 +1,13 @@
 """What `e3dpsm run` shares between its one-file form (run.py) and its many-file form
 (_run_many.py): option checks, event chunking, CSV rows, the report's common part and the
-no-window error. Both import from here and neither imports the other's helpers, so there
-is no import circle. Torch-free: only the standard library here; numpy and onnxruntime
-come in through the objects passed in.
+no-window error, the gap check. Both import from here and neither imports the other's helpers,
+so there is no import circle. Torch-free: the standard library and numpy (imported where it is
+used); onnxruntime comes in through the objects passed in.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
@@ -26,6 +27,8 @@ def check_stream_options(args: argparse.Namespace) -> None:
         raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
     if args.threads is not None and args.threads <= 0:
         raise ConfigError(f"--threads must be positive, got {args.threads}")
+    if not args.max_gap_s > 0:
+        raise ConfigError(f"--max-gap-s must be positive, got {args.max_gap_s}")
 
 
 def check_writable_folder(folder: Path) -> None:
@@ -37,6 +40,29 @@ def check_writable_folder(folder: Path) -> None:
         raise DataError(f"cannot write to {folder}: {probe} is a file, not a folder")
     if not os.access(probe, os.W_OK | os.X_OK):
         raise DataError(f"cannot write to {folder}: {probe} is not writable")
+
+
+def check_gaps(t_us: Any, max_gap_s: float, window_ms: float, source: str, previous_us: int | None = None) -> None:
+    """Refuse a silence longer than `max_gap_s` between two events (`previous_us`: the last one
+    before `t_us`). `run` steps every empty window of a silence (runtime/stream.py), so one
+    corrupted timestamp (a flipped high bit: hours, or centuries) would keep it stepping for
+    as long; an event camera's background activity never leaves it silent for a minute."""
+    import numpy as np
+
+    times = np.asarray(t_us, dtype=np.int64)
+    if previous_us is not None and times.size:
+        times = np.concatenate([[previous_us], times])
+    if times.size < 2:
+        return
+    gaps = np.diff(times)
+    widest = int(np.argmax(gaps))
+    if gaps[widest] > max_gap_s * 1e6:
+        gap_s, first = gaps[widest] / 1e6, widest - (previous_us is not None)
+        where = f"events {first} and {first + 1}" if first >= 0 else "event 0 and the event before it"
+        raise DataError(
+            f"{source}: {where} are {gap_s:.6g} s apart: {gap_s * 1e3 / window_ms:,.0f} empty {window_ms:g} ms windows "
+            f"to step. No event camera is silent that long: a timestamp is corrupted, or pass --max-gap-s "
+            f"{math.ceil(gap_s)} to run it as it is")
 
 
 def event_chunks(stream: EventStream, size: int) -> Iterator[EventChunk]:

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
-from e3dpsm.cli._run_common import pose_columns, pose_row, report_head
+from e3dpsm.cli._run_common import check_gaps, pose_columns, pose_row, report_head
 
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.data.live import LiveEventSource
@@ -32,7 +32,7 @@ def run_live(args: argparse.Namespace, out: Path, report_path: Path) -> int:
     with open_live_source(args.events, timeout_s=args.live_timeout_s) as source:
         estimator = StreamingPoseEstimator(session, window_ms=args.window_ms, start_us=args.start_us,
                                            sensor_hw=source.sensor_hw)
-        chunks = _chunks(source, args.max_seconds)
+        chunks = _chunks(source, args.max_seconds, args.max_gap_s, estimator.window_ms)
         with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path, suffix=".json") as tmp_report:
             with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
                 writer = csv.writer(fh)
@@ -58,9 +58,13 @@ def run_live(args: argparse.Namespace, out: Path, report_path: Path) -> int:
     return 0
 
 
-def _chunks(source: LiveEventSource, max_seconds: float | None) -> Iterator[EventChunk]:
+def _chunks(source: LiveEventSource, max_seconds: float | None, max_gap_s: float,
+            window_ms: float) -> Iterator[EventChunk]:
     deadline = None if max_seconds is None else time.monotonic() + max_seconds
+    last_us = None
     for chunk in source:
+        check_gaps(chunk.t_us, max_gap_s, window_ms, source.url, previous_us=last_us)
+        last_us = int(chunk.t_us[-1]) if len(chunk) else last_us
         yield chunk.x, chunk.y, chunk.t_us, chunk.p
         if deadline is not None and time.monotonic() >= deadline:
             return

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from e3dpsm.cli._run_common import (
-    check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
+    check_gaps, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
 )
 from e3dpsm.errors import ConfigError
 
@@ -51,6 +51,7 @@ def run_many(args: argparse.Namespace) -> int:
     estimator = MultiStreamEstimator(session, window_ms=args.window_ms)
     for name, stream in streams.items():  # the file's own sensor size wins over the graph's default
         estimator.add_stream(name, start_us=args.start_us, sensor_hw=stream.sensor_hw)
+        check_gaps(stream.t_us, args.max_gap_s, estimator.window_ms, sources[name])
 
     with contextlib.ExitStack() as stack:
         stack.enter_context(_removed_on_failure_if_new(out))  # entered first: leaves after the temporaries

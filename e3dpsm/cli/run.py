@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
 from e3dpsm.cli._run_common import (
-    check_stream_options, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
+    check_gaps, check_stream_options, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row,
+    report_head,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -26,6 +27,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.runtime.stream import EventChunk
 
 DEFAULT_CHUNK_EVENTS = 100_000
+MAX_GAP_S = 60.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -66,6 +68,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         help="render only the first N poses (the CSV still holds every pose)")
     parser.add_argument("--max-seconds", type=float, default=None,
                         help="dv:// source: stop after this many seconds of wall time (default: until the publisher stops)")
+    parser.add_argument("--max-gap-s", type=float, default=MAX_GAP_S,
+                        help="refuse a silence longer than this between two events (default "
+                        f"{MAX_GAP_S:g} s): every empty window is stepped, so a corrupted timestamp would keep "
+                        "run stepping for hours; an event camera is never silent that long")
     parser.add_argument("--live-timeout-s", type=float, default=5.0,
                         help="dv:// source: connect timeout, and how long a silent stream counts as stopped (default 5)")
     parser.set_defaults(func=run)
@@ -120,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         session, window_ms=args.window_ms, start_us=args.start_us, sensor_hw=stream.sensor_hw,
         keep_frames=args.render is not None,
     )
+    check_gaps(stream.t_us, args.max_gap_s, estimator.window_ms, args.events)
     video = _stream_render(args, estimator)
     chunks = event_chunks(stream, args.chunk_events)
     if not args.no_progress and sys.stderr.isatty():

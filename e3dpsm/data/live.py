@@ -1,18 +1,24 @@
 """Live event streams: `dv://host:port`, dv-processing's network event stream.
 
 That is how DV software and iniVation cameras publish events (dv-processing `NetworkWriter`,
-a TCP server); `open_live_source` connects a dv-processing `NetworkReader` to it:
+a TCP server). The stream is the AEDAT4 file layout without the magic line: an int32 size and
+the IO header FlatBuffer, then packets (int32 stream id, int32 size, payload), decoded by the
+same bounds-checked functions as files (e3dpsm/data/formats/inivation.py):
 
     with open_live_source("dv://127.0.0.1:7777") as source:
         for chunk in source:            # EventStream chunks, in time order
             ...
         print(source.stopped_reason)
 
-When the publisher stops, or sends nothing for `timeout_s`, iteration ENDS (no exception)
-and `.stopped_reason` says why, e.g. "publisher dv://127.0.0.1:7777 closed the stream after
-123456 events". A URL that is not `dv://host:port`, or a port nobody listens on, raises
-`DataError` with one line ("cannot connect to dv://127.0.0.1:7777: connection refused").
-Timestamps are the publisher's (int64 microseconds; DV cameras send epoch time).
+Nothing here can block forever: the connection, the header and every read have a deadline
+(`timeout_s`). dv-processing's own `NetworkReader`, used before, has none: a server that
+accepts the connection and sends nothing kept its constructor waiting in C++ holding the GIL,
+so no Python timeout could end it. When the publisher stops, or sends no events for
+`timeout_s`, iteration ENDS (no exception) and `.stopped_reason` says why, e.g. "publisher
+dv://127.0.0.1:7777 closed the stream after 123456 events". A URL that is not
+`dv://host:port`, a port nobody listens on, a server that sends no stream header within
+`timeout_s` or a damaged packet raises `DataError` with one line. Timestamps are the
+publisher's (int64 microseconds; DV cameras send epoch time).
 
 Publishing a recording (tests, demos): `publish_recording(path, port)` starts a child process
 (`python -m e3dpsm.data.live publish FILE --port P [--speed S]`) that replays any file
@@ -28,6 +34,7 @@ import argparse
 import os
 import re
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -37,11 +44,13 @@ from typing import Iterator
 import numpy as np
 
 from e3dpsm.data.formats import require
+from e3dpsm.data.formats.inivation import PACKET_HEADER, columns, decode_event_packet, parse_io_header
 from e3dpsm.data.sequence import EventStream
 from e3dpsm.errors import DataError
 
 URL_PATTERN = re.compile(r"^dv://(?P<host>\[[0-9a-fA-F:]+\]|[A-Za-z0-9._-]+):(?P<port>\d{1,5})/?$")
-POLL_S = 0.001  # NetworkReader.getNextEventBatch does not block: poll this often when idle
+MAX_HEADER_BYTES = 1 << 20  # the IO header is an XML stream description of a few kB
+MAX_PACKET_BYTES = 64 << 20  # a DV packet holds milliseconds of events: far less
 PACKET_US = 5_000  # recording time per published packet at real-time pace
 READY_LINE = "e3dpsm-publisher listening"
 
@@ -58,59 +67,115 @@ def parse_dv_url(url: str) -> tuple[str, int]:
     return match["host"].strip("[]"), port
 
 
+class _Stalled(Exception):
+    """Nothing arrived before the deadline."""
+
+
+class _Closed(Exception):
+    """The publisher closed the connection; `partial` bytes of the item being read had come."""
+
+    def __init__(self, partial: int) -> None:
+        super().__init__(partial)
+        self.partial = partial
+
+
 class LiveEventSource:
-    """An open dv-processing network event stream (see the module docstring)."""
+    """An open dv:// network event stream (see the module docstring)."""
 
     def __init__(self, url: str, timeout_s: float = 5.0) -> None:
         self.url, self.timeout_s = url, float(timeout_s)
-        host, port = parse_dv_url(url)
-        dv = require("dv_processing", f"the live source {url}")
-        # A plain connect first: dv-processing's connect holds the GIL and has no timeout.
-        try:
-            socket.create_connection((host, port), timeout=self.timeout_s).close()
-            self._reader = dv.io.NetworkReader(host, port)
-        except (OSError, RuntimeError) as exc:
-            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise DataError(f"cannot connect to {url}: {reason}") from exc
-        if not self._reader.isEventStreamAvailable():
-            self.close()
-            raise DataError(f"{url} publishes no event stream")
-        width, height = self._reader.getEventResolution()
-        self.sensor_hw: tuple[int, int] = (int(height), int(width))
-        self.events = 0
+        self.events, self.received = 0, 0  # events yielded, bytes read
         self.stopped_reason: str | None = None
+        host, port = parse_dv_url(url)
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            self._sock: socket.socket | None = socket.create_connection((host, port), timeout=self.timeout_s)
+        except OSError as exc:
+            raise DataError(f"cannot connect to {url}: {exc.strerror or exc or type(exc).__name__}") from exc
+        try:
+            self._read_header(deadline)
+        except BaseException:
+            self.close()
+            raise
+
+    def _read_header(self, deadline: float) -> None:
+        try:
+            (size,) = struct.unpack("<i", self._read(4, deadline))
+            if not 0 < size <= MAX_HEADER_BYTES:
+                raise DataError(f"{self.url}: the stream header declares {size} bytes; not a dv-processing event "
+                                f"stream (expected 1 to {MAX_HEADER_BYTES})")
+            header = parse_io_header(self._read(size, deadline), self.url, 4)
+        except _Stalled:
+            raise DataError(f"{self.url}: connected, but no stream header came within {self.timeout_s:g} s; is a "
+                            "dv-processing publisher (DV software, a camera) listening there?") from None
+        except _Closed:
+            raise DataError(f"{self.url}: the publisher closed the connection before its stream header") from None
+        if header.sensor_hw is None:
+            raise DataError(f"{self.url}: the event stream states no sensor size (sizeX, sizeY)")
+        self.header, self.sensor_hw = header, header.sensor_hw
+
+    def _read(self, n: int, deadline: float) -> bytearray:
+        """Exactly `n` bytes, or _Stalled at the deadline, or _Closed (each recv gets >= 1 byte
+        or ends the loop, so it ends by the deadline)."""
+        buf, got = bytearray(n), 0
+        while got < n:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self._sock is None:
+                raise _Stalled() if self._sock is not None else _Closed(got)
+            try:
+                self._sock.settimeout(remaining)
+                count = self._sock.recv_into(memoryview(buf)[got:], n - got)
+            except socket.timeout:
+                raise _Stalled() from None
+            except OSError:  # closed under us (close() from another thread) or reset by the peer
+                count = 0
+            if count == 0:
+                raise _Closed(got)
+            got += count
+            self.received += count
+        return buf
 
     def __iter__(self) -> Iterator[EventStream]:
-        idle_since = time.monotonic()
-        while self._reader is not None:
-            batch = self._reader.getNextEventBatch()
-            if batch is not None and batch.size():
-                idle_since = time.monotonic()
-                yield self._chunk(batch.numpy())
-                continue
-            if not self._reader.isRunning():
-                # the connection is gone; what it delivered before closing is still buffered
-                while (batch := self._reader.getNextEventBatch()) is not None:
-                    if batch.size():
-                        yield self._chunk(batch.numpy())
-                self.stopped_reason = f"publisher {self.url} closed the stream after {self.events} events"
-                return
-            if time.monotonic() - idle_since > self.timeout_s:
+        while self._sock is not None:
+            try:
+                events = self._next_events(time.monotonic() + self.timeout_s)
+            except _Stalled:
                 self.stopped_reason = (f"no events from {self.url} for {self.timeout_s:g} s "
                                        f"(after {self.events} events); stopped waiting")
                 return
-            time.sleep(POLL_S)
+            except _Closed as closed:
+                mid = f" ({closed.partial} bytes into a packet, dropped)" if closed.partial else ""
+                self.stopped_reason = f"publisher {self.url} closed the stream{mid} after {self.events} events"
+                return
+            yield self._chunk(events)
+
+    def _next_events(self, deadline: float) -> np.ndarray:
+        """The next packet of the event stream holding events; other packets are skipped."""
+        while True:
+            at = self.received
+            stream, size = PACKET_HEADER.unpack(self._read(PACKET_HEADER.size, deadline))
+            if stream < 0 or not 0 < size <= MAX_PACKET_BYTES:
+                raise DataError(f"{self.url}: corrupted stream at byte {at}: a packet header declares stream {stream} "
+                                f"and {size} bytes (at most {MAX_PACKET_BYTES})")
+            payload = self._read(size, deadline)
+            if stream != self.header.event_stream:
+                continue
+            try:
+                events = decode_event_packet(payload, self.header.compression)
+            except ValueError as exc:
+                raise DataError(f"{self.url}: corrupted packet at stream byte {at}: {exc}") from exc
+            if len(events):
+                return events
 
     def _chunk(self, events: np.ndarray) -> EventStream:
         self.events += len(events)
-        return EventStream(
-            x=events["x"].astype(np.int32), y=events["y"].astype(np.int32),
-            t_us=events["timestamp"].astype(np.int64), p=events["polarity"].astype(np.uint8),
-            sensor_hw=self.sensor_hw,
-        )
+        c = columns([events])
+        return EventStream(x=c["x"], y=c["y"], t_us=c["t"], p=c["p"], sensor_hw=self.sensor_hw)
 
     def close(self) -> None:
-        self._reader = None  # the reader's destructor closes the connection
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
 
     def __enter__(self) -> LiveEventSource:
         return self
@@ -173,13 +238,13 @@ def _publish_here(path: Path, port: int, speed: float, host: str, wait_client_s:
     writer = dv.io.NetworkWriter(host, port, dv.io.Stream.EventStream(0, "events", "e3dpsm", (width, height)))
     print(READY_LINE, flush=True)
     deadline = time.monotonic() + wait_client_s
-    for _ in range(2):  # twice: the first client may be LiveEventSource's reachability probe
+    for _ in range(2):  # twice: a client that only probed the port may leave again
         while writer.getClientCount() == 0:
             if time.monotonic() > deadline:
                 print(f"no client connected to dv://{host}:{port} within {wait_client_s:g} s", file=sys.stderr)
                 os._exit(3)
             time.sleep(0.01)
-        time.sleep(0.2)  # the probe leaves, the reader finishes its handshake
+        time.sleep(0.2)  # a probe leaves, a reader has its stream header
     t_us = stream.t_us
     bounds = _packet_bounds(t_us, PACKET_US if speed > 0 else None)
     start_wall = time.monotonic()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Callable
 
@@ -42,15 +41,35 @@ def read_events(path: str | os.PathLike, sensor_hw: tuple[int, int] | None = Non
 def read_events_with_frames(
     path: str | os.PathLike, sensor_hw: tuple[int, int] | None = None
 ) -> tuple[EventStream, np.ndarray | None]:
-    """Like `read_events`, also returning the EE3D frame_index column (None if absent)."""
+    """Like `read_events`, also returning the EE3D frame_index column (None if absent).
+
+    HDF5 files are read, and validated, in a separate process with a deadline
+    (e3dpsm/utils/isolate.py): the HDF5 C library segfaulted on a file with one byte changed in
+    a compressed chunk. Validating there too means only the canonical columns travel back."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"event file {path} does not exist")
-    reader = READERS.get(path.suffix.lower())
-    if reader is None:
+    if path.suffix.lower() not in READERS:
         raise DataError(f"{path}: unsupported event file type {path.suffix!r}; expected one of {', '.join(READERS)}")
+    if path.suffix.lower() in HDF5_SUFFIXES:
+        from e3dpsm.utils.isolate import deadline_for, run_isolated
+
+        got = run_isolated("e3dpsm.data.readers:read_validated_columns", str(path), json.dumps(sensor_hw),
+                           deadline_s=deadline_for(path.stat().st_size), what=str(path), preload=("h5py",))
+    else:
+        got = read_validated_columns(path, sensor_hw)
+    stream = EventStream(x=got["x"], y=got["y"], t_us=got["t"], p=got["p"], sensor_hw=tuple(got["sensor_hw"]))
+    return stream, got.get("frame_index")
+
+
+def read_validated_columns(path: str | os.PathLike, sensor_hw: tuple[int, int] | str | None = None) -> dict:
+    """The columns `read_events_with_frames` returns (x, y, t, p, frame_index if present, sensor_hw),
+    read and validated in this process. `sensor_hw` may come JSON-encoded (from another process)."""
+    path = Path(path)
+    if isinstance(sensor_hw, str):
+        sensor_hw = json.loads(sensor_hw)
     try:
-        columns, file_hw = reader(path)
+        columns, file_hw = READERS[path.suffix.lower()](path)
     except MemoryError as exc:
         raise DataError(f"{path}: too large to read into memory") from exc
     hw = sensor_hw or file_hw or _meta_json_hw(path.parent / "event_meta.json") or SENSOR_HW
@@ -58,13 +77,14 @@ def read_events_with_frames(
         x, y, t, p = validate_events(columns["x"], columns["y"], columns["t"], columns["p"], hw)
     except InputError as exc:
         raise DataError(f"{path}: {exc}") from exc
-    frames = columns.get("frame_index")
-    if frames is not None:
-        frames = np.asarray(frames, dtype=np.int64)
-    return EventStream(x=x, y=y, t_us=t, p=p, sensor_hw=(int(hw[0]), int(hw[1]))), frames
+    out = {"x": x, "y": y, "t": t, "p": p, "sensor_hw": [int(hw[0]), int(hw[1])]}
+    if columns.get("frame_index") is not None:
+        out["frame_index"] = np.asarray(columns["frame_index"], dtype=np.int64)
+    return out
 
 
 def _read_h5(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
+    """HDF5 in this process: `read_events_with_frames` calls it in a separate one."""
     import h5py
 
     try:
@@ -72,47 +92,39 @@ def _read_h5(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]
             hw = None
             if "sensor_height" in f.attrs and "sensor_width" in f.attrs:
                 hw = (int(f.attrs["sensor_height"]), int(f.attrs["sensor_width"]))
-            if EVENT_DATASET in f:
-                table = f[EVENT_DATASET][()]
-                if table.ndim != 2 or table.shape[1] < 4:
-                    raise DataError(
-                        f"{path}: dataset '{EVENT_DATASET}' has shape {table.shape}; "
-                        "expected (N, >=4) with columns x, y, t, p[, frame_index]"
-                    )
-                columns = {name: table[:, i] for i, name in enumerate(EVENT_COLUMNS[: table.shape[1]])}
-                return columns, hw
-            missing = [k for k in ("x", "y", "t", "p") if k not in f]
-            if missing:
-                raise DataError(
-                    f"{path}: no '{EVENT_DATASET}' dataset and missing datasets {missing}; "
-                    "expected 'event' (N, >=4) or separate 'x', 'y', 't', 'p'"
-                )
-            return {k: f[k][()] for k in ("x", "y", "t", "p")}, hw
+            return _h5_columns(f, path), hw
     except DataError:
         raise
-    except (OSError, KeyError, ValueError, RuntimeError) as exc:  # h5py reports damage as these
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:  # h5py reports damage as these
         raise DataError(f"{path}: cannot read HDF5 file (truncated or corrupted?): {exc}") from exc
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            missing = [k for k in ("x", "y", "t", "p") if k not in archive.files]
-            if missing:
-                raise DataError(f"{path}: missing arrays {missing}; expected x, y, t, p")
-            return {k: archive[k] for k in ("x", "y", "t", "p")}
-    except DataError:
-        raise
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile, KeyError) as exc:
-        raise DataError(f"{path}: cannot read .npz file (truncated or corrupted?): {exc}") from exc
+def _h5_columns(f, path: Path) -> dict[str, np.ndarray]:
+    if EVENT_DATASET in f:
+        table = f[EVENT_DATASET][()]
+        if table.ndim != 2 or table.shape[1] < 4:
+            raise DataError(
+                f"{path}: dataset '{EVENT_DATASET}' has shape {table.shape}; "
+                "expected (N, >=4) with columns x, y, t, p[, frame_index]"
+            )
+        return {name: table[:, i] for i, name in enumerate(EVENT_COLUMNS[: table.shape[1]])}
+    missing = [k for k in ("x", "y", "t", "p") if k not in f]
+    if missing:
+        raise DataError(
+            f"{path}: no '{EVENT_DATASET}' dataset and missing datasets {missing}; "
+            "expected 'event' (N, >=4) or separate 'x', 'y', 't', 'p'"
+        )
+    return {k: f[k][()] for k in ("x", "y", "t", "p")}
 
 
-def _read_npz_no_size(path: Path) -> tuple[dict[str, np.ndarray], None]:
-    return _read_npz(path), None
+def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], None]:
+    from e3dpsm.data.formats.npz import read_npz
+
+    return read_npz(path), None
 
 
 def _read_aedat4(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None]:
-    from e3dpsm.data.formats.inivation import read_aedat4  # imports dv-processing only when used
+    from e3dpsm.data.formats.inivation import read_aedat4
 
     return read_aedat4(path)
 
@@ -132,7 +144,7 @@ def _read_dat(path: Path) -> tuple[dict[str, np.ndarray], tuple[int, int] | None
 Reader = Callable[[Path], "tuple[dict[str, np.ndarray], tuple[int, int] | None]"]
 # suffix -> reader returning (raw columns x, y, t, p[, frame_index], sensor (h, w) the file states)
 READERS: dict[str, Reader] = {
-    ".h5": _read_h5, ".hdf5": _read_h5, ".npz": _read_npz_no_size,
+    ".h5": _read_h5, ".hdf5": _read_h5, ".npz": _read_npz,
     ".aedat4": _read_aedat4, ".raw": _read_raw, ".dat": _read_dat,
 }
 EVENT_SUFFIXES = tuple(READERS)

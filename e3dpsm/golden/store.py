@@ -209,7 +209,11 @@ class GoldenWriter:
 
 
 def load_golden(folder: str | os.PathLike) -> GoldenRecord:
-    """Open and check a golden folder; `DataError` with what is wrong and how to fix it."""
+    """Open and check a golden folder (e3dpsm/golden/store_checks.py); `DataError` with what is
+    wrong and how to fix it."""
+    from e3dpsm.data.formats.npz import load_arrays
+    from e3dpsm.golden.store_checks import check_arrays, check_manifest
+
     folder = Path(folder)
     manifest_path, arrays_path = folder / MANIFEST_FILE, folder / ARRAYS_FILE
     if not manifest_path.is_file() or not arrays_path.is_file():
@@ -217,23 +221,19 @@ def load_golden(folder: str | os.PathLike) -> GoldenRecord:
                         "write one with `e3dpsm golden record`")
     try:
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{manifest_path}: cannot read JSON ({exc})") from exc
-    if manifest.get("format") != GOLDEN_FORMAT:
-        raise DataError(f"{manifest_path}: format {manifest.get('format')!r}, this e3dpsm reads {GOLDEN_FORMAT!r}")
-    try:
-        with np.load(arrays_path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, zlib.error) as exc:
-        raise DataError(f"{arrays_path}: cannot read the arrays ({exc}); record the golden again") from exc
-    steps = int(manifest.get("steps", -1))
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: JSON nested thousands deep
+        raise DataError(f"{manifest_path}: cannot read JSON ({str(exc).splitlines()[0][:200]})") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != GOLDEN_FORMAT:
+        found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise DataError(f"{manifest_path}: format {found!r}, this e3dpsm reads {GOLDEN_FORMAT!r}")
+    check_manifest(manifest, manifest_path)
+    arrays = load_arrays(arrays_path, what="the arrays")
     expected = ["lnes.mask", "lnes.values", "lnes.nnz", "window_ms", "snapshot_steps",
-                *(f"out.{n}" for n in manifest.get("outputs", [])),
-                *(f"{kind}.{s['name']}" for s in manifest.get("states", [])
+                *(f"out.{n}" for n in manifest["outputs"]),
+                *(f"{kind}.{s['name']}" for s in manifest["states"]
                   for kind in ("state_absmax", "state_index", "state_sample", "snapshot"))]
     missing = [k for k in expected if k not in arrays]
     if missing:
         raise DataError(f"{arrays_path} lacks {', '.join(missing[:4])}; record the golden again")
-    if len(arrays["window_ms"]) != steps or int(arrays["lnes.nnz"].sum()) != len(arrays["lnes.values"]):
-        raise DataError(f"{arrays_path} does not hold the {steps} steps its manifest names; record the golden again")
+    check_arrays(manifest, arrays, arrays_path)
     return GoldenRecord(manifest, arrays, folder)

@@ -2,7 +2,9 @@
 
 - `prophesee`: RAW (EVT 2.0, EVT 3.0) and DAT, decoded with numpy from Prophesee's public
   format specification (no dependency);
-- `inivation`: AEDAT4, read with iniVation's `dv-processing` (pip extra `cameras`).
+- `inivation`: AEDAT4 (and the dv:// network stream's packets), decoded in the project from
+  iniVation's public format description, bounds-checked (`flatbuffer`); LZ4 and Zstd packets
+  need `lz4` / `zstandard` (pip extra `cameras`).
 
 Each reader returns `(columns, sensor_hw)`: a dict of raw arrays `x`, `y`, `t`, `p` and the
 sensor size the file states (None when it states none). `e3dpsm.data.readers` holds the

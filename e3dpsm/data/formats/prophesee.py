@@ -75,7 +75,7 @@ def raw_encoding_and_size(lines: list[str], path: Path) -> tuple[str, tuple[int,
         opts = dict(o.split("=", 1) for o in options if "=" in o)
         encoding = {"EVT2": "evt2", "EVT3": "evt3"}.get(name.strip().upper())
         if "height" in opts and "width" in opts:
-            hw = (int(opts["height"]), int(opts["width"]))
+            hw = sensor_size(opts["height"], opts["width"], f"% format {fmt}", path)
     else:  # older files: "% evt 3.0"
         encoding = {"2.0": "evt2", "3.0": "evt3"}.get((_header_value(lines, "evt") or "").strip())
         fmt = _header_value(lines, "evt")
@@ -85,11 +85,19 @@ def raw_encoding_and_size(lines: list[str], path: Path) -> tuple[str, tuple[int,
     geometry = _header_value(lines, "geometry")  # "% geometry 640x480"
     if hw is None and geometry:
         w, _, h = geometry.lower().partition("x")
-        try:
-            hw = (int(h), int(w))
-        except ValueError as exc:
-            raise DataError(f"{path}: header line '% geometry {geometry}' is not WIDTHxHEIGHT") from exc
+        hw = sensor_size(h, w, f"% geometry {geometry}", path)
     return encoding, hw
+
+
+def sensor_size(height: str, width: str, line: str, path: Path) -> tuple[int, int]:
+    """(height, width) from header text; positive integers or DataError naming the line."""
+    try:
+        hw = (int(height), int(width))
+    except ValueError:
+        hw = (0, 0)
+    if min(hw) <= 0:
+        raise DataError(f"{path}: header line {line!r} does not state a sensor size in positive whole numbers")
+    return hw
 
 
 def read_raw(path: str | os.PathLike) -> tuple[Columns, tuple[int, int] | None]:
@@ -218,7 +226,7 @@ def read_dat(path: str | os.PathLike) -> tuple[Columns, tuple[int, int] | None]:
     hw = None
     width, height = _header_value(lines, "Width"), _header_value(lines, "Height")
     if width and height:
-        hw = (int(height), int(width))
+        hw = sensor_size(height, width, f"% Width {width} / % Height {height}", path)
     return {
         "x": (d & 0x3FFF).astype(np.int32), "y": ((d >> 14) & 0x3FFF).astype(np.int32),
         "t": t.astype(np.int64), "p": (d >> 28).astype(np.uint8),

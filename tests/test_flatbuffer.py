@@ -1,0 +1,162 @@
+"""The bounds-checked FlatBuffers reader (e3dpsm/data/formats/flatbuffer.py) and the AEDAT4
+packet decoder, against buffers built by Google's own `flatbuffers` Builder (an independent
+writer: installed with onnxruntime), then damaged field by field."""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from e3dpsm.data.formats.flatbuffer import FlatBufferError, root_table, scalar, string, vector
+from e3dpsm.data.formats.inivation import columns, decode_event_packet, parse_io_header
+from e3dpsm.errors import DataError
+
+flatbuffers = pytest.importorskip("flatbuffers")
+
+XML = (b'<dv version="2.0"><node name="outInfo" path="/outInfo/">'
+       b'<node name="3" path="/outInfo/3/"><attr key="typeIdentifier" type="string">EVTS</attr>'
+       b'<node name="info" path="/outInfo/3/info/"><attr key="sizeX" type="int">346</attr>'
+       b'<attr key="sizeY" type="int">260</attr></node></node>'
+       b'<node name="7" path="/outInfo/7/"><attr key="typeIdentifier" type="string">IMUS</attr></node>'
+       b'</node></dv>')
+
+
+def event_packet(events: list[tuple[int, int, int, int]]) -> bytes:
+    """A size-prefixed EventPacket as dv-processing's generated code builds it (Event: int64
+    timestamp, int16 x, int16 y, bool polarity, 3 bytes of padding; 16 bytes, aligned to 8)."""
+    builder = flatbuffers.Builder(0)
+    builder.StartVector(16, len(events), 8)
+    for t, x, y, p in reversed(events):
+        builder.Prep(8, 16)
+        builder.Pad(3)
+        builder.PrependUint8(p)  # a bool is one byte; any value is written as given
+        builder.PrependInt16(y)
+        builder.PrependInt16(x)
+        builder.PrependInt64(t)
+    elements = builder.EndVector()
+    builder.StartObject(1)
+    builder.PrependUOffsetTRelativeSlot(0, elements, 0)
+    builder.FinishSizePrefixed(builder.EndObject(), b"EVTS")
+    return bytes(builder.Output())
+
+
+def io_header(compression: int | None, table_position: int | None, info: bytes | None) -> bytes:
+    builder = flatbuffers.Builder(0)
+    text = builder.CreateString(info) if info is not None else None
+    builder.StartObject(3)
+    if compression is not None:
+        builder.PrependInt32Slot(0, compression, -99)  # -99: never the default, so it is written
+    if table_position is not None:
+        builder.PrependInt64Slot(1, table_position, -99)
+    if text is not None:
+        builder.PrependUOffsetTRelativeSlot(2, text, 0)
+    builder.Finish(builder.EndObject(), b"IOHE")
+    return bytes(builder.Output())
+
+
+EVENTS = [(1_700_000_000_000_123, 5, 7, True), (1_700_000_000_000_124, 345, 259, False), (-1, -2, 3, True)]
+
+
+def test_event_packet_built_by_flatbuffers_decodes_to_its_events():
+    got = decode_event_packet(event_packet(EVENTS), "none")
+    assert got["t"].tolist() == [e[0] for e in EVENTS] and got["x"].tolist() == [e[1] for e in EVENTS]
+    assert got["y"].tolist() == [e[2] for e in EVENTS] and got["p"].tolist() == [int(e[3]) for e in EVENTS]
+    assert len(decode_event_packet(event_packet([]), "none")) == 0
+
+
+def test_columns_keep_packet_order_and_read_any_nonzero_polarity_byte_as_on():
+    first = decode_event_packet(event_packet(EVENTS), "none")
+    second = decode_event_packet(event_packet([(9, 1, 2, 2), (10, 3, 4, 255)]), "none")
+    got = columns([first, second])
+    assert got["t"].tolist() == [e[0] for e in EVENTS] + [9, 10] and got["x"].tolist() == [5, 345, -2, 1, 3]
+    assert got["p"].tolist() == [1, 0, 1, 1, 1] and got["p"].dtype == np.uint8 and got["x"].dtype == np.int32
+
+
+def test_io_header_fields_and_their_defaults():
+    header = parse_io_header(io_header(3, 1234, XML), "h", 18)
+    assert (header.compression, header.data_table_position) == ("zstd", 1234)
+    assert header.event_stream == 3 and header.sensor_hw == (260, 346)  # EVTS, not the IMU stream
+    header = parse_io_header(io_header(None, None, XML), "h", 18)  # absent fields: the schema's defaults
+    assert (header.compression, header.data_table_position) == ("none", -1)
+
+
+def test_io_header_without_an_event_stream_or_with_bad_xml_is_refused():
+    with pytest.raises(DataError, match="h: no event stream"):
+        parse_io_header(io_header(1, -1, XML.replace(b"EVTS", b"FRME")), "h", 18)
+    with pytest.raises(DataError, match=r"h: the IO header at byte 18 holds no valid stream description"):
+        parse_io_header(io_header(1, -1, XML[:-3]), "h", 18)
+    with pytest.raises(DataError, match="names compression 9"):
+        parse_io_header(io_header(9, -1, XML), "h", 18)
+    with pytest.raises(DataError, match="h: no event stream"):  # a stream id no int() takes (> 4300 digits)
+        parse_io_header(io_header(1, -1, XML.replace(b'name="3"', b'name="' + b"9" * 5000 + b'"')), "h", 18)
+
+
+def _table_pos(buf: bytes) -> int:
+    return struct.unpack_from("<I", buf, 0)[0]
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda b: struct.pack_into("<I", b, 0, len(b) + 100), r"a table at byte \d+ lies outside"),
+    (lambda b: struct.pack_into("<i", b, _table_pos(b), -(len(b) * 2)), r"the vtable of the table .* outside"),
+    (lambda b: struct.pack_into("<I", b, 4, 0x7FFFFFF0), r"identifier"),
+])
+def test_damaged_offsets_are_refused_with_their_byte(damage, message):
+    buf = bytearray(io_header(1, 10, XML))
+    damage(buf)
+    with pytest.raises(FlatBufferError, match=message):
+        table = root_table(bytes(buf), b"IOHE")
+        string(table, 2)
+
+
+def test_a_vector_longer_than_its_buffer_is_refused_before_it_is_read():
+    buf = bytearray(event_packet(EVENTS))[4:]  # without the size prefix
+    table = root_table(bytes(buf), b"EVTS")
+    start, count = vector(table, 0, 16)
+    assert count == 3
+    struct.pack_into("<I", buf, start - 4, 4)  # four elements claimed, three present
+    with pytest.raises(FlatBufferError, match=r"field 0's 4 elements of 16 bytes at byte \d+ run past"):
+        vector(root_table(bytes(buf), b"EVTS"), 0, 16)
+    struct.pack_into("<I", buf, start - 4, 0xFFFFFFFF)  # a count whose byte size overflows 32 bits
+    with pytest.raises(FlatBufferError, match="run past"):
+        vector(root_table(bytes(buf), b"EVTS"), 0, 16)
+
+
+def test_a_field_outside_its_table_is_refused():
+    buf = bytearray(io_header(2, 77, XML))
+    table = root_table(bytes(buf), b"IOHE")
+    assert scalar(table, 1, "<q", -1) == 77
+    vtable = table.pos - struct.unpack_from("<i", buf, table.pos)[0]
+    struct.pack_into("<H", buf, vtable + 2, 6)  # the table now claims 6 bytes: field 1 lies beyond
+    with pytest.raises(FlatBufferError, match="field 1 of the table at byte .* lies outside the table"):
+        scalar(root_table(bytes(buf), b"IOHE"), 1, "<q", -1)
+
+
+def test_packet_size_prefix_must_match_what_was_decompressed():
+    packet = event_packet(EVENTS)
+    with pytest.raises(ValueError, match=r"declares \d+ bytes, \d+ decompressed"):
+        decode_event_packet(packet + b"\0\0\0\0", "none")
+    with pytest.raises(ValueError, match="too few for a FlatBuffer"):
+        decode_event_packet(b"\1\0", "none")
+    np.testing.assert_array_equal(decode_event_packet(packet, "none")["x"], [5, 345, -2])
+
+
+def test_a_packet_that_would_expand_past_the_bound_is_refused():
+    lz4 = pytest.importorskip("lz4.frame")
+    zstd = pytest.importorskip("zstandard")
+    huge = bytes(20_000_000)  # Zstd compresses it > 1024x (LZ4 cannot exceed ~255x)
+    packet = zstd.ZstdCompressor().compress(huge)
+    assert len(huge) > 1024 * len(packet) + 4096
+    with pytest.raises(ValueError, match="its Zstd frame claims more than 1024x its size"):
+        decode_event_packet(packet, "zstd")
+    unsized = zstd.ZstdCompressor(write_content_size=False).compress(huge)  # found while reading
+    with pytest.raises(ValueError, match="it expands more than 1024x"):
+        decode_event_packet(unsized, "zstd")
+    with pytest.raises(ValueError, match=r"the lz4 data does not decompress \(Frame incomplete"):
+        decode_event_packet(lz4.compress(event_packet(EVENTS))[:-6], "lz4")
+    with pytest.raises(ValueError, match="3 bytes follow the lz4 frame"):
+        decode_event_packet(lz4.compress(event_packet(EVENTS)) + b"abc", "lz4")
+    with pytest.raises(ValueError, match="3 bytes follow the zstd frame"):
+        decode_event_packet(zstd.ZstdCompressor().compress(event_packet(EVENTS)) + b"abc", "zstd")
+    unsized = zstd.ZstdCompressor(write_content_size=False).compress(event_packet(EVENTS))
+    np.testing.assert_array_equal(decode_event_packet(unsized, "zstd")["t"], [e[0] for e in EVENTS])
