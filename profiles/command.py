@@ -98,7 +98,8 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
             lines.append(f"{entry['name']:>34}: unavailable ({entry['reason']})")
             continue
         lat = entry["latency_ms"]
-        line = f"{entry['name']:>34}: p50 {lat['p50']:.2f} ms, p90 {lat['p90']:.2f}, p99 {lat['p99']:.2f} -> {entry['hz']:.1f} Hz"
+        line = (f"{entry['name']:>34}: p50 {lat['p50']:.2f} ms, p90 {lat['p90']:.2f}, p99 {lat['p99']:.2f} "
+                f"-> {entry['hz']:.1f} Hz")
         if entry.get("overhead_ms"):
             line += f"; runtime {entry['runtime_ms']['p50']:.2f} + Python {entry['overhead_ms']['p50']:.3f}"
         outside = entry.get("outside") or {}

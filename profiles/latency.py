@@ -145,7 +145,8 @@ class OpenVinoStatefulRunner:
         meta = metadata_from_ir(model, path)
         compiled = ov.Core().compile_model(model, target.provider, openvino_target_config(target))
         self.request = compiled.create_infer_request()
-        self.frame_port, self.window_port = compiled.input(meta.frame_input["name"]), compiled.input(meta.window_input["name"])
+        self.frame_port = compiled.input(meta.frame_input["name"])
+        self.window_port = compiled.input(meta.window_input["name"])
         self.pose_ports = [compiled.output(name) for name in meta.output_names]
         self.window = ov.Tensor(np.full((1,), window_ms, np.float32))
         self._tensor = lambda array: ov.Tensor(np.ascontiguousarray(array), shared_memory=True)

@@ -201,3 +201,21 @@ def test_a_failing_outside_tool_is_one_line_of_reason(tmp_path: Path) -> None:
     assert _run(failing, 60, tmp_path / "log.txt") == "exit 3: [ ERROR ] Model file does not exist"
     assert _run([sys.executable, "-c", "print('fine')"], 60, tmp_path / "ok.txt") is None
     assert _run([str(tmp_path / "no-such-tool")], 60, tmp_path / "x.txt").startswith("could not start")
+
+
+@pytest.mark.slow  # ~14 s on a loaded 2-core host: IR conversion, a fresh interpreter, compile, 1 s of steps
+def test_benchmark_app_runs_on_the_tiny_static_graph(tiny_static_graph: Path, tmp_path: Path) -> None:
+    pytest.importorskip("openvino")
+    from e3dpsm.profiles.agreement import outside_figure
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    figure = outside_figure(load_targets()["openvino-cpu-fp32-static"], tiny_static_graph,
+                            moving_edge_frames(1, 192, 256, 20.0), 1, tmp_path, None)
+    assert figure.reason is None, figure.reason
+    assert figure.tool == "benchmark_app" and figure.runs >= 1 and 0 < figure.p50_ms < 1e4
+    report = json.loads((tmp_path / "benchmark_report.json").read_text())
+    assert parse_benchmark_app_report(report) == (figure.p50_ms, figure.runs)
+    assert report["configuration_setup"]["number of CPU streams"] == "1" and report["configuration_setup"]["inference_only"]
+    assert (report["cmd_options"]["-nthreads"], report["cmd_options"]["-infer_precision"]) == ("2", "f32")
+    assert "-data_shape" not in report["cmd_options"]  # a static graph runs as it is
