@@ -19,7 +19,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-TARGETS = "torch-eager-cpu,ort-cpu-fp32,ort-cpu-int8,ort-cpu-fp16,openvino-cpu-fp32,openvino-cpu-int8,ort-cuda-fp32,ort-tensorrt-fp16"
+TARGETS = ("torch-eager-cpu,ort-cpu-fp32,ort-cpu-fp32-static,ort-cpu-int8,ort-cpu-fp16,openvino-cpu-fp32,"
+           "openvino-cpu-fp32-static,openvino-cpu-stateful-fp32-static,openvino-cpu-int8,openvino-cpu-bf16-static,"
+           "ort-cuda-fp32,ort-tensorrt-fp16")
 
 
 def e3dpsm(*args: str) -> None:
@@ -67,6 +69,10 @@ def main() -> int:
 
     report = json.loads((Path(args.out) / "report.json").read_text())
     p50 = {t["name"]: t["latency_ms"]["p50"] for t in report["targets"] if t["available"]}
+    verdict = report["verdict"]
+    if verdict:
+        print(f"\nFastest path on this host: {verdict['fastest']}, {verdict['p50_ms']:.2f} ms = {verdict['hz']:.1f} Hz "
+              f"(bar: 80 Hz)")
     counting = report["counting"]
     print(f"\nMACs per pose update: PyTorch {counting['pytorch']['macs'] / 1e9:.4f} G, ONNX "
           f"{counting['onnx']['macs'] / 1e9:.4f} G, difference {100 * counting['relative_difference']:.3f}% (bar <= 2%)")

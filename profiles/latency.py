@@ -2,27 +2,25 @@
 
 Fairness: every runner sees the same frames in the same order with its own states carried,
 at the same thread count, and the runners take turns in chunks of steps, so a burst of load
-from elsewhere on a shared machine hits all of them rather than one.
+from elsewhere on a shared machine hits all of them rather than one
+(`profiles.step_timing`). The runners here split a step into its phases (`prepare`, `run`:
+the runtime's call alone, `collect`), so the profile reports the Python overhead apart.
 """
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, Mapping, Protocol
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from e3dpsm.profiles.step_timing import StepRunner, time_side_by_side
 from e3dpsm.profiles.targets import Target
 from e3dpsm.runtime.session import CarriedStateRunner
 from e3dpsm.utils.stats import percentiles
 
 
-class StepRunner(Protocol):
-    def reset(self) -> None: ...
-    def step(self, lnes: np.ndarray) -> None: ...
-
-
 class TorchRunner:
-    """PyTorch eager `model.step`, states carried as tensors."""
+    """PyTorch eager `model.step`, states carried as tensors (no copies to hand over)."""
 
     def __init__(self, model: Any, threads: int, window_ms: float) -> None:
         import torch
@@ -34,34 +32,66 @@ class TorchRunner:
     def reset(self) -> None:
         self.state = self.model.init_state(1, device="cpu")
 
-    def step(self, lnes: np.ndarray) -> None:
+    def prepare(self, lnes: np.ndarray) -> None:
+        self._lnes = self.torch.from_numpy(lnes)
+
+    def run(self) -> None:
         with self.torch.inference_mode():
-            _, self.state = self.model.step(self.torch.from_numpy(lnes), self.state, self.window_ms)
+            _, self.state = self.model.step(self._lnes, self.state, self.window_ms)
+
+    def collect(self) -> None:
+        pass
+
+    def step(self, lnes: np.ndarray) -> None:
+        self.prepare(lnes)
+        self.run()
 
 
-def ort_session_options(threads: int, profile_prefix: str | None = None) -> Any:
+def ort_session_options(threads: int, profile_prefix: str | None = None, stop_spinning: bool = False) -> Any:
+    """`stop_spinning`: ONNX Runtime's intra-op threads stop spinning when a run ends
+    (`session.force_spinning_stop`). By default they spin on after each run (tens of ms), and
+    in a side-by-side measurement that steals a core from the next runtime's first steps:
+    measured on `paper` on a loaded 2-core host, OpenVINO's first step after an ONNX Runtime
+    turn took 166 ms with spinning against 63 ms without (steady state ~100 ms)."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
+    if stop_spinning:
+        options.add_session_config_entry("session.force_spinning_stop", "1")
     if profile_prefix:
         options.enable_profiling = True
         options.profile_file_prefix = profile_prefix
     return options
 
 
-class OrtRunner(CarriedStateRunner):
-    """An onnxruntime step graph through e3dpsm.runtime.StepSession."""
+class _SessionPhases(CarriedStateRunner):
+    """A step session's `feeds` / `run_raw` / `collect` as the runner phases."""
 
-    def __init__(self, path: str, target: Target, window_ms: float, profile_prefix: str | None = None) -> None:
+    def prepare(self, lnes: np.ndarray) -> None:
+        self._feeds = self.session.feeds(lnes, self.state, self.window_ms)
+
+    def run(self) -> None:
+        self._raw = self.session.run_raw(self._feeds)
+
+    def collect(self) -> None:
+        _, self.state = self.session.collect(self._raw)
+
+
+class OrtRunner(_SessionPhases):
+    """An onnxruntime step graph through e3dpsm.runtime.StepSession. `side_by_side`: its
+    threads stop spinning between runs (`ort_session_options`), as the profile measures."""
+
+    def __init__(self, path: str, target: Target, window_ms: float, profile_prefix: str | None = None,
+                 side_by_side: bool = False) -> None:
         from e3dpsm.runtime.session import StepSession
 
         providers: list[Any] = [(target.provider, dict(target.options))] if target.options else [target.provider]
         if target.provider != "CPUExecutionProvider":
             providers.append("CPUExecutionProvider")  # nodes the accelerator lacks
-        super().__init__(StepSession(path, threads=target.threads, providers=providers,
-                                     options=ort_session_options(target.threads, profile_prefix)), window_ms)
+        options = ort_session_options(target.threads, profile_prefix, stop_spinning=side_by_side)
+        super().__init__(StepSession(path, threads=target.threads, providers=providers, options=options), window_ms)
 
     def end_profiling(self) -> str:
         return self.session.session.end_profiling()
@@ -77,81 +107,77 @@ def openvino_precision(target: Target) -> str:
 LATENCY_HINT = {"PERFORMANCE_HINT": "LATENCY"}
 
 
-class OpenVinoRunner:
-    """OpenVINO compiled model; state outputs fed back by the names in the graph metadata."""
+def openvino_target_config(target: Target) -> dict[str, Any]:
+    """Every property the profile compiles an OpenVINO target with (the outside tool is
+    given the same: profiles.outside)."""
+    from e3dpsm.runtime.openvino_session import compile_config
+
+    return compile_config(target.threads, LATENCY_HINT, precision=openvino_precision(target))
+
+
+class OpenVinoRunner(_SessionPhases):
+    """The explicit-state graph through e3dpsm.runtime.OpenVINOStepSession: states fed in and
+    read back by the names in the graph metadata."""
 
     def __init__(self, path: str, target: Target, window_ms: float) -> None:
-        import onnx
+        from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 
-        from e3dpsm.graph_metadata import GraphMetadata
-        from e3dpsm.runtime.openvino_session import compile_config, openvino_core
+        session = OpenVINOStepSession(path, threads=target.threads, device=target.provider,
+                                      precision=openvino_precision(target), config=LATENCY_HINT)
+        super().__init__(session, window_ms)
 
-        self.meta = GraphMetadata.from_onnx(onnx.load(path, load_external_data=False))
-        core = openvino_core()
-        config = compile_config(target.threads, LATENCY_HINT, precision=openvino_precision(target))
-        self.compiled = core.compile_model(path, target.provider, config)
-        self.request = self.compiled.create_infer_request()
-        self.window = np.full((1,), window_ms, np.float32)
-        self.reset()
-
-    def reset(self) -> None:
-        self.state = {s.input_name: s.initial_value(1) for s in self.meta.states}
-
-    def step(self, lnes: np.ndarray) -> None:
-        feeds = {self.meta.frame_input["name"]: lnes, self.meta.window_input["name"]: self.window, **self.state}
-        results = self.request.infer(feeds)
-        # A port can carry several names (fusion_pose_out is an Identity of pose): map them all.
-        by_name = {name: value for port, value in results.items() for name in port.get_names()}
-        self.state = {s.input_name: by_name[s.output_name] for s in self.meta.states}
+    @property
+    def compiled(self) -> Any:
+        return self.session.compiled
 
 
 class OpenVinoStatefulRunner:
     """The same graph converted to a stateful IR (batch 1): states stay inside the request as
-    OpenVINO variables, a step feeds only the frame and the window length."""
+    OpenVINO variables, a step feeds only the frame and the window length and copies the
+    pose outputs out."""
 
     def __init__(self, path: str, target: Target, window_ms: float) -> None:
         import openvino as ov
 
         from e3dpsm.export.openvino_ir import convert_step_graph
-        from e3dpsm.runtime.openvino_session import compile_config
         from e3dpsm.runtime.openvino_stateful import metadata_from_ir
 
         model, _ = convert_step_graph(path, stateful=True, batch=1)  # in memory; no IR file needed to time it
         meta = metadata_from_ir(model, path)
-        config = compile_config(target.threads, LATENCY_HINT, precision=openvino_precision(target))
-        self.request = ov.Core().compile_model(model, target.provider, config).create_infer_request()
-        self.frame_name, self.window_name = meta.frame_input["name"], meta.window_input["name"]
-        self.window = np.full((1,), window_ms, np.float32)
+        compiled = ov.Core().compile_model(model, target.provider, openvino_target_config(target))
+        self.request = compiled.create_infer_request()
+        self.frame_port = compiled.input(meta.frame_input["name"])
+        self.window_port = compiled.input(meta.window_input["name"])
+        self.pose_ports = [compiled.output(name) for name in meta.output_names]
+        self.window = ov.Tensor(np.full((1,), window_ms, np.float32))
+        self._tensor = lambda array: ov.Tensor(np.ascontiguousarray(array), shared_memory=True)
 
     def reset(self) -> None:
         self.request.reset_state()
 
+    def prepare(self, lnes: np.ndarray) -> None:
+        self.request.set_tensor(self.frame_port, self._tensor(lnes))
+        self.request.set_tensor(self.window_port, self.window)
+
+    def run(self) -> None:
+        self.request.infer()
+
+    def collect(self) -> None:
+        self.poses = [self.request.get_tensor(port).data.copy() for port in self.pose_ports]
+
     def step(self, lnes: np.ndarray) -> None:
-        self.request.infer({self.frame_name: lnes, self.window_name: self.window})
+        self.prepare(lnes)
+        self.run()
+        self.collect()
 
 
 def measure_side_by_side(runners: Mapping[str, StepRunner], frames: np.ndarray, steps: int, warmup: int,
                          chunk: int = 25, on_chunk: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
-    """Seconds per step for every runner: `warmup` untimed steps each, then `steps` timed
-    steps, in rounds of `chunk` steps per runner. Step k uses frame k (mod the frame count).
-    `on_chunk(n)` is called after every n timed steps of a runner (progress bars)."""
-    for runner in runners.values():
-        runner.reset()
-        for k in range(warmup):
-            runner.step(frames[k % len(frames)][None])
-    times = {name: np.empty(steps) for name in runners}
-    position = {name: warmup for name in runners}
-    for start in range(0, steps, chunk):
-        for name, runner in runners.items():
-            for k in range(start, min(start + chunk, steps)):
-                frame = frames[position[name] % len(frames)][None]
-                t0 = time.perf_counter()
-                runner.step(frame)
-                times[name][k] = time.perf_counter() - t0
-                position[name] += 1
-            if on_chunk is not None:
-                on_chunk(min(chunk, steps - start))
-    return times
+    """Seconds per whole step for every runner (`profiles.step_timing.time_side_by_side`,
+    which also times the phases apart): `warmup` untimed steps each, then `steps` timed
+    steps, in rounds of `chunk` steps per runner. Step k uses frame k (mod the frame count)."""
+    times = time_side_by_side(runners, frames, steps, warmup, chunk, on_chunk)
+    return {name: t.total for name, t in times.items()}
 
 
 def latency_summary(seconds: np.ndarray) -> dict[str, float]:

@@ -1,5 +1,6 @@
-"""`e3dpsm profile` without the argument parsing: counts, memory, side-by-side latency,
-onnxruntime op profiles and device estimates for a list of targets, as one report dict."""
+"""`e3dpsm profile` without the argument parsing: counts, memory, side-by-side latency (the
+runtime's call and the Python around it apart), each CPU target's outside timer, onnxruntime
+op profiles, device estimates and the verdict for a list of targets, as one report body."""
 from __future__ import annotations
 
 import math
@@ -17,11 +18,14 @@ from e3dpsm.profiles.flops import CATEGORIES, relative_difference
 from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
+from e3dpsm.profiles.agreement import agreement_ratio, outside_figure
 from e3dpsm.profiles.latency import (OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner, latency_summary,
-                                     matmul_peak_gflops, measure_side_by_side)
+                                     matmul_peak_gflops)
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.ort_profile import summarize_trace
+from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side
 from e3dpsm.profiles.targets import Target, availability
+from e3dpsm.profiles.verdict import fastest_path
 
 BASELINES = ("torch-eager-cpu", "ort-cpu-fp32")
 MEMORY_STEPS = 5
@@ -34,6 +38,7 @@ class ProfileSettings:
     chunk: int = 25
     ort_profile_steps: int = 50
     roofline_precisions: tuple[str, ...] = ("fp32", "fp16")
+    outside_seconds: float = 5.0  # each CPU target's outside timer (benchmark_app ...); 0: none
 
 
 def count_both(model: Any, graph: onnx.ModelProto) -> dict[str, Any]:
@@ -49,13 +54,12 @@ def count_both(model: Any, graph: onnx.ModelProto) -> dict[str, Any]:
     return counting
 
 
-def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any, window_ms: float,
-                  profile_prefix: str | None = None) -> Any:
+def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any, window_ms: float) -> Any:
     if target.runtime == "torch":
         return TorchRunner(model, target.threads, window_ms)
-    path = str(graphs[target.graph])
+    path = str(graphs[target.graph_key])
     if target.runtime == "onnxruntime":
-        return OrtRunner(path, target, window_ms, profile_prefix)
+        return OrtRunner(path, target, window_ms, side_by_side=True)
     if target.runtime == "openvino-stateful":
         return OpenVinoStatefulRunner(path, target, window_ms)
     return OpenVinoRunner(path, target, window_ms)
@@ -63,7 +67,7 @@ def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any,
 
 def _model_bytes(target: Target, graphs: Mapping[str, Path | None], model: Any, checkpoint: str | None) -> int:
     if target.graph != "none":
-        return Path(graphs[target.graph]).stat().st_size
+        return Path(graphs[target.graph_key]).stat().st_size
     if checkpoint:
         return Path(checkpoint).stat().st_size
     return sum(t.numel() * t.element_size() for t in model.state_dict().values())
@@ -83,7 +87,7 @@ def _ratios(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 
 def _ort_profile(target: Target, graphs: Mapping[str, Path | None], frames: Frames, steps: int) -> dict[str, Any]:
     """A separate profiled session (profiling slows every run, so never the timed one)."""
-    graph_path = Path(graphs[target.graph])
+    graph_path = Path(graphs[target.graph_key])
     graph = load_graph(graph_path)
     _, dtypes = static_shapes(graph)
     node_groups = assign_groups(graph, dtypes)
@@ -92,6 +96,60 @@ def _ort_profile(target: Target, graphs: Mapping[str, Path | None], frames: Fram
         for k in range(steps):
             runner.step(frames.lnes[k % len(frames.lnes)][None])
         return summarize_trace(runner.end_profiling(), node_groups)
+
+
+def _target_entry(target: Target, graphs: Mapping[str, Path | None], model: Any, params: int,
+                  primary: Mapping[str, Any]) -> dict[str, Any]:
+    status = availability(target, graphs, model is not None)
+    return {**target.to_dict(), "available": status.available, "reason": status.reason, "params": params,
+            "macs": primary["macs"], "flops": primary["flops"], "latency_ms": None, "runtime_ms": None,
+            "overhead_ms": None, "hz": None, "peak_rss_mb": None, "model_bytes": None, "outside": None,
+            "agreement": None}
+
+
+def _load_runners(targets: Sequence[Target], entries: Sequence[dict[str, Any]], graphs: Mapping[str, Path | None],
+                  model: Any, frames: Frames, checkpoint: str | None) -> dict[str, Any]:
+    """A runner per available target (its load and first steps sampled for memory); a
+    runtime that refuses the graph turns its entry unavailable, with the reason."""
+    runners: dict[str, Any] = {}
+    for target, entry in zip(targets, entries):
+        if not entry["available"]:
+            continue
+        try:
+            with RssSampler() as rss:
+                runner = _build_runner(target, graphs, model, frames.window_ms)
+                for k in range(MEMORY_STEPS):
+                    runner.step(frames.lnes[k % len(frames.lnes)][None])
+        except Exception as exc:  # a runtime that refuses the graph is a result, not a crash
+            entry.update(available=False, reason=f"failed to load or run: {str(exc).splitlines()[0][:300]}")
+        else:
+            runners[target.name] = runner
+            entry.update(peak_rss_mb=rss.peak_mb, rss_growth_mb=rss.growth_mb,
+                         model_bytes=_model_bytes(target, graphs, model, checkpoint))
+    return runners
+
+
+def _record_times(entry: dict[str, Any], times: StepTimes, peak_gflops: float) -> None:
+    summary = latency_summary(times.total)
+    entry.update(latency_ms=summary, hz=1e3 / summary["p50"])
+    if times.runtime is not None:
+        entry.update(runtime_ms=latency_summary(times.runtime), overhead_ms=latency_summary(times.overhead))
+    entry["gflops_achieved"] = entry["flops"] / (summary["p50"] / 1e3) / 1e9
+    entry["peak_fraction"] = entry["gflops_achieved"] / peak_gflops
+
+
+def _outside_figures(targets: Sequence[Target], entries: Sequence[dict[str, Any]], graphs: Mapping[str, Path | None],
+                     frames: Frames, settings: ProfileSettings, ort_profiles: Mapping[str, Any]) -> None:
+    """Each measured target's outside timer, beside the profile's runtime figure."""
+    with tempfile.TemporaryDirectory(prefix="e3dpsm-outside-") as tmp:
+        for target, entry in zip(targets, entries):
+            if entry["latency_ms"] is None:
+                continue
+            graph = graphs.get(target.graph_key) if target.graph != "none" else None
+            figure = outside_figure(target, graph, frames, settings.outside_seconds, Path(tmp) / target.name,
+                                    ort_profiles.get(target.name))
+            own = (entry["runtime_ms"] or entry["latency_ms"])["p50"]
+            entry.update(outside=figure.to_dict(), agreement=agreement_ratio(own, figure))
 
 
 def profile_targets(
@@ -105,28 +163,8 @@ def profile_targets(
     primary = counting["pytorch"] or counting["onnx"]
     params = primary["params"] if primary["params"] is not None else initializer_values(graph)
 
-    entries: list[dict[str, Any]] = []
-    runners: dict[str, Any] = {}
-    for target in targets:
-        status = availability(target, graphs, model is not None)
-        entry: dict[str, Any] = {
-            **target.to_dict(), "available": status.available, "reason": status.reason, "params": params,
-            "macs": primary["macs"], "flops": primary["flops"], "latency_ms": None, "hz": None,
-            "peak_rss_mb": None, "model_bytes": None,
-        }
-        if status.available:
-            try:
-                with RssSampler() as rss:
-                    runner = _build_runner(target, graphs, model, frames.window_ms)
-                    for k in range(MEMORY_STEPS):
-                        runner.step(frames.lnes[k % len(frames.lnes)][None])
-            except Exception as exc:  # a runtime that refuses the graph is a result, not a crash
-                entry.update(available=False, reason=f"failed to load or run: {str(exc).splitlines()[0][:300]}")
-            else:
-                runners[target.name] = runner
-                entry.update(peak_rss_mb=rss.peak_mb, rss_growth_mb=rss.growth_mb,
-                             model_bytes=_model_bytes(target, graphs, model, checkpoint))
-        entries.append(entry)
+    entries = [_target_entry(target, graphs, model, params, primary) for target in targets]
+    runners = _load_runners(targets, entries, graphs, model, frames, checkpoint)
 
     from tqdm import tqdm
 
@@ -136,23 +174,21 @@ def profile_targets(
     peak_before = matmul_peak_gflops(threads)
     with RssSampler() as overall, tqdm(total=settings.steps * len(runners), desc="timed steps", unit="step",
                                        disable=not progress) as bar:
-        times = measure_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk,
-                                     on_chunk=bar.update)
+        times = time_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk,
+                                  on_chunk=bar.update)
     peak_after = matmul_peak_gflops(threads)
     peak = {**max(peak_before, peak_after, key=lambda p: p["gflops"]),
             "measured_gflops": [peak_before["gflops"], peak_after["gflops"]]}
     for entry in entries:
         if entry["name"] in times:
-            summary = latency_summary(times[entry["name"]])
-            entry["latency_ms"] = summary
-            entry["hz"] = 1e3 / summary["p50"]
-            entry["gflops_achieved"] = entry["flops"] / (summary["p50"] / 1e3) / 1e9
-            entry["peak_fraction"] = entry["gflops_achieved"] / peak["gflops"]
+            _record_times(entry, times[entry["name"]], peak["gflops"])
 
     ort_profiles = {}
     for target in targets:
         if target.name in runners and target.runtime == "onnxruntime" and settings.ort_profile_steps > 0:
             ort_profiles[target.name] = _ort_profile(target, graphs, frames, settings.ort_profile_steps)
+    if settings.outside_seconds > 0:
+        _outside_figures(targets, entries, graphs, frames, settings, ort_profiles)
 
     state_values = sum(math.prod(s.shape) for s in meta.states)
     act_values = activation_bytes(graph) // 4
@@ -163,10 +199,9 @@ def profile_targets(
     ]
     body = {
         "counting": {**counting, "categories": list(CATEGORIES)},
-        "targets": entries, "ratios": _ratios(entries), "machine_peak": peak,
+        "verdict": fastest_path(entries), "targets": entries, "ratios": _ratios(entries), "machine_peak": peak,
         "process_peak_rss_mb": overall.peak_mb, "ort_profiles": ort_profiles, "devices": rooflines,
         "bytes_per_step_inputs": {"weight_values": params, "activation_values": act_values,
                                   "state_values": state_values},
     }
-    return body, times
-
+    return body, {name: t.total for name, t in times.items()}

@@ -49,18 +49,33 @@ def _params(value: int | None) -> str:
 
 
 def target_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
-    rows = ["| target | available | p50 ms | p90 ms | p99 ms | Hz (p50) | GFLOP/s | of matmul peak | "
-            "peak RSS MB | RSS growth MB | model MB | reason |", "|" + "---|" * 12]
+    rows = ["| target | available | p50 ms | p90 ms | p99 ms | Hz (p50) | runtime p50 ms | Python p50 ms | GFLOP/s | "
+            "of matmul peak | peak RSS MB | RSS growth MB | model MB | reason |", "|" + "---|" * 14]
     for t in targets:
         lat = t.get("latency_ms") or {}
         share = t.get("peak_fraction")
         rows.append(
             f"| {t['name']} | {'yes' if t['available'] else 'no'} | {_g(lat.get('p50'))} | {_g(lat.get('p90'))} | "
-            f"{_g(lat.get('p99'))} | {_g(t.get('hz'))} | {_g(t.get('gflops_achieved'))} | "
+            f"{_g(lat.get('p99'))} | {_g(t.get('hz'))} | {_g((t.get('runtime_ms') or {}).get('p50'))} | "
+            f"{_g((t.get('overhead_ms') or {}).get('p50'), 2)} | {_g(t.get('gflops_achieved'))} | "
             f"{'-' if share is None else format(100 * share, '.0f') + '%'} | "
             f"{_g(t.get('peak_rss_mb'), 4)} | {_g(t.get('rss_growth_mb'))} | {_g((t.get('model_bytes') or 0) / 1e6 or None)} | {t.get('reason') or ''} |"
         )
     return rows
+
+
+def agreement_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Each measured target's runtime figure beside its outside timer's median."""
+    rows = ["| target | profile p50 ms (step) | runtime p50 ms | outside timer | outside p50 ms | runtime / outside |",
+            "|---|---|---|---|---|---|"]
+    for t in targets:
+        outside = t.get("outside")
+        if not t.get("latency_ms") or outside is None:
+            continue
+        figure = _g(outside.get("p50_ms")) if outside.get("p50_ms") is not None else f"- ({outside.get('reason')})"
+        rows.append(f"| {t['name']} | {_g(t['latency_ms']['p50'])} | {_g((t.get('runtime_ms') or {}).get('p50'))} | "
+                    f"{outside['tool']} | {figure} | {_g(t.get('agreement'))} |")
+    return rows if len(rows) > 2 else []
 
 
 def model_info_markdown(report: Mapping[str, Any]) -> str:
@@ -72,8 +87,10 @@ def model_info_markdown(report: Mapping[str, Any]) -> str:
 
 
 def profile_markdown(report: Mapping[str, Any]) -> str:
+    from e3dpsm.profiles.verdict import verdict_line
+
     counting, inputs = report["counting"], report["inputs"]
-    lines = [f"# E-3DPSM profile: `{report['model']['variant']}`", "",
+    lines = [f"# E-3DPSM profile: `{report['model']['variant']}`", "", verdict_line(report.get("verdict")), "",
              f"Created {report['created']} on {report['machine'].get('cpu_model', report['machine']['platform'])} "
              f"({report['machine']['cpu_count']} CPUs); {inputs['threads']} threads per target; "
              f"{inputs['steps']} timed steps after {inputs['warmup']} warm-up steps, states carried, inputs: "
@@ -86,8 +103,19 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
     if counting.get("relative_difference") is not None:
         lines += ["", f"PyTorch vs ONNX MACs differ by {100 * counting['relative_difference']:.3f}%."]
     lines += ["", "## Latency per target", "", *target_table(report["targets"]), "",
+              "Runtime p50 is the runtime's own call alone (ONNX Runtime `run`, OpenVINO `infer`, PyTorch "
+              "`model.step`); Python p50 is the rest of the step measured apart: feeds built and checked, states "
+              "handed over, outputs copied out. "
               "Peak RSS is the whole process while the target loads and runs its first steps (it includes "
               "Python, torch and the targets loaded before it); RSS growth is the increase during that phase.", ""]
+    agreement = agreement_table(report["targets"])
+    if agreement:
+        lines += ["## Against the runtimes' own timers", "",
+                  "Each CPU target's runtime figure beside the runtime's own tool on the same graph, inputs and "
+                  "settings (`benchmark_app` with one stream, synchronous requests, the target's threads, precision "
+                  "and compile properties; `onnxruntime_perf_test` where installed, else ONNX Runtime's profiler, "
+                  "whose median `model_run` includes its own per-node cost). The outside tools run after the "
+                  f"side-by-side steps, alone, for {inputs.get('outside_seconds', '?')} s each.", "", *agreement, ""]
     if report.get("ratios"):
         lines += ["Median ratios (speed-up = slower p50 / faster p50):", ""]
         lines += [f"- {name}: **{value:.2f}x**" for name, value in report["ratios"].items()]

@@ -20,10 +20,15 @@ RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful")
 # bf16: the fp32 graph with its float parts in bf16 (OpenVINO on CPUs with bf16 units).
 PRECISIONS = ("fp32", "fp16", "int8", "bf16")
 GRAPHS = ("none", "fp32", "fp16", "int8")
+# The fp32 graph exported with `e3dpsm export --static-batch` (batch fixed to 1): the key
+# static targets look their graph up by (Target.graph_key).
+STATIC_FP32 = "fp32-static"
 GRAPH_HINTS = {
     "int8": "no int8 graph: run e3dpsm quantize first or pass --int8-model",
     "fp16": "no fp16 graph: run e3dpsm quantize first or pass --fp16-model",
     "fp32": "no fp32 graph: pass --model or --variant/--checkpoint",
+    STATIC_FP32: "no static-batch graph: pass --static-model (e3dpsm export --static-batch) with --model, "
+                 "or --variant/--checkpoint to export it here",
     "none": "no PyTorch model: --model gives a graph only; use --variant or --checkpoint",
 }
 
@@ -37,11 +42,17 @@ class Target:
     graph: str
     threads: int
     options: Mapping[str, str] = field(default_factory=dict)
+    static_batch: bool = False  # the --static-batch export of the graph (batch 1, fewer shape ops)
+
+    @property
+    def graph_key(self) -> str:
+        """Which graph of the profile's `graphs` mapping the target loads."""
+        return STATIC_FP32 if self.static_batch else self.graph
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "runtime": self.runtime, "provider": self.provider,
-                "precision": self.precision, "graph": self.graph, "threads": self.threads,
-                "options": dict(self.options)}
+                "precision": self.precision, "graph": self.graph, "static_batch": self.static_batch,
+                "threads": self.threads, "options": dict(self.options)}
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,7 @@ def _target_from_entry(entry: Mapping[str, Any], source: str) -> Target:
             precision=str(entry["precision"]), graph=str(entry.get("graph", "fp32")),
             threads=int(entry.get("threads", 2)),
             options={str(k): str(v) for k, v in dict(entry.get("options", {})).items()},
+            static_batch=_boolean(entry.get("static_batch", False), f"{source}: target {entry.get('name')!r}"),
         )
     except KeyError as exc:
         raise ConfigError(f"{source}: target {dict(entry).get('name', '?')!r} lacks field {exc.args[0]!r}") from None
@@ -66,7 +78,18 @@ def _target_from_entry(entry: Mapping[str, Any], source: str) -> Target:
             raise ConfigError(f"{source}: target {target.name!r} has {what} {value!r}; expected one of {list(allowed)}")
     if target.threads <= 0:
         raise ConfigError(f"{source}: target {target.name!r} needs threads >= 1")
+    if target.static_batch and target.graph != "fp32":
+        # The profile exports the static graph itself from the PyTorch model; a static int8 /
+        # fp16 graph would need its own quantisation run and flag.
+        raise ConfigError(f"{source}: target {target.name!r}: static_batch applies to the fp32 graph only, "
+                          f"not {target.graph!r}")
     return target
+
+
+def _boolean(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}: static_batch must be true or false, got {value!r}")
+    return value
 
 
 def load_targets(path: str | Path | None = None) -> dict[str, Target]:
@@ -139,6 +162,6 @@ def availability(target: Target, graphs: Mapping[str, Path | None], has_torch_mo
         return runtime
     if target.graph == "none":
         return Availability(True) if has_torch_model else Availability(False, GRAPH_HINTS["none"])
-    if graphs.get(target.graph) is None:
-        return Availability(False, GRAPH_HINTS[target.graph])
+    if graphs.get(target.graph_key) is None:
+        return Availability(False, GRAPH_HINTS[target.graph_key])
     return Availability(True)

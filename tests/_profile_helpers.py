@@ -22,3 +22,19 @@ def _export_tiny(folder: Path, model) -> Path:
 @pytest.fixture(scope="session")
 def tiny_step_graph(tmp_path_factory, tiny_model) -> Path:
     return _export_tiny(tmp_path_factory.getbasetemp() / "profiles_tiny", tiny_model)
+
+
+@pytest.fixture(scope="session")
+def tiny_static_graph(tmp_path_factory, tiny_model, tiny_step_graph) -> Path:
+    """tiny_model's static-batch graph, made as `e3dpsm profile` makes it for a static target
+    (exported and held to the PyTorch model's parity on 8 carried steps)."""
+    from e3dpsm.profiles.graphs import add_static_graph
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import STATIC_FP32, load_targets
+
+    folder = tmp_path_factory.getbasetemp() / "profiles_tiny_static"
+    folder.mkdir(parents=True, exist_ok=True)
+    frames = moving_edge_frames(8, 192, 256, 20.0, seed=1)
+    graphs = add_static_graph(tiny_model, folder, [load_targets()["ort-cpu-fp32-static"]],
+                              {"fp32": tiny_step_graph, STATIC_FP32: None}, frames.lnes, frames.window_ms)
+    return graphs[STATIC_FP32]

@@ -289,7 +289,7 @@ def test_profile_times_the_stateful_targets(tmp_path, tiny_step_graph, capsys): 
     out = tmp_path / "prof"
     code = main(["profile", "--model", str(tiny_step_graph), "--targets",
                  "openvino-cpu-fp32,openvino-cpu-stateful-fp32,openvino-cpu-stateful-int8", "--steps", "4",
-                 "--warmup", "1", "--profile-steps", "0", "--out", str(out), "--no-progress"])
+                 "--warmup", "1", "--profile-steps", "0", "--outside-seconds", "0", "--out", str(out), "--no-progress"])
     assert code == 0
     entries = {e["name"]: e for e in json.loads((out / "report.json").read_text())["targets"]}
     assert entries["openvino-cpu-stateful-fp32"]["available"]

@@ -147,7 +147,13 @@ def test_profile_command_report(tmp_path, tiny_step_graph, capsys):
     assert by_name["ort-cpu-int8"]["reason"].startswith("no int8 graph")
     assert report["ort_profiles"]["ort-cpu-fp32"]["steps"] == 3
     assert all(d["estimate"] for d in report["devices"])
-    assert (out / "report.md").read_text().count("| ort-cpu-fp32 |") == 1
+    markdown = (out / "report.md").read_text()
+    latency_table, agreement_table = markdown.split("## Latency per target")[1].split("## Against the runtimes' own timers")
+    assert latency_table.count("| ort-cpu-fp32 |") == 1 and agreement_table.count("| ort-cpu-fp32 |") == 1
+    assert fp32["runtime_ms"]["p50"] + fp32["overhead_ms"]["p50"] == pytest.approx(fp32["latency_ms"]["p50"], rel=0.2)
+    assert fp32["outside"]["tool"] == "onnxruntime profiler (model_run)" and fp32["outside"]["runs"] == 3
+    assert fp32["agreement"] == pytest.approx(fp32["runtime_ms"]["p50"] / fp32["outside"]["p50_ms"])
+    assert report["verdict"]["fastest"] == "ort-cpu-fp32" and report["verdict"]["not_measured"] == ["ort-cuda-fp32", "ort-cpu-int8"]
     assert (out / "latency.png").stat().st_size > 0 and (out / "macs_per_module.png").stat().st_size > 0
 
 

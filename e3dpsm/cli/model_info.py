@@ -23,18 +23,12 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from e3dpsm.cli._common import load_model_from_args
-    from e3dpsm.profiles.flops_torch import count_torch
+    from e3dpsm.profiles.command import model_info_report
     from e3dpsm.profiles.report import model_info_markdown
-    from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic
 
     torch.set_num_threads(args.threads)
-    model = load_model_from_args(args)
-    counts = count_torch(model).to_dict()
-    report = report_header("model-info", {k: v for k, v in vars(args).items() if k != "func"})
-    report.update(model={"variant": model.config.variant, "params": counts["params"],
-                         "model_config": model.config.to_dict()},
-                  counting={"pytorch": counts})
+    report = model_info_report(load_model_from_args(args), {k: v for k, v in vars(args).items() if k != "func"})
     print(model_info_markdown(report))
     if args.json:
         write_json_atomic(args.json, report)

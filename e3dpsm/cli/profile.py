@@ -1,16 +1,13 @@
-"""`e3dpsm profile`: parameters, MACs per module, memory and side-by-side latency per target."""
+"""`e3dpsm profile`: parameters, MACs per module, memory and side-by-side latency per target
+(options only; the body is e3dpsm.profiles.command)."""
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from pathlib import Path
 
 from e3dpsm.cli._common import positive_int
-from e3dpsm.errors import ConfigError, DataError
-
-log = logging.getLogger(__name__)
-GRAPH_NAME = "step_fp32.onnx"
+from e3dpsm.errors import ConfigError
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -20,8 +17,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "latency, Hz and peak memory of every target side by side in one process with the same "
                     "inputs and thread count. Targets live in profiles/targets.toml; a target this machine "
                     "cannot run is reported unavailable with the reason. Writes OUT/report.json, "
-                    "OUT/report.md, OUT/latency.png, OUT/macs_per_module.png (and OUT/step_fp32.onnx when "
-                    "the graph is exported here).")
+                    "OUT/report.md, OUT/latency.png, OUT/macs_per_module.png (and OUT/step_fp32.onnx, "
+                    "OUT/step_fp32_static.onnx when the graphs are exported here). Each CPU target's median is "
+                    "reported beside the runtime's own timer (OpenVINO benchmark_app; onnxruntime_perf_test or "
+                    "ONNX Runtime's profiler), its Python overhead apart, and the report opens with the fastest "
+                    "path on this host.")
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", help="exported fp32 step graph (STEP.onnx); no PyTorch target then")
     source.add_argument("--variant", help="registered variant with initial weights (paper, released, small, tiny)")
@@ -38,6 +38,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--data", help="prepared folder whose test frames feed the runs (default: built-in synthetic events)")
     p.add_argument("--int8-model", help="INT8 step graph for int8 targets (from e3dpsm quantize)")
     p.add_argument("--fp16-model", help="FP16 step graph for fp16 targets (from e3dpsm quantize)")
+    p.add_argument("--static-model",
+                   help="static-batch fp32 step graph (e3dpsm export --static-batch) for the *-static targets; "
+                        "exported here with --variant / --checkpoint")
+    p.add_argument("--outside-seconds", type=float, default=5.0,
+                   help="seconds of each CPU target's outside timer (benchmark_app ...; 0: none; default 5)")
     p.add_argument("--profile-steps", type=int, default=50,
                    help="steps of the separate onnxruntime profiling run per ORT target (0: none; default 50)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
@@ -46,35 +51,17 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def _existing(path: str | None, flag: str) -> Path | None:
-    if path is None:
-        return None
-    if not Path(path).is_file():
-        raise DataError(f"{flag} {path} does not exist")
-    return Path(path)
-
-
 def run(args: argparse.Namespace) -> int:
-    from e3dpsm.graph_metadata import GraphMetadata
-    from e3dpsm.profiles.flops_onnx import load_graph
-    from e3dpsm.profiles.inputs import prepared_frames, moving_edge_frames
-    from e3dpsm.profiles.profiler import ProfileSettings, profile_targets
-    from e3dpsm.profiles.report import plot_latency, plot_macs, profile_markdown
+    from e3dpsm.profiles.command import ProfileRequest, run_profile, summary_lines
+    from e3dpsm.profiles.graphs import given_graphs
+    from e3dpsm.profiles.profiler import ProfileSettings
     from e3dpsm.profiles.targets import load_targets, select_targets
-    from e3dpsm.utils.env import report_header
-    from e3dpsm.utils.io import atomic_dir, write_json_atomic, write_text_atomic
 
-    if args.warmup < 0 or args.profile_steps < 0:
-        raise ConfigError("--warmup and --profile-steps must be >= 0")
+    if args.warmup < 0 or args.profile_steps < 0 or args.outside_seconds < 0:
+        raise ConfigError("--warmup, --profile-steps and --outside-seconds must be >= 0")
     # Cheap checks first: a bad target name or graph fails before any export or measurement.
     targets = select_targets(load_targets(args.targets_file), args.targets, args.threads)
-    graphs: dict[str, Path | None] = {"fp32": _existing(args.model, "--model"),
-                                      "int8": _existing(args.int8_model, "--int8-model"),
-                                      "fp16": _existing(args.fp16_model, "--fp16-model")}
-    for path in graphs.values():
-        if path is not None:
-            GraphMetadata.from_onnx(load_graph(path), source=str(path))  # MetadataError if it has none
-
+    graphs = given_graphs(args.model, args.int8_model, args.fp16_model, args.static_model)
     model = None
     if not args.model:
         import torch
@@ -83,47 +70,16 @@ def run(args: argparse.Namespace) -> int:
 
         torch.set_num_threads(targets[0].threads)
         model = load_model_from_args(args)
-
-    with atomic_dir(args.out, force=args.force) as tmp:
-        if model is not None:
-            from e3dpsm.export import export_step
-
-            graphs["fp32"] = export_step(model, tmp / GRAPH_NAME)
-        meta = GraphMetadata.from_onnx(load_graph(graphs["fp32"]), source=str(graphs["fp32"]))
-        height, width = meta.frame_hw
-        frames_needed = args.steps + args.warmup
-        frames = (prepared_frames(args.data, frames_needed, height, width) if args.data
-                  else moving_edge_frames(min(frames_needed, 400), height, width, meta.train_window_ms))
-        settings = ProfileSettings(steps=args.steps, warmup=args.warmup, ort_profile_steps=args.profile_steps)
-        log.info("profiling %d target(s) on %s", len(targets), frames.source)
-        body, times = profile_targets(targets, graphs, model, frames, settings, checkpoint=args.checkpoint,
-                                      progress=not args.no_progress and sys.stderr.isatty())
-
-        variant = meta.config.get("variant", "?")
-        report = report_header("profile", {k: v for k, v in vars(args).items() if k != "func"})
-        report.update(
-            model={"variant": variant, "source": args.model or args.checkpoint or f"variant {args.variant}",
-                   "params": body["targets"][0]["params"] if body["targets"] else None,
-                   "graph": GRAPH_NAME if model is not None else str(args.model)},
-            inputs={"source": frames.source, "window_ms": frames.window_ms, "frames": int(len(frames.lnes)),
-                    "steps": settings.steps, "warmup": settings.warmup, "chunk": settings.chunk,
-                    "threads": targets[0].threads},
-            **body,
-        )
-        write_json_atomic(tmp / "report.json", report)
-        write_text_atomic(tmp / "report.md", profile_markdown(report))
-        if times:
-            plot_latency({name: t * 1e3 for name, t in times.items()}, tmp / "latency.png")
-        plot_macs(report["counting"]["pytorch"] or report["counting"]["onnx"], tmp / "macs_per_module.png")
-
-    for entry in report["targets"]:
-        if entry["available"]:
-            lat = entry["latency_ms"]
-            print(f"{entry['name']:>20}: p50 {lat['p50']:.2f} ms, p90 {lat['p90']:.2f}, p99 {lat['p99']:.2f} "
-                  f"-> {entry['hz']:.1f} Hz")
-        else:
-            print(f"{entry['name']:>20}: unavailable ({entry['reason']})")
-    for name, ratio in report["ratios"].items():
-        print(f"  {name}: {ratio:.2f}x")
+    request = ProfileRequest(
+        targets=tuple(targets), graphs=graphs, out=Path(args.out), force=args.force, data=args.data,
+        settings=ProfileSettings(steps=args.steps, warmup=args.warmup, ort_profile_steps=args.profile_steps,
+                                 outside_seconds=args.outside_seconds),
+        source=args.model or args.checkpoint or f"variant {args.variant}", checkpoint=args.checkpoint,
+        config={k: v for k, v in vars(args).items() if k != "func"},
+        progress=not args.no_progress and sys.stderr.isatty(),
+    )
+    report = run_profile(request, model)
+    for line in summary_lines(report):
+        print(line)
     print(f"wrote {args.out}/report.json and report.md")
     return 0

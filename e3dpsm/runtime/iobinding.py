@@ -185,6 +185,10 @@ class IOBindingStepSession(StepSession):
     ) -> tuple[dict[str, np.ndarray], DeviceState]:
         return self.run_feeds(self.feeds(lnes, state, window_ms))
 
+    def run_raw(self, feeds: Mapping[str, Any]) -> list[np.ndarray]:
+        # Its feeds carry a DeviceState that only run_feeds knows how to bind.
+        raise NotImplementedError("IOBindingStepSession steps through run_feeds / step only")
+
     # -- stateful convenience -----------------------------------------------------------------
     def reset(self, batch: int = 1) -> None:
         """Start `batch` fresh streams for `advance`."""

@@ -121,6 +121,14 @@ def _contract_name(port, contract: set[str]) -> str:
 
 
 class OpenVINOStepSession:
+    """The explicit-state step graph on OpenVINO: `step(lnes, state, window_ms) -> (outputs,
+    state)`, or its parts `feeds` -> `run_raw` (the runtime's own call) -> `collect`, as
+    `StepSession` has them.
+
+    Inputs are handed to OpenVINO as tensors sharing the numpy arrays' memory (no copy in;
+    they must stay untouched until `run_raw` returns, as they do in a step); outputs are
+    copied out of the request once, since the next inference overwrites its buffers."""
+
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU",
                  precision: str = "f32", config: Mapping[str, Any] | None = None) -> None:
         """`config`: OpenVINO properties over `compile_config`'s (applied last)."""
@@ -135,6 +143,14 @@ class OpenVINOStepSession:
         outputs = {*self.meta.output_names, *(s.output_name for s in self.meta.states)}
         self._inputs = [_contract_name(p, inputs) for p in self._compiled.inputs]
         self._outputs = [_contract_name(p, outputs) for p in self._compiled.outputs]
+        self._input_ports = dict(zip(self._inputs, self._compiled.inputs))
+        # A port can carry several names (fusion_pose_out is an Identity of pose): index them all.
+        self._output_ports = {name: port for port in self._compiled.outputs for name in port.get_names()}
+
+    @property
+    def compiled(self) -> Any:
+        """The openvino.CompiledModel (its properties say how it runs)."""
+        return self._compiled
 
     def input_names(self) -> list[str]:
         return list(self._inputs)
@@ -145,9 +161,28 @@ class OpenVINOStepSession:
     def init_state(self, batch: int = 1) -> StateArrays:
         return initial_states(self.meta.states, batch)
 
+    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
+        """The input dict of one step, checked against the metadata."""
+        return build_feeds(self.meta, lnes, state, window_ms)
+
+    def run_raw(self, feeds: Mapping[str, np.ndarray]) -> None:
+        """Bind the feeds (shared memory) and infer; the results stay in the request."""
+        import openvino as ov
+
+        for name, value in feeds.items():
+            self._request.set_tensor(self._input_ports[name], ov.Tensor(np.ascontiguousarray(value), shared_memory=True))
+        self._request.infer()
+
+    def collect(self, _: Any = None) -> tuple[dict[str, np.ndarray], StateArrays]:
+        """The last inference's (outputs, next state), copied out of the request."""
+        outputs = {name: self._copy_out(name) for name in self.meta.output_names}
+        return outputs, {s.name: self._copy_out(s.output_name) for s in self.meta.states}
+
+    def _copy_out(self, name: str) -> np.ndarray:
+        return self._request.get_tensor(self._output_ports[name]).data.copy()
+
+    def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
+        return self.collect(self.run_raw(feeds))
+
     def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray):
-        feeds = build_feeds(self.meta, lnes, state, window_ms)
-        result = self._request.infer(feeds)
-        named = {name: np.asarray(value) for port, value in result.items() for name in port.get_names()}
-        outputs = {name: named[name] for name in self.meta.output_names}
-        return outputs, {s.name: named[s.output_name] for s in self.meta.states}
+        return self.run_feeds(self.feeds(lnes, state, window_ms))

@@ -1,0 +1,280 @@
+"""Benchmark: does `e3dpsm profile` agree with the runtimes' own timers and with bare loops?
+
+    python benchmarks/bench_profile_agreement.py --variants small paper --threads 2 \
+        [--steps 150] [--outside-seconds 5] [--work /work/runs/profile_agreement] [--out benchmarks/results]
+
+Per variant (initial weights, seed 0: latency does not depend on training), in one run:
+
+1. the dynamic-batch and `--static-batch` graphs, exported once with `e3dpsm export`;
+2. `e3dpsm profile --model DYN --static-model STATIC` on the CPU targets (its own side-by-side
+   medians: whole step, the runtime's call, the Python overhead; and each target's outside
+   timer: OpenVINO's benchmark_app, ONNX Runtime's profiler or onnxruntime_perf_test);
+3. bare stepping loops, a few lines of plain ONNX Runtime / OpenVINO calls each (default
+   options but the thread count; states carried), on both graphs side by side;
+4. a diagnosis on the dynamic graph, side by side: OpenVINO's step right after an ONNX
+   Runtime turn with ORT's threads spinning on (its default) and stopped at the end of a run,
+   and the profile's OpenVINO runner beside a bare `infer(feeds)` loop.
+
+Checks (reported, not asserted; the machine's load is recorded beside them): each profile
+figure within 10% of its outside timer; the profile's OpenVINO / ONNX Runtime ratio within
+10% of the bare loops' ratio on each graph. Writes OUT/profile_agreement_<isa kind>.json and .md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+TARGETS = ("ort-cpu-fp32", "ort-cpu-fp32-static", "openvino-cpu-fp32", "openvino-cpu-fp32-static",
+           "openvino-cpu-stateful-fp32-static", "openvino-cpu-bf16-static")
+PAIRS = {"dynamic": ("openvino-cpu-fp32", "ort-cpu-fp32"), "static": ("openvino-cpu-fp32-static", "ort-cpu-fp32-static")}
+TOLERANCE = 0.10
+CHUNK = 25
+
+
+def e3dpsm(*args: str) -> None:
+    print("$ e3dpsm " + " ".join(args), flush=True)
+    subprocess.run([sys.executable, "-m", "e3dpsm", *args], check=True)
+
+
+def export_graphs(variant: str, work: Path) -> dict[str, Path]:
+    graphs = {"dynamic": work / "dynamic" / "step.onnx", "static": work / "static" / "step.onnx"}
+    for kind, path in graphs.items():
+        if not path.is_file():
+            extra = ["--static-batch"] if kind == "static" else []
+            e3dpsm("export", "--variant", variant, "--out", str(path.parent), "--ort-optimized", "none", "--force", *extra)
+    return graphs
+
+
+def run_profile(graphs: dict[str, Path], targets: list[str], args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    e3dpsm("profile", "--model", str(graphs["dynamic"]), "--static-model", str(graphs["static"]),
+           "--targets", ",".join(targets), "--threads", str(args.threads), "--steps", str(args.steps),
+           "--warmup", str(args.warmup), "--outside-seconds", str(args.outside_seconds),
+           "--profile-steps", str(args.profile_steps), "--out", str(out), "--force", "--no-progress")
+    return json.loads((out / "report.json").read_text())
+
+
+# -- bare loops: plain runtime calls, no project code ----------------------------------------
+def _graph_io(path: Path) -> tuple[list[tuple[str, str]], str, str, tuple[int, int]]:
+    """(state input -> output name pairs, frame name, window name, frame H x W) from the metadata."""
+    import onnx
+
+    props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+    states = json.loads(props["e3dpsm.states"])
+    inputs = json.loads(props["e3dpsm.inputs"])
+    frame = inputs["frame"]
+    return ([(s["input"], s["output"]) for s in states], frame["name"], inputs["window"]["name"],
+            (int(frame["shape"][2]), int(frame["shape"][3])))
+
+
+def _initial_states(path: Path) -> dict[str, np.ndarray]:
+    """Batch-1 initial states from the metadata: zeros, or the listed values (Kalman covariance)."""
+    import onnx
+
+    props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+    states = {}
+    for s in json.loads(props["e3dpsm.states"]):
+        shape = (1, *s["shape"][1:])
+        states[s["input"]] = (np.zeros(shape, np.float32) if s["init"] == "zeros"
+                              else np.asarray(s["init"], np.float32).reshape(shape))
+    return states
+
+
+def bare_ort(path: Path, threads: int, window_ms: float, stop_spinning: bool = False) -> Callable[[np.ndarray], None]:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    if stop_spinning:
+        options.add_session_config_entry("session.force_spinning_stop", "1")
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    names = [o.name for o in session.get_outputs()]
+    pairs, frame, window, _ = _graph_io(path)
+    state = _initial_states(path)
+    fixed = {window: np.array([window_ms], np.float32)}
+
+    def step(lnes: np.ndarray) -> None:
+        nonlocal state
+        out = dict(zip(names, session.run(names, {frame: lnes, **fixed, **state})))
+        state = {i: out[o] for i, o in pairs}
+    return step
+
+
+def bare_openvino(path: Path, threads: int, window_ms: float) -> Callable[[np.ndarray], None]:
+    import openvino as ov
+
+    compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads, "NUM_STREAMS": 1,
+                                                          "INFERENCE_PRECISION_HINT": "f32"})
+    request = compiled.create_infer_request()
+    pairs, frame, window, _ = _graph_io(path)
+    state = _initial_states(path)
+    fixed = {window: np.array([window_ms], np.float32)}
+
+    def step(lnes: np.ndarray) -> None:
+        nonlocal state
+        out = {name: value for port, value in request.infer({frame: lnes, **fixed, **state}).items()
+               for name in port.get_names()}
+        state = {i: out[o] for i, o in pairs}
+    return step
+
+
+def side_by_side(steppers: dict[str, Callable[[np.ndarray], None]], frames: np.ndarray, steps: int,
+                 warmup: int) -> dict[str, np.ndarray]:
+    """ms per step, turns of CHUNK steps; [steps] per stepper, in step order."""
+    for step in steppers.values():
+        for k in range(warmup):
+            step(frames[k % len(frames)][None])
+    ms = {name: np.empty(steps) for name in steppers}
+    for start in range(0, steps, CHUNK):
+        for name, step in steppers.items():
+            for k in range(start, min(start + CHUNK, steps)):
+                frame = frames[(warmup + k) % len(frames)][None]
+                t0 = time.perf_counter()
+                step(frame)
+                ms[name][k] = (time.perf_counter() - t0) * 1e3
+    return ms
+
+
+def bare_loops(graphs: dict[str, Path], frames: np.ndarray, args: argparse.Namespace) -> dict[str, float]:
+    steppers = {f"{rt} {kind}": make(graphs[kind], args.threads, 20.0)
+                for kind in ("dynamic", "static") for rt, make in (("onnxruntime", bare_ort), ("openvino", bare_openvino))}
+    return {name: float(np.median(t)) for name, t in side_by_side(steppers, frames, args.steps, args.warmup).items()}
+
+
+def diagnose(graph: Path, frames: np.ndarray, args: argparse.Namespace) -> dict[str, Any]:
+    """OpenVINO after a spinning / stopped ONNX Runtime turn, and the profile's runner beside bare infer."""
+    from e3dpsm.profiles.latency import OpenVinoRunner
+    from e3dpsm.profiles.targets import load_targets, select_targets
+
+    runner = OpenVinoRunner(str(graph), select_targets(load_targets(), "openvino-cpu-fp32", args.threads)[0], 20.0)
+    runner.reset()
+
+    def profile_step(lnes: np.ndarray) -> None:
+        runner.step(lnes)
+    steppers = {"ort spinning": bare_ort(graph, args.threads, 20.0),
+                "openvino after spinning ort": bare_openvino(graph, args.threads, 20.0),
+                "ort stopped": bare_ort(graph, args.threads, 20.0, stop_spinning=True),
+                "openvino after stopped ort": bare_openvino(graph, args.threads, 20.0),
+                "openvino profile runner": profile_step}
+    ms = side_by_side(steppers, frames, args.diagnose_steps, args.warmup)
+    first = {name: t[np.arange(len(t)) % CHUNK == 0] for name, t in ms.items()}
+    rest = {name: t[np.arange(len(t)) % CHUNK >= 2] for name, t in ms.items()}
+    return {"steps": args.diagnose_steps, "chunk": CHUNK,
+            "first_step_of_turn_ms": {n: float(np.median(v)) for n, v in first.items()},
+            "steady_ms": {n: float(np.median(v)) for n, v in rest.items()}}
+
+
+# -- checks and report -----------------------------------------------------------------------
+def checks(profile: dict[str, Any], bare: dict[str, float]) -> dict[str, Any]:
+    targets = {t["name"]: t for t in profile["targets"] if t.get("latency_ms")}
+    outside = {name: t["agreement"] for name, t in targets.items() if t.get("agreement") is not None}
+    ratios = {}
+    for kind, (ov_name, ort_name) in PAIRS.items():
+        if ov_name in targets and ort_name in targets:
+            prof = targets[ort_name]["latency_ms"]["p50"] / targets[ov_name]["latency_ms"]["p50"]
+            loop = bare[f"onnxruntime {kind}"] / bare[f"openvino {kind}"]
+            ratios[kind] = {"profile": prof, "bare": loop, "relative": prof / loop}
+    return {"outside": {n: {"ratio": r, "holds": abs(r - 1) <= TOLERANCE} for n, r in outside.items()},
+            "ov_over_ort": {k: {**v, "holds": abs(v["relative"] - 1) <= TOLERANCE} for k, v in ratios.items()}}
+
+
+def variant_rows(variant: str, result: dict[str, Any]) -> list[str]:
+    rows = [f"### `{variant}`", "",
+            "| target | profile p50 ms (step) | runtime p50 ms | Python p50 ms | outside timer | outside p50 ms | "
+            "runtime / outside | within 10% |", "|---|---|---|---|---|---|---|---|"]
+    for t in result["profile"]["targets"]:
+        if not t.get("latency_ms"):
+            rows.append(f"| {t['name']} | - | - | - | - | - | - | {t.get('reason') or ''} |")
+            continue
+        o = t.get("outside") or {}
+        check = result["checks"]["outside"].get(t["name"])
+        rows.append(f"| {t['name']} | {t['latency_ms']['p50']:.2f} | {t['runtime_ms']['p50']:.2f} | "
+                    f"{t['overhead_ms']['p50']:.3f} | {o.get('tool', '-')} | "
+                    f"{'-' if o.get('p50_ms') is None else format(o['p50_ms'], '.2f')} | "
+                    f"{'-' if check is None else format(check['ratio'], '.3f')} | "
+                    f"{'-' if check is None else ('yes' if check['holds'] else 'NO')} |")
+    rows += ["", "| graph | OpenVINO / ONNX Runtime speed, profile | bare loops | profile / bare | within 10% |",
+             "|---|---|---|---|---|"]
+    for kind, r in result["checks"]["ov_over_ort"].items():
+        rows.append(f"| {kind} | {r['profile']:.3f} | {r['bare']:.3f} | {r['relative']:.3f} | "
+                    f"{'yes' if r['holds'] else 'NO'} |")
+    bare = ", ".join(f"{name} {ms:.2f}" for name, ms in result["bare_ms"].items())
+    diag = result["diagnosis"]
+    rows += ["", f"Bare loops side by side (p50 ms): {bare}.", "",
+             f"Diagnosis on the dynamic graph ({diag['steps']} steps each, turns of {diag['chunk']}), p50 ms "
+             "(first step of a turn / steady, from the third step of a turn):", ""]
+    rows += [f"- {name}: {diag['first_step_of_turn_ms'][name]:.2f} / {diag['steady_ms'][name]:.2f}"
+             for name in diag["steady_ms"]]
+    verdict = result["profile"].get("verdict") or {}
+    rows += ["", f"Profile's verdict: `{verdict.get('fastest')}`, {verdict.get('p50_ms', float('nan')):.2f} ms = "
+             f"{verdict.get('hz', float('nan')):.1f} Hz.", ""]
+    return rows
+
+
+def markdown(report: dict[str, Any]) -> str:
+    machine = report["machine"]
+    lines = ["# Profile figures against the runtimes' own timers and bare loops", "",
+             f"`{report['command_line']}`", "",
+             f"{report['created']}, {machine.get('cpu_model', machine['platform'])} ({machine['cpu_count']} CPUs, ISA "
+             f"{machine['isa']['kind']}: {' '.join(machine['isa']['flags'])}); onnxruntime "
+             f"{report['versions']['onnxruntime']}, openvino {report['versions']['openvino']}; "
+             f"{report['config']['threads']} threads. Load average (1 min) {report['load']['before'][0]:.2f} before, "
+             f"{report['load']['after'][0]:.2f} after (`uptime`: {report['load']['uptime_after']}).", ""]
+    for variant, result in report["variants"].items():
+        lines += variant_rows(variant, result)
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--variants", nargs="+", default=["small", "paper"])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--outside-seconds", type=float, default=5.0)
+    parser.add_argument("--profile-steps", type=int, default=30)
+    parser.add_argument("--diagnose-steps", type=int, default=100)
+    parser.add_argument("--targets", default=",".join(TARGETS))
+    parser.add_argument("--work", default="/work/runs/profile_agreement")
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    args = parser.parse_args()
+
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+    from e3dpsm.utils.isa import bf16_unavailable_reason, detect_isa
+
+    targets = [t for t in args.targets.split(",") if "bf16" not in t or bf16_unavailable_reason() is None]
+    report = report_header("bench_profile_agreement", {k: v for k, v in vars(args).items()})
+    report["command_line"] = "python benchmarks/bench_profile_agreement.py " + " ".join(sys.argv[1:])
+    report["load"] = {"before": list(os.getloadavg())}
+    report["variants"] = {}
+    for variant in args.variants:
+        work = Path(args.work) / variant
+        graphs = export_graphs(variant, work)
+        profile = run_profile(graphs, targets, args, work / "profile")
+        height, width = _graph_io(graphs["dynamic"])[3]
+        frames = moving_edge_frames(min(args.steps + args.warmup, 200), height, width, 20.0).lnes
+        bare = bare_loops(graphs, frames, args)
+        diagnosis = diagnose(graphs["dynamic"], frames, args)
+        report["variants"][variant] = {"profile": {k: profile[k] for k in ("targets", "verdict", "inputs", "ratios")},
+                                       "bare_ms": bare, "diagnosis": diagnosis, "checks": checks(profile, bare)}
+    report["load"]["after"] = list(os.getloadavg())
+    report["load"]["uptime_after"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    stem = Path(args.out) / f"profile_agreement_{detect_isa().kind}"
+    write_json_atomic(stem.with_suffix(".json"), report)
+    write_text_atomic(stem.with_suffix(".md"), markdown(report))
+    print(markdown(report))
+    print(f"wrote {stem}.json and .md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

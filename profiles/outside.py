@@ -1,0 +1,192 @@
+"""The runtimes' own timers, run on the graph and settings a profile target uses, so the
+profile's figures can be checked against them:
+
+- OpenVINO: `benchmark_app` (shipped in the `openvino` wheel as
+  `openvino.tools.benchmark.main`), run as a subprocess of this interpreter with one stream,
+  synchronous requests, the target's thread count and inference precision and the rest of
+  its compile properties, on the target's graph converted to an IR (stateful targets: the
+  stateful IR), fed the profile's first frame, window length and initial states. Its median
+  covers `infer()` alone, inputs set once (`-inference_only`), as the profile's runtime
+  phase does.
+- ONNX Runtime: `onnxruntime_perf_test` where it is on PATH (it is not in the pip wheel),
+  else ONNX Runtime's own profiler: the median `model_run` event of a profiled session
+  (`profiles.ort_profile.summarize_trace`).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+BENCHMARK_APP = "benchmark_app"
+PERF_TEST = "onnxruntime_perf_test"
+ORT_PROFILER = "onnxruntime profiler (model_run)"
+# Properties benchmark_app sets from its own flags; every other compile property of the
+# target goes to it through -load_config.
+_FLAG_PROPERTIES = ("PERFORMANCE_HINT", "NUM_STREAMS", "INFERENCE_NUM_THREADS", "INFERENCE_PRECISION_HINT")
+_START_UP_SECONDS = 300  # reading and compiling `paper` on a loaded 2-core host, with margin
+
+
+@dataclass(frozen=True)
+class OutsideFigure:
+    """An outside tool's median for one target, or why there is none."""
+
+    tool: str
+    p50_ms: float | None = None
+    runs: int | None = None
+    command: str | None = None
+    reason: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class OutsideToolError(RuntimeError):
+    """The tool ran but its output could not be read."""
+
+
+# -- benchmark_app -------------------------------------------------------------------------
+def benchmark_app_available() -> bool:
+    return importlib.util.find_spec("openvino.tools.benchmark.main") is not None
+
+
+def benchmark_app_args(model: Path, config: Mapping[str, Any], seconds: float, report_folder: Path,
+                       inputs: Mapping[str, Path], data_shapes: Mapping[str, Sequence[int]] | None,
+                       config_file: Path) -> list[str]:
+    """benchmark_app's arguments for a model compiled with `config` (as
+    `runtime.openvino_session.compile_config` makes it); `data_shapes` for a graph with a
+    dynamic batch (kept dynamic, as the profile runs it; -shape would make it static)."""
+    precision = str(config.get("INFERENCE_PRECISION_HINT", "f32"))
+    args = ["-m", str(model), "-d", "CPU", "-hint", "none", "-nstreams", "1", "-api", "sync",
+            "-infer_precision", precision, "-t", str(max(1, round(seconds))), "-inference_only", "true",
+            "-json_stats", "-report_type", "no_counters", "-report_folder", str(report_folder),
+            "-i", ",".join(f"{name}:{path}" for name, path in inputs.items())]
+    if config.get("INFERENCE_NUM_THREADS"):
+        args += ["-nthreads", str(int(config["INFERENCE_NUM_THREADS"]))]
+    if data_shapes:
+        args += ["-data_shape", ",".join(f"{name}[{','.join(map(str, shape))}]" for name, shape in data_shapes.items())]
+    rest = {key: value for key, value in config.items() if key not in _FLAG_PROPERTIES}
+    if rest:
+        config_file.write_text(json.dumps({"CPU": rest}), encoding="utf-8")
+        args += ["-load_config", str(config_file)]
+    return args
+
+
+def parse_benchmark_app_report(report: Mapping[str, Any]) -> tuple[float, int]:
+    """(median ms, iterations) from benchmark_app's `-json_stats` report."""
+    results = report.get("execution_results") or {}
+    try:
+        return float(results["latency (ms)"]), int(results["total number of iterations"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise OutsideToolError(f"benchmark_app report lacks its median latency or iteration count ({exc!r}); "
+                               f"execution_results: {dict(results)}") from None
+
+
+def run_benchmark_app(model: Path, config: Mapping[str, Any], seconds: float, work: Path,
+                      inputs: Mapping[str, np.ndarray], dynamic: bool) -> OutsideFigure:
+    """benchmark_app on `model` (an IR or ONNX file) with the target's `config`, fed `inputs`
+    (batch 1); files go under `work`."""
+    if not benchmark_app_available():
+        return OutsideFigure(BENCHMARK_APP, reason="openvino.tools.benchmark is not installed (pip install openvino)")
+    work.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, value in inputs.items():
+        paths[name] = work / f"{_file_safe(name)}.npy"
+        np.save(paths[name], np.ascontiguousarray(value))
+    shapes = {name: value.shape for name, value in inputs.items()} if dynamic else None
+    args = benchmark_app_args(model, config, seconds, work, paths, shapes, work / "config.json")
+    command = [sys.executable, "-c", "import sys; from openvino.tools.benchmark.main import main; sys.exit(main())",
+               *args]
+    shown = " ".join([BENCHMARK_APP, *args])
+    failure = _run(command, seconds + _START_UP_SECONDS, work / "benchmark_app.log")
+    if failure:
+        return OutsideFigure(BENCHMARK_APP, command=shown, reason=failure)
+    try:
+        report = json.loads((work / "benchmark_report.json").read_text(encoding="utf-8"))
+        p50, runs = parse_benchmark_app_report(report)
+    except (OSError, ValueError, OutsideToolError) as exc:
+        return OutsideFigure(BENCHMARK_APP, command=shown, reason=f"unreadable report: {str(exc)[:300]}")
+    return OutsideFigure(BENCHMARK_APP, p50, runs, shown)
+
+
+def _file_safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+
+
+# -- ONNX Runtime --------------------------------------------------------------------------
+def perf_test_path() -> str | None:
+    return shutil.which(PERF_TEST)
+
+
+def perf_test_args(graph: Path, threads: int, seconds: float, dynamic: bool) -> list[str]:
+    """Random inputs (-I), free dimensions at 1 (`-f batch:1`: the graphs' batch axis is named
+    "batch"), the profile's thread counts, statistics printed (-s)."""
+    args = ["-m", "duration", "-t", str(max(1, round(seconds))), "-e", "cpu", "-x", str(threads), "-y", "1", "-I", "-s"]
+    if dynamic:
+        args += ["-f", "batch:1"]
+    return [*args, str(graph)]
+
+
+_PERF_TEST_P50 = re.compile(r"^P50 Latency:\s*([0-9.eE+-]+)\s*s\s*$", re.M)
+_PERF_TEST_RUNS = re.compile(r"^Total inference requests:\s*(\d+)\s*$", re.M)
+
+
+def parse_perf_test_output(text: str) -> tuple[float, int | None]:
+    """(median ms, runs) from onnxruntime_perf_test's output (its "P50 Latency: <s> s" line,
+    onnxruntime/test/perftest/performance_runner.cc)."""
+    p50 = _PERF_TEST_P50.search(text)
+    if p50 is None:
+        raise OutsideToolError("onnxruntime_perf_test printed no 'P50 Latency' line (was -s given?)")
+    runs = _PERF_TEST_RUNS.search(text)
+    return float(p50.group(1)) * 1e3, int(runs.group(1)) if runs else None
+
+
+def run_perf_test(graph: Path, threads: int, seconds: float, dynamic: bool, work: Path) -> OutsideFigure:
+    tool = perf_test_path()
+    if tool is None:
+        return OutsideFigure(PERF_TEST, reason=f"{PERF_TEST} is not on PATH (not in the onnxruntime wheel)")
+    args = perf_test_args(graph, threads, seconds, dynamic)
+    shown = " ".join([PERF_TEST, *args])
+    work.mkdir(parents=True, exist_ok=True)
+    log = work / "perf_test.log"
+    failure = _run([tool, *args], seconds + _START_UP_SECONDS, log)
+    if failure:
+        return OutsideFigure(PERF_TEST, command=shown, reason=failure)
+    try:
+        p50, runs = parse_perf_test_output(log.read_text(encoding="utf-8", errors="replace"))
+    except OutsideToolError as exc:
+        return OutsideFigure(PERF_TEST, command=shown, reason=str(exc))
+    return OutsideFigure(PERF_TEST, p50, runs, shown)
+
+
+def ort_profiler_figure(summary: Mapping[str, Any] | None) -> OutsideFigure:
+    """ONNX Runtime's profiler: median `model_run` of the profiled session (it includes the
+    profiler's own per-node cost)."""
+    if not summary or summary.get("run_ms_median") is None:
+        return OutsideFigure(ORT_PROFILER, reason="no profiled run (--profile-steps 0)")
+    return OutsideFigure(ORT_PROFILER, float(summary["run_ms_median"]), int(summary["steps"]))
+
+
+# -- subprocess ----------------------------------------------------------------------------
+def _run(command: list[str], timeout_s: float, log: Path) -> str | None:
+    """Run `command`, its output to `log`; None on success, else why it failed."""
+    try:
+        with open(log, "w", encoding="utf-8") as out:
+            completed = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        return f"timed out after {timeout_s:.0f} s"
+    except OSError as exc:
+        return f"could not start: {exc.strerror}"
+    if completed.returncode != 0:
+        lines = [line for line in log.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()]
+        errors = [line for line in lines if "error" in line.lower() or "exception" in line.lower()]
+        return f"exit {completed.returncode}: {(errors or lines or ['no output'])[-1].strip()[:300]}"
+    return None

@@ -1,0 +1,221 @@
+"""The profile's figures beside the runtimes' own timers: the step split into the runtime's
+call and its Python overhead (on an injected clock), the outside tools' arguments and
+output parsing (on committed samples), and the verdict on injected timings."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from e3dpsm.profiles.agreement import agreement_ratio
+from e3dpsm.profiles.outside import (OutsideFigure, OutsideToolError, _run, benchmark_app_args, ort_profiler_figure,
+                                     parse_benchmark_app_report, parse_perf_test_output, perf_test_args)
+from e3dpsm.profiles.profiler import _record_times
+from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side
+from e3dpsm.profiles.verdict import fastest_path, verdict_line
+
+SAMPLES = Path(__file__).parent / "fixtures" / "outside_tools"
+
+
+# -- the step split on an injected clock -----------------------------------------------------
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class ScriptedRunner:
+    """Each phase advances the fake clock by its scripted seconds for the current step."""
+
+    def __init__(self, clock: FakeClock, prepare: list[float], run: list[float], collect: list[float]) -> None:
+        self.clock, self.script, self.k = clock, {"prepare": prepare, "run": run, "collect": collect}, 0
+        self.frames: list[float] = []
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def _tick(self, phase: str) -> None:
+        self.clock.now += self.script[phase][self.k]
+
+    def prepare(self, lnes: np.ndarray) -> None:
+        self.frames.append(float(lnes[0, 0, 0, 0]))
+        self._tick("prepare")
+
+    def run(self) -> None:
+        self._tick("run")
+
+    def collect(self) -> None:
+        self._tick("collect")
+        self.k += 1
+
+    def step(self, lnes: np.ndarray) -> None:  # warm-up steps: not on the script
+        self.frames.append(float(lnes[0, 0, 0, 0]))
+
+
+class StepOnlyRunner:
+    def __init__(self, clock: FakeClock, seconds: float) -> None:
+        self.clock, self.seconds = clock, seconds
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, lnes: np.ndarray) -> None:
+        self.clock.now += self.seconds
+
+
+def test_runtime_and_overhead_split_on_an_injected_clock() -> None:
+    """Five steps, milliseconds by hand: prepare + run + collect = total; the runtime is the
+    run alone, the overhead prepare + collect. Medians (odd count: the middle value):
+    totals 12, 15, 11, 20, 13 -> 13; runtimes 10, 13, 10, 17, 11 -> 11; overheads 2, 2, 1, 3, 2 -> 2."""
+    clock = FakeClock()
+    ms = 1e-3
+    phased = ScriptedRunner(clock, prepare=[1 * ms, 1 * ms, 0.5 * ms, 2 * ms, 1 * ms],
+                            run=[10 * ms, 13 * ms, 10 * ms, 17 * ms, 11 * ms],
+                            collect=[1 * ms, 1 * ms, 0.5 * ms, 1 * ms, 1 * ms])
+    plain = StepOnlyRunner(clock, 7 * ms)
+    frames = np.arange(4, dtype=np.float32).reshape(4, 1, 1, 1)
+    times = time_side_by_side({"phased": phased, "plain": plain}, frames, steps=5, warmup=2, chunk=2, clock=clock)
+
+    np.testing.assert_allclose(times["phased"].total / ms, [12, 15, 11, 20, 13])
+    np.testing.assert_allclose(times["phased"].runtime / ms, [10, 13, 10, 17, 11])
+    np.testing.assert_allclose(times["phased"].overhead / ms, [2, 2, 1, 3, 2])
+    assert times["plain"].runtime is None and times["plain"].overhead is None
+    np.testing.assert_allclose(times["plain"].total / ms, [7] * 5)
+    assert phased.frames == [0.0, 1.0, 2.0, 3.0, 0.0, 1.0, 2.0]  # warm-up frames 0, 1; timed 2, 3, 0, 1, 2
+
+    entry = {"flops": 2e9}
+    _record_times(entry, times["phased"], peak_gflops=400.0)
+    assert entry["latency_ms"]["p50"] == pytest.approx(13.0)
+    assert entry["runtime_ms"]["p50"] == pytest.approx(11.0)
+    assert entry["overhead_ms"]["p50"] == pytest.approx(2.0)
+    assert entry["overhead_ms"]["p90"] == pytest.approx(2.6)  # numpy's linear interpolation: 2 + 0.6 * (3 - 2)
+    assert entry["hz"] == pytest.approx(1e3 / 13.0)
+    assert entry["gflops_achieved"] == pytest.approx(2e9 / 0.013 / 1e9)
+    assert entry["peak_fraction"] == pytest.approx(entry["gflops_achieved"] / 400.0)
+
+
+def test_step_only_runner_records_no_split() -> None:
+    entry = {"flops": 1e9}
+    _record_times(entry, StepTimes(np.array([0.004, 0.002, 0.003])), peak_gflops=100.0)
+    assert entry["latency_ms"]["p50"] == pytest.approx(3.0) and "runtime_ms" not in entry
+
+
+# -- the verdict on injected timings ---------------------------------------------------------
+def _entry(name: str, p50: float | None, available: bool = True) -> dict:
+    return {"name": name, "available": available, "latency_ms": None if p50 is None else {"p50": p50}}
+
+
+def test_verdict_names_the_fastest_measured_target_and_its_rate() -> None:
+    entries = [_entry("ort-cpu-fp32", 23.0), _entry("openvino-cpu-fp32", 22.2),
+               _entry("openvino-cpu-fp32-static", 18.7), _entry("ort-cuda-fp32", None, available=False)]
+    verdict = fastest_path(entries)
+    assert verdict["fastest"] == "openvino-cpu-fp32-static"
+    assert verdict["hz"] == pytest.approx(1e3 / 18.7) and verdict["p50_ms"] == 18.7
+    assert verdict["tied"] == [] and verdict["not_measured"] == ["ort-cuda-fp32"]
+    assert [r["name"] for r in verdict["ranking"]] == ["openvino-cpu-fp32-static", "openvino-cpu-fp32", "ort-cpu-fp32"]
+    line = verdict_line(verdict)
+    assert "`openvino-cpu-fp32-static`" in line and "53.5 Hz" in line
+
+
+def test_verdict_ties_at_the_threshold() -> None:
+    """3% of 20 ms is 0.6 ms: 20.59 ms is a tie, 20.61 ms is not."""
+    verdict = fastest_path([_entry("a", 20.0), _entry("b", 20.59), _entry("c", 20.61)], tie_fraction=0.03)
+    assert verdict["fastest"] == "a" and verdict["tied"] == ["b"]
+    assert "Within 3% of it" in verdict_line(verdict) and "`b`" in verdict_line(verdict)
+    exactly = fastest_path([_entry("a", 4.0), _entry("b", 5.0)], tie_fraction=0.25)  # 4 * 1.25 = 5, exact in binary
+    assert exactly["tied"] == ["b"]  # the bound is inclusive
+    equal = fastest_path([_entry("first", 10.0), _entry("second", 10.0)])
+    assert equal["fastest"] == "first" and equal["tied"] == ["second"]
+
+
+def test_verdict_skips_unavailable_targets() -> None:
+    """An entry marked unavailable never wins, even with a figure left in it."""
+    stale = {"name": "failed", "available": False, "latency_ms": {"p50": 1.0}}
+    verdict = fastest_path([stale, _entry("ort-cpu-fp32", 21.5)])
+    assert verdict["fastest"] == "ort-cpu-fp32" and verdict["not_measured"] == ["failed"]
+    assert fastest_path([_entry("x", None, available=False)]) is None
+    assert "No target ran" in verdict_line(None)
+
+
+# -- outside tools: arguments and parsing -----------------------------------------------------
+def test_benchmark_app_arguments_carry_the_targets_compile_properties(tmp_path: Path) -> None:
+    config = {"INFERENCE_PRECISION_HINT": "bf16", "DYNAMIC_QUANTIZATION_GROUP_SIZE": 0, "PERFORMANCE_HINT": "LATENCY",
+              "INFERENCE_NUM_THREADS": 2}
+    inputs = {"lnes": tmp_path / "lnes.npy", "window_ms": tmp_path / "window_ms.npy"}
+    args = benchmark_app_args(tmp_path / "step.xml", config, 4.6, tmp_path, inputs, {"lnes": (1, 2, 4, 4), "window_ms": (1,)},
+                              tmp_path / "config.json")
+    flag = {args[i]: args[i + 1] for i in range(len(args) - 1) if args[i].startswith("-")}
+    assert (flag["-hint"], flag["-nstreams"], flag["-api"], flag["-nthreads"]) == ("none", "1", "sync", "2")
+    assert flag["-infer_precision"] == "bf16" and flag["-t"] == "5" and flag["-inference_only"] == "true"
+    assert flag["-data_shape"] == "lnes[1,2,4,4],window_ms[1]"
+    assert flag["-i"] == f"lnes:{tmp_path / 'lnes.npy'},window_ms:{tmp_path / 'window_ms.npy'}"
+    # what no flag says travels in -load_config, and only that
+    assert json.loads(Path(flag["-load_config"]).read_text()) == {"CPU": {"DYNAMIC_QUANTIZATION_GROUP_SIZE": 0}}
+    static = benchmark_app_args(tmp_path / "s.xml", {"INFERENCE_NUM_THREADS": 1}, 2, tmp_path, inputs, None,
+                                tmp_path / "c2.json")
+    assert "-data_shape" not in static and "-load_config" not in static and "f32" in static
+
+
+def test_benchmark_app_report_parsed_from_a_committed_sample() -> None:
+    """benchmark_app_report.json: a real `-json_stats` report of benchmark_app (OpenVINO
+    2026.4) on the tiny static graph, paths trimmed."""
+    report = json.loads((SAMPLES / "benchmark_app_report.json").read_text())
+    assert parse_benchmark_app_report(report) == (30.91, 32)
+    del report["execution_results"]["latency (ms)"]
+    with pytest.raises(OutsideToolError, match="median latency"):
+        parse_benchmark_app_report(report)
+    with pytest.raises(OutsideToolError):
+        parse_benchmark_app_report({})
+
+
+def test_perf_test_output_parsed_from_a_sample() -> None:
+    """onnxruntime_perf_test.txt is written in the tool's output format (the lines of
+    onnxruntime/test/perftest/performance_runner.cc, microsoft/onnxruntime); the tool
+    itself is not in the pip wheel."""
+    text = (SAMPLES / "onnxruntime_perf_test.txt").read_text()
+    p50, runs = parse_perf_test_output(text)
+    assert p50 == pytest.approx(20.1223) and runs == 243
+    with pytest.raises(OutsideToolError, match="P50 Latency"):
+        parse_perf_test_output(text.replace("P50 Latency", "P55 Latency"))
+    assert perf_test_args(Path("g.onnx"), 2, 5, dynamic=True)[-3:] == ["-f", "batch:1", "g.onnx"]
+    assert "-f" not in perf_test_args(Path("g.onnx"), 2, 5, dynamic=False)
+
+
+def test_ort_profiler_figure_and_agreement_ratio() -> None:
+    figure = ort_profiler_figure({"run_ms_median": 20.0, "steps": 50})
+    assert (figure.p50_ms, figure.runs, figure.reason) == (20.0, 50, None)
+    assert agreement_ratio(21.0, figure) == pytest.approx(1.05)
+    missing = ort_profiler_figure(None)
+    assert missing.p50_ms is None and "profile-steps" in missing.reason
+    assert agreement_ratio(21.0, missing) is None and agreement_ratio(None, figure) is None
+    assert agreement_ratio(5.0, OutsideFigure("x", p50_ms=0.0)) is None
+
+
+def test_a_failing_outside_tool_is_one_line_of_reason(tmp_path: Path) -> None:
+    failing = [sys.executable, "-c", "print('[ ERROR ] Model file does not exist'); raise SystemExit(3)"]
+    assert _run(failing, 60, tmp_path / "log.txt") == "exit 3: [ ERROR ] Model file does not exist"
+    assert _run([sys.executable, "-c", "print('fine')"], 60, tmp_path / "ok.txt") is None
+    assert _run([str(tmp_path / "no-such-tool")], 60, tmp_path / "x.txt").startswith("could not start")
+
+
+@pytest.mark.slow  # ~14 s on a loaded 2-core host: IR conversion, a fresh interpreter, compile, 1 s of steps
+def test_benchmark_app_runs_on_the_tiny_static_graph(tiny_static_graph: Path, tmp_path: Path) -> None:
+    pytest.importorskip("openvino")
+    from e3dpsm.profiles.agreement import outside_figure
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    figure = outside_figure(load_targets()["openvino-cpu-fp32-static"], tiny_static_graph,
+                            moving_edge_frames(1, 192, 256, 20.0), 1, tmp_path, None)
+    assert figure.reason is None, figure.reason
+    assert figure.tool == "benchmark_app" and figure.runs >= 1 and 0 < figure.p50_ms < 1e4
+    report = json.loads((tmp_path / "benchmark_report.json").read_text())
+    assert parse_benchmark_app_report(report) == (figure.p50_ms, figure.runs)
+    assert report["configuration_setup"]["number of CPU streams"] == "1" and report["configuration_setup"]["inference_only"]
+    assert (report["cmd_options"]["-nthreads"], report["cmd_options"]["-infer_precision"]) == ("2", "f32")
+    assert "-data_shape" not in report["cmd_options"]  # a static graph runs as it is
