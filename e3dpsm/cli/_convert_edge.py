@@ -48,7 +48,7 @@ def register(formats: argparse._SubParsersAction) -> None:
     cm = formats.add_parser("coreml", help="Core ML ML program (.mlpackage)",
                             description="Write OUT/step.mlpackage (coremltools ML program, states as explicit inputs "
                                         "and outputs) and OUT/convert.json with the checks Linux can run.")
-    _common(cm, "gather")
+    _common(cm, "grid_sample")
     cm.add_argument("--precision", choices=("fp16", "fp32"), default="fp16", help="compute precision (default fp16)")
     cm.set_defaults(func=run_coreml)
 
@@ -81,8 +81,9 @@ def summary_line(fmt: str, path: Path, report: dict) -> str:
         left = ", ".join(f"{k} x{v}" for k, v in report["delegation"]["portable_ops"].items()) or "none"
         return f"wrote {path} ({size}, {seconds}); XNNPACK runs {share:.1%} of the MACs; portable ops: {left}"
     if fmt == "litert":
-        left = ", ".join(f"{k} x{v}" for k, v in report["ops"]["tflite_kernel_ops"].items()) or "none"
-        return f"wrote {path} ({size}, {seconds}); left to TFLite kernels: {left}"
+        ops = report["ops"]
+        return (f"wrote {path} ({size}, {seconds}); {sum(ops['histogram'].values())} operators, "
+                f"{ops['xnnpack_partitions']} XNNPACK partitions")
     return f"wrote {path} ({size}, {seconds})"
 
 

@@ -38,7 +38,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
     chk = actions.add_parser("check", help="check a graph against a golden record (torch-free)")
     chk.add_argument("--model", required=True, nargs="+",
-                     help="step graph(s) to check (fp32, fp16 or INT8); with several graphs or runtimes each "
+                     help="step graph(s) to check (fp32, fp16 or INT8): .onnx, or an edge artifact (.pte, "
+                          ".tflite, .engine) on its own runtime; with several graphs or runtimes each "
                           "check goes to OUT/<graph>-<runtime>/ and OUT/summary.json lists the verdicts")
     chk.add_argument("--golden", required=True, help="golden folder written by `golden record`")
     chk.add_argument("--out", required=True, help="folder for check.json and check.png")
@@ -135,6 +136,7 @@ def run_check(args: argparse.Namespace) -> int:
                 print(f"golden check {model} on {runtime}: skipped ({exc})")
                 verdicts.append({"model": model, "runtime": runtime, "status": "skipped", "reason": str(exc)})
                 continue
+            runtime = report["runtime"]  # a .pte / .tflite runs on its own runtime
             _print_check(model, runtime, result, report, folder)
             pose = next(t for t in result.tensors if t.name == "pose")
             verdicts.append({

@@ -43,6 +43,18 @@ class GraphStepper(Stepper, Protocol):
     def output_names_all(self) -> list[str]: ...
 
 
+class StreamStepper(GraphStepper, Protocol):
+    """What the stream runtimes (runtime/stream.py, multistream.py, serve) use on top: the
+    file, and feeds checked apart from the run (so they time the runtime alone)."""
+
+    path: Path
+
+    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray],
+              window_ms: float | np.ndarray) -> dict[str, np.ndarray]: ...
+
+    def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]: ...
+
+
 
 # extension -> (runtime name, module, class); the module is imported only when used, so a
 # device with one runtime installed never imports the others.
@@ -66,7 +78,7 @@ def artifact_runtime(path: str | os.PathLike) -> str:
     return ARTIFACT_RUNNERS[suffix][0]
 
 
-def open_stepper(path: str | os.PathLike, *, threads: int | None = None, **onnx_options: Any) -> GraphStepper:
+def open_stepper(path: str | os.PathLike, *, threads: int | None = None, **onnx_options: Any) -> StreamStepper:
     """The `GraphStepper` of a step artifact, chosen by its extension: .onnx (ONNX Runtime;
     `onnx_options` such as providers, options, spin go to `StepSession`), .pte (ExecuTorch),
     .tflite (LiteRT), .mlpackage (Core ML, macOS), .engine (TensorRT, NVIDIA GPU)."""

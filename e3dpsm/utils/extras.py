@@ -16,6 +16,7 @@ EXTRA_OF_MODULE: dict[str, str] = {
     "ai_edge_litert": "litert",
     "coremltools": "coreml",
     "tensorrt": "tensorrt",
+    "cuda": "tensorrt",
     "openvino": "openvino",
 }
 
