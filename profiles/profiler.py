@@ -17,11 +17,11 @@ from e3dpsm.profiles.flops import CATEGORIES, relative_difference
 from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
-from e3dpsm.profiles.latency import (OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner, latency_summary,
+from e3dpsm.profiles.latency import (ArtifactRunner, OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner, latency_summary,
                                      matmul_peak_gflops, measure_side_by_side)
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.ort_profile import summarize_trace
-from e3dpsm.profiles.targets import Target, availability
+from e3dpsm.profiles.targets import EDGE_RUNTIMES, Target, availability, graph_key
 
 BASELINES = ("torch-eager-cpu", "ort-cpu-fp32")
 MEMORY_STEPS = 5
@@ -53,7 +53,9 @@ def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any,
                   profile_prefix: str | None = None) -> Any:
     if target.runtime == "torch":
         return TorchRunner(model, target.threads, window_ms)
-    path = str(graphs[target.graph])
+    path = str(graphs[graph_key(target)])
+    if target.runtime in EDGE_RUNTIMES:
+        return ArtifactRunner(path, target, window_ms)
     if target.runtime == "onnxruntime":
         return OrtRunner(path, target, window_ms, profile_prefix)
     if target.runtime == "openvino-stateful":
@@ -63,7 +65,7 @@ def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any,
 
 def _model_bytes(target: Target, graphs: Mapping[str, Path | None], model: Any, checkpoint: str | None) -> int:
     if target.graph != "none":
-        return Path(graphs[target.graph]).stat().st_size
+        return Path(graphs[graph_key(target)]).stat().st_size
     if checkpoint:
         return Path(checkpoint).stat().st_size
     return sum(t.numel() * t.element_size() for t in model.state_dict().values())

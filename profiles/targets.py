@@ -15,8 +15,11 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-# openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables)
-RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful")
+# openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables);
+# executorch / litert: a converted edge artifact (.pte / .tflite, `e3dpsm convert`), given
+# to `profile --edge-models`, on the XNNPACK CPU backend.
+RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful", "executorch", "litert")
+EDGE_RUNTIMES = {"executorch": ("executorch", ".pte"), "litert": ("ai_edge_litert", ".tflite")}
 # bf16: the fp32 graph with its float parts in bf16 (OpenVINO on CPUs with bf16 units).
 PRECISIONS = ("fp32", "fp16", "int8", "bf16")
 GRAPHS = ("none", "fp32", "fp16", "int8")
@@ -103,8 +106,19 @@ def select_targets(known: Mapping[str, Target], spec: str, threads: int | None =
     return [replace(t, threads=threads) for t in chosen] if threads else chosen
 
 
+def graph_key(target: Target) -> str:
+    """The key of the file a target loads in profile's `graphs`: the graph kind for ONNX
+    runtimes, "<runtime>/<precision>" for an edge artifact."""
+    return f"{target.runtime}/{target.graph}" if target.runtime in EDGE_RUNTIMES else target.graph
+
+
 def runtime_availability(target: Target) -> Availability:
     """Can this machine run the target's runtime and provider (independent of any graph)?"""
+    if target.runtime in EDGE_RUNTIMES:
+        from e3dpsm.utils.extras import missing_reason
+
+        reason = missing_reason(EDGE_RUNTIMES[target.runtime][0], f"for target {target.name}")
+        return Availability(reason is None, reason)
     module = {"torch": "torch", "onnxruntime": "onnxruntime", "openvino": "openvino",
               "openvino-stateful": "openvino"}[target.runtime]
     if importlib.util.find_spec(module) is None:
@@ -139,6 +153,10 @@ def availability(target: Target, graphs: Mapping[str, Path | None], has_torch_mo
         return runtime
     if target.graph == "none":
         return Availability(True) if has_torch_model else Availability(False, GRAPH_HINTS["none"])
-    if graphs.get(target.graph) is None:
+    if target.runtime in EDGE_RUNTIMES and graphs.get(graph_key(target)) is None:
+        suffix = EDGE_RUNTIMES[target.runtime][1]
+        return Availability(False, f"no {target.graph} {suffix}: pass --edge-models STEP{suffix} "
+                                   f"(e3dpsm convert {target.runtime})")
+    if graphs.get(graph_key(target)) is None:
         return Availability(False, GRAPH_HINTS[target.graph])
     return Availability(True)

@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--data", help="prepared folder whose test frames feed the runs (default: built-in synthetic events)")
     p.add_argument("--int8-model", help="INT8 step graph for int8 targets (from e3dpsm quantize)")
     p.add_argument("--fp16-model", help="FP16 step graph for fp16 targets (from e3dpsm quantize)")
+    p.add_argument("--edge-models", nargs="+", default=[], metavar="ARTIFACT",
+                   help="converted artifacts (.pte, .tflite from e3dpsm convert) for the executorch-* / litert-* "
+                        "targets; each goes to the targets of its runtime and precision")
     p.add_argument("--profile-steps", type=int, default=50,
                    help="steps of the separate onnxruntime profiling run per ORT target (0: none; default 50)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
@@ -52,6 +55,23 @@ def _existing(path: str | None, flag: str) -> Path | None:
     if not Path(path).is_file():
         raise DataError(f"{flag} {path} does not exist")
     return Path(path)
+
+
+def edge_graphs(paths: list[str]) -> dict[str, Path]:
+    """{"<runtime>/<precision>": path} of the --edge-models artifacts whose runtime is installed
+    (the targets of a missing one are reported unavailable with the install line)."""
+    from e3dpsm.profiles.targets import EDGE_RUNTIMES
+    from e3dpsm.runtime.stepping import artifact_runtime, open_stepper
+    from e3dpsm.utils.extras import missing_reason
+
+    found: dict[str, Path] = {}
+    for path in paths:
+        runtime = artifact_runtime(_existing(path, "--edge-models"))
+        if runtime not in EDGE_RUNTIMES:
+            raise ConfigError(f"--edge-models takes .pte and .tflite artifacts; {path} runs on {runtime}")
+        if missing_reason(EDGE_RUNTIMES[runtime][0]) is None:
+            found[f"{runtime}/{open_stepper(path).artifact['precision']}"] = Path(path)
+    return found
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     for path in graphs.values():
         if path is not None:
             GraphMetadata.from_onnx(load_graph(path), source=str(path))  # MetadataError if it has none
+    graphs.update(edge_graphs(args.edge_models))
 
     model = None
     if not args.model:

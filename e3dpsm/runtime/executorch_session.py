@@ -8,8 +8,10 @@ The state layout is the program's own constant method `e3dpsm_metadata`
 ExecuTorch version that wrote it: a program from another version is refused before it runs."""
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import os
+import sys
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -34,13 +36,29 @@ def same_release(a: str, b: str) -> bool:
     return a.split(".")[:2] == b.split(".")[:2]
 
 
+@contextlib.contextmanager
+def native_log_silenced():
+    """The runtime's C++ log (cpuinfo probes, a refused program's identifier) goes to the
+    process's stderr directly; while loading, it goes nowhere, so a refusal is one line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def load_program(path: str | os.PathLike) -> Any:
     runtime = require("executorch.runtime", "to run .pte programs").Runtime.get()
     path = Path(path)
     if not path.is_file():
         raise DataError(f"model {path} does not exist")
     try:
-        return runtime.load_program(path)
+        with native_log_silenced():
+            return runtime.load_program(path)
     except Exception as exc:  # the binding raises RuntimeError / ValueError for unreadable programs
         head = path.read_bytes()[:8]
         raise DataError(f"ExecuTorch {executorch_version()} cannot load {path} (file identifier "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import sys
 from types import ModuleType
 
 from e3dpsm.errors import ConfigError
@@ -27,9 +28,14 @@ def install_hint(extra: str) -> str:
 
 def missing_reason(module: str, purpose: str = "") -> str | None:
     """Why `module` cannot be used here (None when it can): not installed, with the install line."""
-    if importlib.util.find_spec(module.split(".")[0]) is not None:
+    top = module.split(".")[0]
+    try:  # a module blocked in sys.modules (None) counts as missing, as Python's import does
+        found = sys.modules[top] is not None if top in sys.modules else importlib.util.find_spec(top) is not None
+    except (ImportError, ValueError):
+        found = False
+    if found:
         return None
-    extra = EXTRA_OF_MODULE[module.split(".")[0]]
+    extra = EXTRA_OF_MODULE[top]
     what = f" ({purpose})" if purpose else ""
     return f"{module.split('.')[0]} is not installed{what}: {install_hint(extra)}"
 
