@@ -56,7 +56,8 @@ class ExecuTorchResult:
 def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: Any = None,
                         calibrate: Any = None) -> torch.export.ExportedProgram:
     """The step wrapper as an ExportedProgram ready to lower; with a PT2E `quantizer`,
-    `calibrate(prepared_module)` feeds it before conversion (export/executorch_int8.py)."""
+    `calibrate(prepared_module)` feeds it before conversion (the hook the INT8 programs
+    will use; no INT8 conversion is shipped yet, docs/edge.md)."""
     from executorch.exir.passes.constant_prop_pass import constant_prop_pass
 
     wrapper = StepGraph(model)

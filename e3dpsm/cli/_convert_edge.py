@@ -23,26 +23,17 @@ def _common(p: argparse.ArgumentParser, default_form: str) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
 
 
-def _quantize_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quantize", choices=("int8",), default=None,
-                   help="INT8 weights and activations through PT2E, recurrent groups kept float (needs --data)")
-    p.add_argument("--data", help="prepared folder: calibration frames (train split) and the accuracy check (val)")
-    p.add_argument("--threads", type=int, default=2, help="threads of the calibration and check rollouts")
-
-
 def register(formats: argparse._SubParsersAction) -> None:
     et = formats.add_parser("executorch", help="ExecuTorch program (.pte, XNNPACK)",
                             description="Write OUT/step.pte (torch.export -> XNNPACK partitioner) and OUT/convert.json.")
     _common(et, "grid_sample")
     et.add_argument("--native-norms", action="store_true",
                     help="keep LayerNorm / GroupNorm as they are (portable kernels) instead of as matmuls XNNPACK runs")
-    _quantize_options(et)
     et.set_defaults(func=run_executorch)
 
     lt = formats.add_parser("litert", help="LiteRT model (.tflite, XNNPACK delegate)",
                             description="Write OUT/step.tflite (litert-torch) and OUT/convert.json.")
     _common(lt, "gather")
-    _quantize_options(lt)
     lt.set_defaults(func=run_litert)
 
     cm = formats.add_parser("coreml", help="Core ML ML program (.mlpackage)",
@@ -91,10 +82,6 @@ def run_executorch(args: argparse.Namespace) -> int:
     from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
 
     options = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
-    if args.quantize:
-        from e3dpsm.export.edge_int8 import convert_int8
-
-        return _convert(args, "executorch", lambda model, path: convert_int8(model, path, "executorch", args, options))
     return _convert(args, "executorch", lambda model, path: convert_executorch(model, path, options))
 
 
@@ -102,10 +89,6 @@ def run_litert(args: argparse.Namespace) -> int:
     from e3dpsm.export.litert_export import LiteRTOptions, convert_litert
 
     options = LiteRTOptions(attention_form=args.attention_form)
-    if args.quantize:
-        from e3dpsm.export.edge_int8 import convert_int8
-
-        return _convert(args, "litert", lambda model, path: convert_int8(model, path, "litert", args, options))
     return _convert(args, "litert", lambda model, path: convert_litert(model, path, options))
 
 
