@@ -48,9 +48,14 @@ def convert_all(checkpoint: str, forms: list[str], work: Path) -> dict[str, dict
         for label, convert in ((f"executorch-fp32-{form}", lambda p: convert_executorch(model, p, ExecuTorchOptions(form))),
                                (f"litert-fp32-{form}", lambda p: convert_litert(model, p, LiteRTOptions(form)))):
             suffix = ".pte" if label.startswith("executorch") else ".tflite"
+            record = work / f"{label}.convert.json"  # a rerun reuses the conversions a slow host finished
+            if record.exists():
+                artifacts[label] = json.loads(record.read_text())
+                continue
             result = convert(work / f"{label}{suffix}").to_dict()
             artifacts[label] = {"path": result["path"], "bytes": result["bytes"], "seconds": result["seconds"]["total"],
                                 "details": {k: result.get(k) for k in ("delegation", "ops", "seconds")}}
+            record.write_text(json.dumps(artifacts[label]))
             print(f"converted {label}: {result['bytes'] / 1e6:.2f} MB in {result['seconds']['total']:.0f} s", flush=True)
     return artifacts
 
