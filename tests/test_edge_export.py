@@ -86,18 +86,22 @@ def test_coreml_package_passes_the_linux_checks(coreml_result, edge_model) -> No
     assert weights["found"] >= 0.75 * weights["checked"]
 
 
-def test_coreml_weight_check_catches_another_checkpoint(coreml_result, edge_model) -> None:
-    import coremltools as ct
+def test_coreml_weight_check_catches_another_checkpoint(edge_model) -> None:
+    """The check against a program whose constants are the model's own weights (fp16-rounded),
+    and against another seed's model: all found, then none."""
+    from types import SimpleNamespace
 
     import e3dpsm
     from e3dpsm.export.coreml_export import weights_in_package
 
-    package = ct.models.MLModel(coreml_result.path, skip_model_load=True)
-    operations = package._mil_program.functions["main"].operations if package._mil_program else None
-    if operations is None:  # a loaded package keeps no MIL program: check against the converted one
-        pytest.skip("coremltools keeps no MIL program of a loaded package")
-    other = e3dpsm.create_model("tiny", seed=1)
-    assert weights_in_package(operations, other, 1e-3)["found"] == 0
+    def const(value):
+        return SimpleNamespace(op_type="const", outputs=[SimpleNamespace(val=value)])
+
+    operations = [const(p.detach().numpy().astype(np.float16)) for p in edge_model.parameters() if p.dim() >= 2]
+    mine = weights_in_package(operations, edge_model, 1e-3)
+    assert mine["found"] == mine["checked"] > 20
+    other = weights_in_package(operations, e3dpsm.create_model("tiny", seed=1), 1e-3)
+    assert other["found"] == 0 and len(other["missing"]) == other["checked"]
 
 
 def test_coreml_metadata_round_trip(coreml_result, trained_graph) -> None:

@@ -116,7 +116,7 @@ def run_check(args: argparse.Namespace) -> int:
 
     golden = load_golden(args.golden)  # a broken golden is bad input before any graph runs; read once
     for model in args.model:
-        if not Path(model).is_file():
+        if not Path(model).exists():  # a file, or a folder for .mlpackage
             raise DataError(f"model {model} does not exist")
     config = {k: v for k, v in vars(args).items() if k != "func"}
     out = Path(args.out)

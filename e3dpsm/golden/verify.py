@@ -116,7 +116,8 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
     result = check_golden(runner, golden, chosen, progress=progress)
     report = {
         **(header or {}),
-        "model": {"path": str(model), "sha256": sha256_file(model), "variant": runner.meta.config.get("variant"),
+        "model": {"path": str(model), "sha256": sha256_file(model) if Path(model).is_file() else None,  # .mlpackage: a folder
+                  "variant": runner.meta.config.get("variant"),
                   "quantization": runner.meta.quantization},
         "golden": {"path": str(golden.folder), "source": golden.manifest.get("source"), "steps": golden.steps,
                    "window_ms": golden.manifest.get("window_ms")},

@@ -38,12 +38,13 @@ def same_release(a: str, b: str) -> bool:
 
 @contextlib.contextmanager
 def native_log_silenced():
-    """The runtime's C++ log (cpuinfo probes, a refused program's identifier) goes to the
-    process's stderr directly; while loading, it goes nowhere, so a refusal is one line."""
+    """The runtime's log (cpuinfo probes, a refused program's identifier) goes to the
+    process's stderr, from C++ and through Python's sys.stderr; while loading, it goes
+    nowhere, so a refusal is the one error line of the CLI."""
     sys.stderr.flush()
     saved = os.dup(2)
     try:
-        with open(os.devnull, "w") as null:
+        with open(os.devnull, "w") as null, contextlib.redirect_stderr(null):
             os.dup2(null.fileno(), 2)
             yield
     finally:
