@@ -95,7 +95,7 @@ def convert_coreml(model: E3DPSM, path: str | os.PathLike, options: CoreMLOption
     if options.attention_form != "grid_sample":
         raise ConfigError("Core ML takes the grid_sample attention form (the gather form's folded projections do "
                           "not convert with coremltools 9); pass --attention-form grid_sample")
-    named = NamedStepGraph(model)
+    named = NamedStepGraph(model).eval()
     started = time.perf_counter()
     with export_ready(model, options.attention_form):
         aliases = output_aliases(named)

@@ -79,7 +79,7 @@ def convert_litert(model: E3DPSM, path: str | os.PathLike, options: LiteRTOption
 
     meta, record = artifact_contract(model, FORMAT, precision, options.attention_form,
                                      ("litert-torch", "ai-edge-litert"), extra_record)
-    wrapper = NamedStepGraph(model)
+    wrapper = NamedStepGraph(model).eval()  # the wrapper has no layers of its own; eval() says so to the converter
     started = time.perf_counter()
     with export_ready(model, options.attention_form):
         converted = litert_torch.convert(wrapper, sample_kwargs=wrapper.example_kwargs(), quant_config=quant_config)
