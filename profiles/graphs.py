@@ -9,7 +9,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from e3dpsm.errors import DataError
+from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.profiles.flops_onnx import load_graph
 from e3dpsm.profiles.targets import STATIC_FP32, Target
@@ -37,6 +37,23 @@ def given_graphs(model: str | None, int8: str | None, fp16: str | None, static: 
         raise DataError(f"--static-model {static} has a dynamic batch axis; export it with "
                         "`e3dpsm export --static-batch`")
     return graphs
+
+
+def edge_graphs(paths: Sequence[str]) -> dict[str, Path]:
+    """{"<runtime>/<precision>": path} of the --edge-models artifacts whose runtime is installed
+    (the targets of a missing one are reported unavailable with the install line)."""
+    from e3dpsm.profiles.targets import EDGE_RUNTIMES
+    from e3dpsm.runtime.stepping import artifact_runtime, open_stepper
+    from e3dpsm.utils.extras import missing_reason
+
+    found: dict[str, Path] = {}
+    for path in paths:
+        runtime = artifact_runtime(_existing(path, "--edge-models"))
+        if runtime not in EDGE_RUNTIMES:
+            raise ConfigError(f"--edge-models takes .pte and .tflite artifacts; {path} runs on {runtime}")
+        if missing_reason(EDGE_RUNTIMES[runtime][0]) is None:
+            found[f"{runtime}/{open_stepper(path).artifact['precision']}"] = Path(path)
+    return found
 
 
 def _existing(path: str | None, flag: str) -> Path | None:

@@ -97,6 +97,15 @@ class OrtRunner(_SessionPhases):
         return self.session.session.end_profiling()
 
 
+class ArtifactRunner(CarriedStateRunner):
+    """An edge artifact (.pte, .tflite) through its runner (e3dpsm.runtime.stepping.open_stepper)."""
+
+    def __init__(self, path: str, target: Target, window_ms: float) -> None:
+        from e3dpsm.runtime.stepping import open_stepper
+
+        super().__init__(open_stepper(path, threads=target.threads), window_ms)
+
+
 def openvino_precision(target: Target) -> str:
     """The inference precision OpenVINO is told: bf16 for bf16 targets, f32 otherwise (no
     silent bf16 / fp16 on capable CPUs: an int8 graph's float parts stay float32, as they do

@@ -19,12 +19,12 @@ from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
 from e3dpsm.profiles.agreement import agreement_ratio, outside_figure
-from e3dpsm.profiles.latency import (OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner, latency_summary,
-                                     matmul_peak_gflops)
+from e3dpsm.profiles.latency import (ArtifactRunner, OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner,
+                                     latency_summary, matmul_peak_gflops)
 from e3dpsm.profiles.memory import RssSampler
 from e3dpsm.profiles.ort_profile import summarize_trace
 from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side
-from e3dpsm.profiles.targets import Target, availability
+from e3dpsm.profiles.targets import EDGE_RUNTIMES, Target, availability
 from e3dpsm.profiles.verdict import fastest_path
 
 BASELINES = ("torch-eager-cpu", "ort-cpu-fp32")
@@ -58,6 +58,8 @@ def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any,
     if target.runtime == "torch":
         return TorchRunner(model, target.threads, window_ms)
     path = str(graphs[target.graph_key])
+    if target.runtime in EDGE_RUNTIMES:
+        return ArtifactRunner(path, target, window_ms)
     if target.runtime == "onnxruntime":
         return OrtRunner(path, target, window_ms, side_by_side=True)
     if target.runtime == "openvino-stateful":

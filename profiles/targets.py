@@ -15,8 +15,11 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-# openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables)
-RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful")
+# openvino-stateful: the graph converted to a stateful IR (states as OpenVINO variables);
+# executorch / litert: a converted edge artifact (.pte / .tflite, `e3dpsm convert`), given
+# to `profile --edge-models`, on the XNNPACK CPU backend.
+RUNTIMES = ("torch", "onnxruntime", "openvino", "openvino-stateful", "executorch", "litert")
+EDGE_RUNTIMES = {"executorch": ("executorch", ".pte"), "litert": ("ai_edge_litert", ".tflite")}
 # bf16: the fp32 graph with its float parts in bf16 (OpenVINO on CPUs with bf16 units).
 PRECISIONS = ("fp32", "fp16", "int8", "bf16")
 GRAPHS = ("none", "fp32", "fp16", "int8")
@@ -46,7 +49,10 @@ class Target:
 
     @property
     def graph_key(self) -> str:
-        """Which graph of the profile's `graphs` mapping the target loads."""
+        """Which file of the profile's `graphs` mapping the target loads: "<runtime>/<precision>"
+        for an edge artifact, the static-batch graph for static targets, else the graph kind."""
+        if self.runtime in EDGE_RUNTIMES:
+            return f"{self.runtime}/{self.graph}"
         return STATIC_FP32 if self.static_batch else self.graph
 
     def to_dict(self) -> dict[str, Any]:
@@ -128,6 +134,11 @@ def select_targets(known: Mapping[str, Target], spec: str, threads: int | None =
 
 def runtime_availability(target: Target) -> Availability:
     """Can this machine run the target's runtime and provider (independent of any graph)?"""
+    if target.runtime in EDGE_RUNTIMES:
+        from e3dpsm.utils.extras import missing_reason
+
+        reason = missing_reason(EDGE_RUNTIMES[target.runtime][0], f"for target {target.name}")
+        return Availability(reason is None, reason)
     module = {"torch": "torch", "onnxruntime": "onnxruntime", "openvino": "openvino",
               "openvino-stateful": "openvino"}[target.runtime]
     if importlib.util.find_spec(module) is None:
@@ -162,6 +173,10 @@ def availability(target: Target, graphs: Mapping[str, Path | None], has_torch_mo
         return runtime
     if target.graph == "none":
         return Availability(True) if has_torch_model else Availability(False, GRAPH_HINTS["none"])
+    if target.runtime in EDGE_RUNTIMES and graphs.get(target.graph_key) is None:
+        suffix = EDGE_RUNTIMES[target.runtime][1]
+        return Availability(False, f"no {target.graph} {suffix}: pass --edge-models STEP{suffix} "
+                                   f"(e3dpsm convert {target.runtime})")
     if graphs.get(target.graph_key) is None:
         return Availability(False, GRAPH_HINTS[target.graph_key])
     return Availability(True)

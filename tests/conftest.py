@@ -44,7 +44,7 @@ import e3dpsm  # noqa: E402
 # e3dpsm.testing: the e3dpsm_golden fixture, registered as users register it. The helper
 # modules' session fixtures are registered here once, so that every test module shares one
 # instance (a fixture imported into a module is a separate definition, built again there).
-pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers"]
+pytest_plugins = ["e3dpsm.testing", "_quantize_helpers", "_profile_helpers", "_training_helpers", "_edge_helpers"]
 
 # One intra-op thread: the test models are tiny, and PyTorch's OpenMP workers busy-wait
 # between steps, which starves ONNX Runtime when both alternate in one process (parity).

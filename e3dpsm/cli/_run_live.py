@@ -21,14 +21,15 @@ if TYPE_CHECKING:  # pragma: no cover
 def run_live(args: argparse.Namespace, out: Path, report_path: Path) -> int:
     from e3dpsm.data.live import open_live_source
     from e3dpsm.errors import ConfigError, DataError
-    from e3dpsm.runtime import StepSession, StreamingPoseEstimator
+    from e3dpsm.runtime import StreamingPoseEstimator
+    from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
     if args.render is not None:
         raise ConfigError("--render draws a recording; it is not available for a live dv:// source")
     if args.max_seconds is not None and args.max_seconds <= 0:
         raise ConfigError(f"--max-seconds must be positive, got {args.max_seconds}")
-    session = StepSession(args.model, threads=args.threads)
+    session = open_stepper(args.model, threads=args.threads)
     with open_live_source(args.events, timeout_s=args.live_timeout_s) as source:
         estimator = StreamingPoseEstimator(session, window_ms=args.window_ms, start_us=args.start_us,
                                            sensor_hw=source.sensor_hw)

@@ -33,7 +33,8 @@ def run_many(args: argparse.Namespace) -> int:
     """The many-file form of `e3dpsm run`; `args` as run.run passes them, shared options checked."""
     from e3dpsm.data.readers import read_events
     from e3dpsm.errors import DataError, OutputExistsError
-    from e3dpsm.runtime import MultiStreamEstimator, StepSession
+    from e3dpsm.runtime import MultiStreamEstimator
+    from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
     out = Path(args.out)
@@ -46,7 +47,7 @@ def run_many(args: argparse.Namespace) -> int:
         raise OutputExistsError(f"{existing[0]} exists; pass --force to replace it")
     check_writable_folder(out)
 
-    session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
+    session = open_stepper(args.model, threads=args.threads)  # a bad graph fails before reading events
     streams = {name: read_events(path) for name, path in sources.items()}
     estimator = MultiStreamEstimator(session, window_ms=args.window_ms)
     for name, stream in streams.items():  # the file's own sensor size wins over the graph's default

@@ -1,4 +1,8 @@
-"""`e3dpsm convert openvino`: an exported step graph as OpenVINO IR, optionally stateful."""
+"""`e3dpsm convert openvino|executorch|litert|coreml|tensorrt`: a step graph for another runtime.
+
+openvino: an exported ONNX graph as OpenVINO IR, optionally stateful (here); executorch,
+litert, coreml: a checkpoint as an edge artifact (cli/_convert_edge.py); tensorrt: an ONNX
+graph as a TensorRT engine (cli/_convert_tensorrt.py)."""
 from __future__ import annotations
 
 import argparse
@@ -10,9 +14,10 @@ REPORT_NAME = "convert.json"
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("convert", help="convert an exported step graph for another runtime (OpenVINO IR)",
-                       description="Convert a step graph written by `e3dpsm export` or `e3dpsm quantize` "
-                                   "(fp32, fp16 or INT8 QDQ) for another runtime.")
+    p = sub.add_parser("convert", help="convert for another runtime (OpenVINO, ExecuTorch, LiteRT, Core ML, TensorRT)",
+                       description="openvino / tensorrt: convert a step graph written by `e3dpsm export` or "
+                                   "`e3dpsm quantize`; executorch / litert / coreml: convert a checkpoint. Every "
+                                   "artifact carries the graph's state layout (docs/edge.md).")
     formats = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
     ov = formats.add_parser(
         "openvino", help="OpenVINO IR (xml + bin)",
@@ -29,6 +34,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                          "batch 1, one stream per infer request)")
     ov.add_argument("--force", action="store_true", help="replace an existing output folder")
     ov.set_defaults(func=run)
+    from e3dpsm.cli import _convert_edge, _convert_tensorrt
+
+    _convert_edge.register(formats)
+    _convert_tensorrt.register(formats)
     return p
 
 

@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
     chk = actions.add_parser("check", help="check a graph against a golden record (torch-free)")
     chk.add_argument("--model", required=True, nargs="+",
-                     help="step graph(s) to check (fp32, fp16 or INT8); with several graphs or runtimes each "
+                     help="step graph(s) to check (fp32, fp16 or INT8): .onnx, or an edge artifact (.pte, "
+                          ".tflite, .engine) on its own runtime; with several graphs or runtimes each "
                           "check goes to OUT/<graph>-<runtime>/ and OUT/summary.json lists the verdicts")
     chk.add_argument("--golden", required=True, help="golden folder written by `golden record`")
     chk.add_argument("--out", required=True, help="folder for check.json and check.png")
@@ -150,7 +151,7 @@ def run_check(args: argparse.Namespace) -> int:
 
     golden = load_golden(args.golden)  # a broken golden is bad input before any graph runs; read once
     for model in args.model:
-        if not Path(model).is_file():
+        if not Path(model).exists():  # a file, or a folder for .mlpackage
             raise DataError(f"model {model} does not exist")
     config = {k: v for k, v in vars(args).items() if k != "func"}
     out = Path(args.out)
@@ -170,6 +171,7 @@ def run_check(args: argparse.Namespace) -> int:
                 print(f"golden check {model} on {runtime}: skipped ({exc})")
                 verdicts.append({"model": model, "runtime": runtime, "status": "skipped", "reason": str(exc)})
                 continue
+            runtime = report["runtime"]  # a .pte / .tflite runs on its own runtime
             _print_check(model, runtime, result, report, folder)
             pose = next(t for t in result.tensors if t.name == "pose")
             verdicts.append({

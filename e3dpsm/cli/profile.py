@@ -43,6 +43,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "exported here with --variant / --checkpoint")
     p.add_argument("--outside-seconds", type=float, default=5.0,
                    help="seconds of each CPU target's outside timer (benchmark_app ...; 0: none; default 5)")
+    p.add_argument("--edge-models", nargs="+", default=[], metavar="ARTIFACT",
+                   help="converted artifacts (.pte, .tflite from e3dpsm convert) for the executorch-* / litert-* "
+                        "targets; each goes to the targets of its runtime and precision")
     p.add_argument("--profile-steps", type=int, default=50,
                    help="steps of the separate onnxruntime profiling run per ORT target (0: none; default 50)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
@@ -53,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from e3dpsm.profiles.command import ProfileRequest, run_profile, summary_lines
-    from e3dpsm.profiles.graphs import given_graphs
+    from e3dpsm.profiles.graphs import edge_graphs, given_graphs
     from e3dpsm.profiles.profiler import ProfileSettings
     from e3dpsm.profiles.targets import load_targets, select_targets
 
@@ -62,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
     # Cheap checks first: a bad target name or graph fails before any export or measurement.
     targets = select_targets(load_targets(args.targets_file), args.targets, args.threads)
     graphs = given_graphs(args.model, args.int8_model, args.fp16_model, args.static_model)
+    graphs.update(edge_graphs(args.edge_models))
     model = None
     if not args.model:
         import torch

@@ -85,7 +85,8 @@ def report_path(out: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     from e3dpsm.data.readers import read_events
     from e3dpsm.errors import ConfigError, DataError, OutputExistsError
-    from e3dpsm.runtime import StepSession, StreamingPoseEstimator
+    from e3dpsm.runtime import StreamingPoseEstimator
+    from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
     # The one --render check for both forms: the many-file form never sees --render.
@@ -119,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         check_render_path(args.render, force=args.force, max_frames=args.render_max_frames)
         check_writable_folder(Path(args.render).parent)
 
-    session = StepSession(args.model, threads=args.threads)  # a bad graph fails before reading events
+    session = open_stepper(args.model, threads=args.threads)  # a bad graph fails before reading events
     # The file's own sensor size (attributes or event_meta.json) wins over the graph's default.
     stream = read_events(args.events)
     estimator = StreamingPoseEstimator(

@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
 
     from e3dpsm.cli._run_common import check_writable_folder
     from e3dpsm.joints import JOINT_NAMES, PARENTS
-    from e3dpsm.runtime import StepSession
+    from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.serve.clients import ClientHub
     from e3dpsm.serve.estimator import ServeEngine
     from e3dpsm.serve.security import new_token
@@ -119,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
     )
     # No spinning: between two steps (a window apart) idle ORT workers would busy-wait on the
     # cores the event loop and the browsers need. A bad graph fails before the source opens.
-    session = StepSession(args.model, threads=args.threads, spin=False)
-    compare = StepSession(args.compare, threads=args.threads, spin=False) if args.compare else None
+    session = open_stepper(args.model, threads=args.threads, spin=False)
+    compare = open_stepper(args.compare, threads=args.threads, spin=False) if args.compare else None
     window_ms = float(args.window_ms if args.window_ms is not None else session.meta.train_window_ms)
     from e3dpsm.events import window_us_from_ms
 

@@ -45,9 +45,9 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 def onnx_reference(path: str | os.PathLike, threads: int | None = None) -> Reference:
     """An exported fp32 step graph as the reference (no torch needed)."""
     from e3dpsm.errors import InputError
-    from e3dpsm.runtime import StepSession
+    from e3dpsm.runtime.stepping import open_stepper
 
-    session = StepSession(path, threads=threads)
+    session = open_stepper(path, threads=threads)
     meta = session.meta
     if meta.quantization:
         raise InputError(f"{path} is a {meta.quantization.get('mode')} graph; record the golden from the fp32 "

@@ -19,12 +19,29 @@ CHECK_FILE = "check.json"
 PLOT_FILE = "check.png"
 
 
+def artifact_check_runtime(model: str | os.PathLike, runtime: str) -> str:
+    """The runtime a check of `model` runs on: an ONNX graph's is `runtime`; any other
+    artifact has its own, by extension (.pte: executorch, .tflite: litert, ...)."""
+    from e3dpsm.runtime.stepping import artifact_runtime
+
+    own = artifact_runtime(model)
+    if own == "onnxruntime":
+        return runtime
+    if runtime not in ("onnxruntime", own):
+        raise InputError(f"{model} runs on {own}, not {runtime}; leave --runtime out for it")
+    return own
+
+
 def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threads: int | None = None,
                 providers: Sequence[str] | None = None) -> GraphStepper:
-    if runtime == "onnxruntime":
-        from e3dpsm.runtime import StepSession
+    """`runtime` for an ONNX graph; any other artifact on its own runtime (open_stepper)."""
+    runtime = artifact_check_runtime(model, runtime)
+    if runtime not in RUNTIMES or runtime == "onnxruntime":
+        from e3dpsm.runtime.stepping import open_stepper
 
-        return StepSession(model, threads=threads, providers=providers)
+        if providers and runtime != "onnxruntime":
+            raise InputError(f"--providers applies to onnxruntime; {model} runs on {runtime}")
+        return open_stepper(model, threads=threads, **({"providers": providers} if providers else {}))
     if runtime in ("openvino", "openvino-bf16"):
         if providers:
             raise InputError("--providers applies to onnxruntime; OpenVINO runs on its CPU device here")
@@ -105,9 +122,10 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
     from e3dpsm.utils.isa import detect_isa
 
     golden = golden_dir if isinstance(golden_dir, GoldenRecord) else load_golden(golden_dir)
+    runtime = artifact_check_runtime(model, runtime)
     runner = open_runner(model, runtime, threads=threads, providers=providers)
     chosen = resolve_profile(profile, runner.meta.quantization, golden.manifest, runtime)
-    digest = sha256_file(model)
+    digest = sha256_file(model) if Path(model).is_file() else None  # .mlpackage: a folder
     host = host_rollout_for(golden, digest, runtime) if chosen.kind == "budget" else None
     result = check_golden(runner, golden, chosen, progress=progress, host=host,
                           budget=resolve_budget(runner.meta.quantization, budget_pct), isa_kind=detect_isa().kind)

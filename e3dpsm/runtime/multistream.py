@@ -36,7 +36,7 @@ import numpy as np
 
 from e3dpsm.errors import InputError
 from e3dpsm.events import events_to_lnes, window_us_from_ms
-from e3dpsm.runtime.session import StepSession
+from e3dpsm.runtime.stepping import StreamStepper, open_stepper
 from e3dpsm.runtime.stream import EventChunk, EventWindower, PoseEstimate, StreamStats
 
 StreamId = Hashable
@@ -80,14 +80,14 @@ class MultiStreamEstimator:
 
     def __init__(
         self,
-        model: StepSession | str | os.PathLike,
+        model: StreamStepper | str | os.PathLike,
         *,
         window_ms: float | None = None,
         sensor_hw: tuple[int, int] | None = None,
         threads: int | None = None,
         max_batch: int | None = None,
     ) -> None:
-        self.session = model if isinstance(model, StepSession) else StepSession(model, threads=threads)
+        self.session = open_stepper(model, threads=threads) if isinstance(model, (str, os.PathLike)) else model
         meta = self.session.meta
         self.window_ms = float(window_ms if window_ms is not None else meta.train_window_ms)
         window_us_from_ms(self.window_ms)  # reject a bad default now, not at the first add_stream

@@ -39,7 +39,7 @@ import numpy as np
 
 from e3dpsm.errors import InputError
 from e3dpsm.events import events_to_lnes, validate_events, window_bounds, window_us_from_ms
-from e3dpsm.runtime.session import StateArrays, StepSession
+from e3dpsm.runtime.stepping import StateArrays, StreamStepper, open_stepper
 from e3dpsm.utils.stats import LogHistogram
 
 EventChunk = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # x, y, t_us, p
@@ -202,7 +202,7 @@ class StreamingPoseEstimator:
 
     def __init__(
         self,
-        model: StepSession | str | os.PathLike,
+        model: StreamStepper | str | os.PathLike,
         *,
         window_ms: float | None = None,
         start_us: int | None = None,
@@ -210,7 +210,7 @@ class StreamingPoseEstimator:
         threads: int | None = None,
         keep_frames: bool = False,
     ) -> None:
-        self.session = model if isinstance(model, StepSession) else StepSession(model, threads=threads)
+        self.session = open_stepper(model, threads=threads) if isinstance(model, (str, os.PathLike)) else model
         meta = self.session.meta
         self.window_ms = float(window_ms if window_ms is not None else meta.train_window_ms)
         self.window_us = window_us_from_ms(self.window_ms)

@@ -8,7 +8,8 @@ import platform
 import sys
 from typing import Any
 
-_PACKAGES = ("e3dpsm", "torch", "numpy", "onnx", "onnxruntime", "onnxsim", "openvino", "pandas")
+_PACKAGES = ("e3dpsm", "torch", "numpy", "onnx", "onnxruntime", "onnxsim", "openvino", "pandas",
+             "executorch", "litert-torch", "ai-edge-litert", "coremltools", "tensorrt")
 
 
 def package_versions() -> dict[str, str | None]:

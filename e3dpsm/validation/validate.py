@@ -19,7 +19,7 @@ from e3dpsm.data.prepared import PreparedData, PreparedSequence
 from e3dpsm.errors import ConfigError, InputError
 from e3dpsm.joints import JOINT_NAMES
 from e3dpsm.metrics import e_smooth, joint_errors, masked_mean, pa_mpjpe
-from e3dpsm.runtime import StepSession
+from e3dpsm.runtime.stepping import GraphStepper, open_stepper
 from e3dpsm.validation.streams import onnx_stream, torch_stream
 
 log = logging.getLogger(__name__)
@@ -63,8 +63,8 @@ def variant_metrics(poses: Sequence[np.ndarray], seqs: Sequence[PreparedSequence
     }
 
 
-def _onnx_variant(path: str | os.PathLike, threads: int | None) -> tuple[Variant, StepSession]:
-    session = StepSession(path, threads=threads)
+def _onnx_variant(path: str | os.PathLike, threads: int | None) -> tuple[Variant, GraphStepper]:
+    session = open_stepper(path, threads=threads)
     quant = session.meta.quantization
     precision = "fp32" if quant is None else str(quant.get("mode", "quantised"))
     return Variant(f"{Path(path).stem} ({precision})", "onnx", precision, str(path)), session

@@ -1,0 +1,99 @@
+"""`e3dpsm convert executorch|litert|coreml`: a checkpoint as an edge-runtime artifact
+(ExecuTorch .pte, LiteRT .tflite, Core ML .mlpackage) with the state layout inside, and
+OUT/convert.json (sizes, timings, what the backend runs, versions). docs/edge.md."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any, Callable
+
+from e3dpsm.cli._common import add_model_source
+
+REPORT_NAME = "convert.json"
+# format -> (artifact name, module needed to convert)
+ARTIFACTS = {"executorch": ("step.pte", "executorch"), "litert": ("step.tflite", "litert_torch"),
+             "coreml": ("step.mlpackage", "coremltools")}
+
+
+def _common(p: argparse.ArgumentParser, default_form: str) -> None:
+    add_model_source(p)
+    p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
+    p.add_argument("--attention-form", choices=("grid_sample", "gather"), default=default_form,
+                   help=f"deformable attention formulation (default {default_form}; docs/edge.md has the figures)")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+
+
+def register(formats: argparse._SubParsersAction) -> None:
+    et = formats.add_parser("executorch", help="ExecuTorch program (.pte, XNNPACK)",
+                            description="Write OUT/step.pte (torch.export -> XNNPACK partitioner) and OUT/convert.json.")
+    _common(et, "grid_sample")
+    et.add_argument("--native-norms", action="store_true",
+                    help="keep LayerNorm / GroupNorm as they are (portable kernels) instead of as matmuls XNNPACK runs")
+    et.set_defaults(func=run_executorch)
+
+    lt = formats.add_parser("litert", help="LiteRT model (.tflite, XNNPACK delegate)",
+                            description="Write OUT/step.tflite (litert-torch) and OUT/convert.json.")
+    _common(lt, "gather")
+    lt.set_defaults(func=run_litert)
+
+    cm = formats.add_parser("coreml", help="Core ML ML program (.mlpackage)",
+                            description="Write OUT/step.mlpackage (coremltools ML program, states as explicit inputs "
+                                        "and outputs) and OUT/convert.json with the checks Linux can run.")
+    _common(cm, "grid_sample")
+    cm.add_argument("--precision", choices=("fp16", "fp32"), default="fp16", help="compute precision (default fp16)")
+    cm.set_defaults(func=run_coreml)
+
+
+def _convert(args: argparse.Namespace, fmt: str, convert: Callable[[Any, Path], Any]) -> int:
+    from e3dpsm.cli._common import load_model_from_args
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.extras import require
+    from e3dpsm.utils.io import atomic_dir, refuse_existing_output, write_json_atomic
+
+    name, module = ARTIFACTS[fmt]
+    require(module, f"to convert for {fmt}")  # a missing extra fails before the model loads
+    refuse_existing_output(args.out, args.force)
+    model = load_model_from_args(args)
+    with atomic_dir(args.out, force=args.force) as tmp:
+        result = convert(model, tmp / name)
+        report = report_header("convert", {k: v for k, v in vars(args).items() if k != "func"})
+        report.update(format=fmt, file=name, variant=model.config.variant, **result.to_dict())
+        report["path"] = str(Path(args.out) / name)
+        write_json_atomic(tmp / REPORT_NAME, report)
+    print(summary_line(fmt, Path(args.out) / name, report))
+    return 0
+
+
+def summary_line(fmt: str, path: Path, report: dict) -> str:
+    size = f"{report['bytes'] / 1e6:.2f} MB"
+    seconds = f"{report['seconds']['total']:.0f} s"
+    if fmt == "executorch":
+        share = report["delegation"]["delegated_share"]
+        left = ", ".join(f"{k} x{v}" for k, v in report["delegation"]["portable_ops"].items()) or "none"
+        return f"wrote {path} ({size}, {seconds}); XNNPACK runs {share:.1%} of the MACs; portable ops: {left}"
+    if fmt == "litert":
+        ops = report["ops"]
+        return (f"wrote {path} ({size}, {seconds}); {sum(ops['histogram'].values())} operators, "
+                f"{ops['xnnpack_partitions']} XNNPACK partitions")
+    return f"wrote {path} ({size}, {seconds})"
+
+
+def run_executorch(args: argparse.Namespace) -> int:
+    from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
+
+    options = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
+    return _convert(args, "executorch", lambda model, path: convert_executorch(model, path, options))
+
+
+def run_litert(args: argparse.Namespace) -> int:
+    from e3dpsm.export.litert_export import LiteRTOptions, convert_litert
+
+    options = LiteRTOptions(attention_form=args.attention_form)
+    return _convert(args, "litert", lambda model, path: convert_litert(model, path, options))
+
+
+def run_coreml(args: argparse.Namespace) -> int:
+    from e3dpsm.export.coreml_export import CoreMLOptions, convert_coreml
+
+    options = CoreMLOptions(attention_form=args.attention_form, precision=args.precision)
+    return _convert(args, "coreml", lambda model, path: convert_coreml(model, path, options))

@@ -1,0 +1,108 @@
+"""`e3dpsm convert executorch`: the step graph as an ExecuTorch program (`step.pte`) for
+the XNNPACK backend: `torch.export` of the ONNX exporter's step wrapper ->
+`to_edge_transform_and_lower(XnnpackPartitioner)` -> `.pte`, the state layout inside it as
+the constant method `e3dpsm_metadata` (runtime/artifact_metadata.py).
+
+Two choices put more of the step into XNNPACK (measured in docs/edge.md):
+- parameter-only subgraphs (transposed S5 matrices, the rescaled offset projection, the
+  folded attention projections) are folded into constants first (ExecuTorch's
+  `constant_prop_pass`); otherwise XNNPACK sees a computed weight and leaves the mm /
+  addmm to portable kernels ("Expected weight to be a static param");
+- LayerNorm and GroupNorm go in as matmuls (export/norm_decompositions.py), which XNNPACK
+  takes; it has no rule for the norms themselves.
+Grid sampling stays on portable kernels (XNNPACK has no such op); the gather form
+replaces it by index_select plus a batched matmul.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from e3dpsm.export.edge_export import artifact_contract, export_ready
+from e3dpsm.export.norm_decompositions import norm_decompositions
+from e3dpsm.export.wrapper import StepGraph
+from e3dpsm.models import E3DPSM
+from e3dpsm.runtime.artifact_metadata import PTE_METHOD, encode
+from e3dpsm.utils.extras import require
+from e3dpsm.utils.io import atomic_path
+
+FORMAT = "executorch"
+
+
+@dataclass(frozen=True)
+class ExecuTorchOptions:
+    attention_form: str = "grid_sample"
+    decompose_norms: bool = True  # LayerNorm / GroupNorm as matmuls XNNPACK runs
+    fold_constants: bool = True  # parameter-only subgraphs folded before partitioning
+
+
+@dataclass
+class ExecuTorchResult:
+    path: str
+    bytes: int
+    seconds: dict[str, float]
+    delegation: dict[str, Any]
+    options: dict[str, Any]
+    artifact: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(vars(self))
+
+
+def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: Any = None,
+                        calibrate: Any = None) -> torch.export.ExportedProgram:
+    """The step wrapper as an ExportedProgram ready to lower; with a PT2E `quantizer`,
+    `calibrate(prepared_module)` feeds it before conversion (the hook the INT8 programs
+    will use; no INT8 conversion is shipped yet, docs/edge.md)."""
+    from executorch.exir.passes.constant_prop_pass import constant_prop_pass
+
+    wrapper = StepGraph(model)
+    example = wrapper.example_inputs(1)
+    program = torch.export.export(wrapper, example, strict=False)
+    if quantizer is not None:
+        from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
+
+        prepared = prepare_pt2e(program.module(), quantizer)
+        calibrate(prepared)
+        program = torch.export.export(convert_pt2e(prepared), example, strict=False)
+    if options.decompose_norms:
+        program = program.run_decompositions(norm_decompositions())
+    if options.fold_constants:
+        program = constant_prop_pass(program)
+    return program
+
+
+def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTorchOptions = ExecuTorchOptions(),
+                       precision: str = "fp32", quantizer: Any = None, calibrate: Any = None,
+                       extra_record: dict[str, Any] | None = None) -> ExecuTorchResult:
+    """Write `path` (.pte); returns sizes, timings and what runs in XNNPACK."""
+    require("executorch", "to write .pte programs")
+    from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
+    from executorch.exir import to_edge_transform_and_lower
+
+    from e3dpsm.export.delegation import delegation_summary
+
+    meta, record = artifact_contract(model, FORMAT, precision, options.attention_form, ("executorch",),
+                                     {"decompose_norms": options.decompose_norms, **(extra_record or {})})
+    started = time.perf_counter()
+    with export_ready(model, options.attention_form):  # frozen parameters until serialised
+        program = export_step_program(model, options, quantizer, calibrate)
+        exported = time.perf_counter()
+        edge = to_edge_transform_and_lower(program, partitioner=[XnnpackPartitioner()],
+                                           constant_methods={PTE_METHOD: encode(meta, record)})
+        delegation = delegation_summary(edge)
+        lowered = time.perf_counter()
+        buffer = edge.to_executorch().buffer
+    with atomic_path(path, suffix=".pte") as tmp:
+        tmp.write_bytes(buffer)
+    done = time.perf_counter()
+    return ExecuTorchResult(
+        path=str(path), bytes=len(buffer),
+        seconds={"export": round(exported - started, 2), "lower": round(lowered - exported, 2),
+                 "serialize": round(done - lowered, 2), "total": round(done - started, 2)},
+        delegation=delegation, options=vars(options).copy(), artifact=record,
+    )

@@ -1,0 +1,73 @@
+"""Session-scoped edge artifacts of the trained tiny (tests/fixtures/tiny_trained): one
+conversion per runtime, an ONNX graph of the same checkpoint and a golden recorded from that
+graph. A fixture whose extra is missing skips its tests with the install line."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from _quantize_helpers import TRAINED_TINY
+
+GOLDEN_STEPS = 30
+
+
+def skip_without(module: str) -> None:
+    from e3dpsm.utils.extras import missing_reason
+
+    reason = missing_reason(module)
+    if reason:
+        pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def edge_model():
+    from e3dpsm.checkpoint import load_checkpoint
+
+    model, _ = load_checkpoint(TRAINED_TINY, variant="tiny")
+    return model
+
+
+@pytest.fixture(scope="session")
+def edge_golden(tmp_path_factory, trained_graph, quant_data) -> Path:
+    """GOLDEN_STEPS steps of the trained tiny's fp32 ONNX graph over the test split."""
+    from e3dpsm.golden.record import onnx_reference, record_golden
+
+    out = tmp_path_factory.mktemp("edge") / "golden"
+    record_golden(onnx_reference(trained_graph, threads=1), quant_data, out, steps=GOLDEN_STEPS, window_ms=20.0,
+                  split="test")
+    return out
+
+
+@pytest.fixture(scope="session")
+def pte_path(tmp_path_factory, edge_model) -> Path:
+    skip_without("executorch")
+    from e3dpsm.export.executorch_export import convert_executorch
+
+    path = tmp_path_factory.mktemp("edge_pte") / "step.pte"
+    convert_executorch(edge_model, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def tflite_path(tmp_path_factory, edge_model) -> Path:
+    skip_without("litert_torch")
+    from e3dpsm.export.litert_export import convert_litert
+
+    path = tmp_path_factory.mktemp("edge_tflite") / "step.tflite"
+    convert_litert(edge_model, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def coreml_result(tmp_path_factory, edge_model):
+    skip_without("coremltools")
+    from e3dpsm.export.coreml_export import convert_coreml
+
+    return convert_coreml(edge_model, tmp_path_factory.mktemp("edge_coreml") / "step.mlpackage")
+
+
+@pytest.fixture()
+def artifact(request) -> Path:
+    """The artifact of the runtime the test is parametrised with."""
+    return request.getfixturevalue({"executorch": "pte_path", "litert": "tflite_path"}[request.param])
