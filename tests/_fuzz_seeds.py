@@ -62,9 +62,12 @@ def make_seed(name: str, stream, folder) -> Seed:
     if name.endswith(".aedat4"):
         data = _aedat4(stream, {"lz4": "LZ4", "zstd": "ZSTD", "plain": "NONE"}[name.split(".")[0]], path)
         return Seed(name, data, "dv-processing", fields=aedat4_fields(data))
-    if name == "ee3d.h5":
+    if name == "ee3d.h5":  # hot: the metadata, and the LZF chunks (one byte there crashed h5py)
         write_events_h5(path, stream)
-        return Seed(name, path.read_bytes(), "h5py (write_events_h5, LZF)", hot=((0, 4096),))
+        with h5py.File(path, "r") as f:
+            chunks = [f["event"].id.get_chunk_info(i) for i in range(f["event"].id.get_num_chunks())]
+        hot = ((0, 4096), *((c.byte_offset, c.byte_offset + c.size) for c in chunks))
+        return Seed(name, path.read_bytes(), "h5py (write_events_h5, LZF)", hot=hot)
     if name == "columns.hdf5":
         return Seed(name, _columns_hdf5(stream, path), "h5py (separate datasets)", hot=((0, 4096),))
     save = np.savez if name == "plain.npz" else np.savez_compressed
