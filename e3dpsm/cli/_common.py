@@ -48,11 +48,12 @@ def positive_int(text: str) -> int:
     return value
 
 
-def add_threads(parser: argparse.ArgumentParser | Any, what: str = "intra-op threads of each runtime and of torch") -> None:
-    """--threads N, one rule for every command: a positive count, default the runtime's own
-    (every core of this machine); benchmarks that compare runs pass it explicitly."""
+def add_threads(parser: argparse.ArgumentParser | Any, what: str = "intra-op threads of each runtime and of torch",
+                default_means: str = "every core of this machine") -> None:
+    """--threads N, one rule for every command: a positive count, default None (the runtime's
+    own choice, every core); benchmarks that compare runs pass it explicitly."""
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                        help=f"{what} (default: every core of this machine)")
+                        help=f"{what} (default: {default_means})")
 
 
 def add_force(parser: argparse.ArgumentParser | Any, target: str = "--out") -> None:

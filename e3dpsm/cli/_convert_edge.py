@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any, Callable
 
-from e3dpsm.cli._common import add_model_source
+from e3dpsm.cli._common import add_force, add_model_source
 
 REPORT_NAME = "convert.json"
 # format -> (artifact name, module needed to convert)
@@ -20,7 +20,7 @@ def _common(p: argparse.ArgumentParser, default_form: str) -> None:
     p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
     p.add_argument("--attention-form", choices=("grid_sample", "gather"), default=default_form,
                    help=f"deformable attention formulation (default {default_form}; docs/edge.md has the figures)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
 
 
 def register(formats: argparse._SubParsersAction) -> None:

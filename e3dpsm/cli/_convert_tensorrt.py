@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_int
+from e3dpsm.cli._common import add_force, positive_int
 
 ENGINE_NAME = "step.engine"
 
@@ -23,7 +23,7 @@ def register(formats: argparse._SubParsersAction) -> None:
     precision.add_argument("--int8", action="store_true", help="INT8 from the graph's Q/DQ nodes (a quantize graph)")
     p.add_argument("--workspace-mb", type=positive_int, default=1024, help="builder workspace (default 1024 MB)")
     p.add_argument("--timing-cache-dir", default=None, help="folder of timing.cache (default: OUT)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.set_defaults(func=run)
 
 

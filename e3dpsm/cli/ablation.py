@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from e3dpsm.training.ablations import ABLATIONS
+from e3dpsm.cli._common import add_threads, add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -26,8 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--split", default="train", help="training split, or 'all'")
     p.add_argument("--test-split", default="all", help="held-out split, or 'all' (default all)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int)
-    p.add_argument("--force", action="store_true", help="replace existing outputs and runs")
+    add_threads(p)
+    add_force(p)
     p.set_defaults(func=run)
     return p
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_int
+from e3dpsm.cli._common import add_force, positive_int
 
 REPORT_NAME = "convert.json"
 
@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     ov.add_argument("--batch", type=positive_int, default=None,
                     help="fix the batch to N streams (default: the graph's dynamic batch; a stateful IR is "
                          "batch 1, one stream per infer request)")
-    ov.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(ov)
     ov.set_defaults(func=run)
     from e3dpsm.cli import _convert_edge, _convert_tensorrt
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.cli._common import add_force, add_threads, positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -21,9 +21,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--split", default=None, help="split of --data (default: all sequences)")
     p.add_argument("--steps", type=positive_int, default=200)
     p.add_argument("--window-ms", type=positive_float, default=None, help="default: the graph's training window")
-    p.add_argument("--threads", type=int, default=2)
+    add_threads(p)
     p.add_argument("--out", required=True, help="folder for report.json, report.md and diagnose.png")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.set_defaults(func=run)
     return p
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from e3dpsm.cli._common import add_threads, add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -62,8 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="with --qat: learn the ranges alone, the student's weights frozen (use --student = "
                         "--teacher): its fp32 graph stays the teacher's, so the INT8 graph is held to the budget's "
                         "own reference")
-    p.add_argument("--threads", type=int, help="torch CPU threads")
-    p.add_argument("--force", action="store_true", help="replace a run already in --out")
+    add_threads(p, "torch CPU threads")
+    add_force(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p

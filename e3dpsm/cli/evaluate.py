@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from e3dpsm.cli._common import add_threads, add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -22,8 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--split", default="test", help="split to evaluate, or 'all' (default test)")
     p.add_argument("--window-ms", type=float, help="expected window length of the data (checked; the model "
                    "runs at the data's window, which may differ from its training window)")
-    p.add_argument("--threads", type=int, help="torch CPU threads")
-    p.add_argument("--force", action="store_true", help="replace an existing --out folder")
+    add_threads(p, "torch CPU threads")
+    add_force(p)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
     return p

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from e3dpsm.cli._common import add_model_source, load_model_from_args
+from e3dpsm.cli._common import add_force, add_model_source, add_threads, load_model_from_args
 
 log = logging.getLogger(__name__)
 GRAPH_NAME = "step.onnx"
@@ -31,8 +31,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--ort-optimized", choices=("none", "basic", "extended", "all"), default="extended",
                    help=f"also write {ORT_GRAPH_NAME}, ONNX Runtime's CPU-optimised graph at this level "
                         "(default extended; 'all' adds the CPU's NCHWc layout: same-machine only; none: skip)")
-    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_threads(p, "torch threads")
+    add_force(p)
     p.set_defaults(func=run)
     return p
 
@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import atomic_dir, write_json_atomic
 
-    torch.set_num_threads(args.threads)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     model = load_model_from_args(args)
     source = {"checkpoint": args.checkpoint} if args.checkpoint else {"variant": args.variant, "seed": args.seed}
     with atomic_dir(args.out, force=args.force) as tmp:

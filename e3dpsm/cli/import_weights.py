@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from e3dpsm.cli._common import add_force
 
 log = logging.getLogger(__name__)
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -19,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     p.add_argument("--released", required=True, metavar="CKPT", help="released checkpoint (.ckpt or state_dict .pt)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (refused if it exists, unless --force)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.set_defaults(func=run)
     return p
 

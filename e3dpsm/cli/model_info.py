@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from e3dpsm.cli._common import add_model_source
+from e3dpsm.cli._common import add_model_source, add_threads
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "paper's efficiency table, stating the counting convention compared.")
     add_model_source(p)
     p.add_argument("--json", help="also write the counts as a JSON report to this path")
-    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    add_threads(p, "torch threads")
     p.set_defaults(func=run)
     return p
 
@@ -27,7 +27,8 @@ def run(args: argparse.Namespace) -> int:
     from e3dpsm.profiles.report import model_info_markdown
     from e3dpsm.utils.io import write_json_atomic
 
-    torch.set_num_threads(args.threads)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     report = model_info_report(load_model_from_args(args), {k: v for k, v in vars(args).items() if k != "func"})
     print(model_info_markdown(report))
     if args.json:

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.cli._common import add_model_source, load_model_from_args, positive_float, positive_int
+from e3dpsm.cli._common import add_model_source, add_threads, load_model_from_args, positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--runtime", choices=("onnxruntime", "openvino", "openvino-stateful"), default="onnxruntime",
                    help="openvino-stateful converts an .onnx to a stateful IR in a temporary folder and compares "
                         "the states read back from its variables")
-    p.add_argument("--threads", type=int, default=2)
+    add_threads(p)
     p.add_argument("--pose-atol-mm", type=positive_float, default=0.01)
     p.add_argument("--state-rtol", type=positive_float, default=1e-4)
     p.add_argument("--report", help="JSON report path (default: parity-<runtime>.json beside the model)")
@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
-    torch.set_num_threads(args.threads)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     # The stateful runtime reads an IR: an .onnx given is converted into this folder first.
     with tempfile.TemporaryDirectory(prefix="e3dpsm-parity-") as workdir:
         runner = make_runner(args.model, args.runtime, args.threads, Path(workdir))  # metadata is checked first

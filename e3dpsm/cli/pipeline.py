@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.cli._common import add_threads, positive_float, positive_int
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -25,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                             "the steps fitted to it by a short timing probe (the model then depends on "
                             "the host's speed)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
+    add_threads(p)
     p.add_argument("--only", nargs="+", metavar="STAGE", help="rerun only these stages (others untouched)")
     p.add_argument("--with", dest="with_stages", nargs="+", metavar="STAGE", default=[],
                    help="also run these optional stages (off by default): prune")
@@ -39,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = PipelineConfig(out=Path(args.out), variant=args.variant, train_steps=args.train_steps,
                          minutes=args.minutes, seed=args.seed,
-                         threads=args.threads, checkpoint=args.checkpoint,
+                         threads=args.threads or os.cpu_count() or 1, checkpoint=args.checkpoint,
                          with_stages=tuple(args.with_stages))
     run_pipeline(cfg, only=args.only)
     print(f"report: {cfg.out / 'report' / 'index.md'}")

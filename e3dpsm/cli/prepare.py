@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from e3dpsm.cli._common import add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -19,7 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser.add_argument("--window-ms", type=float, default=20.0, help="window length T in ms (default 20)")
     parser.add_argument("--height", type=int, default=192, help="LNES frame height (default 192)")
     parser.add_argument("--width", type=int, default=256, help="LNES frame width (default 256)")
-    parser.add_argument("--force", action="store_true", help="replace an existing --out folder")
+    add_force(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
     return parser

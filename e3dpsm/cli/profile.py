@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from e3dpsm.cli._common import positive_int
+from e3dpsm.cli._common import add_force, add_threads, positive_int
 from e3dpsm.errors import ConfigError
 
 
@@ -33,8 +33,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (refused if it exists, unless --force)")
     p.add_argument("--steps", type=positive_int, default=300, help="timed steps per target (default 300)")
     p.add_argument("--warmup", type=int, default=20, help="untimed warm-up steps per target (default 20)")
-    p.add_argument("--threads", type=positive_int, default=None,
-                   help="intra-op threads for every target (default: each target's own, 2 in targets.toml)")
+    add_threads(p, "intra-op threads for every target", "each target's own, 2 in targets.toml")
     p.add_argument("--data", help="prepared folder whose test frames feed the runs (default: built-in synthetic events)")
     p.add_argument("--int8-model", help="INT8 step graph for int8 targets (from e3dpsm quantize)")
     p.add_argument("--fp16-model", help="FP16 step graph for fp16 targets (from e3dpsm quantize)")
@@ -48,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "targets; each goes to the targets of its runtime and precision")
     p.add_argument("--profile-steps", type=int, default=50,
                    help="steps of the separate onnxruntime profiling run per ORT target (0: none; default 50)")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     return p

@@ -3,8 +3,9 @@ recovered by distillation from the unpruned model."""
 from __future__ import annotations
 
 import argparse
+import os
 
-from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.cli._common import add_force, add_threads, positive_float, positive_int
 
 
 def _latency(text: str) -> tuple[str, float]:
@@ -49,9 +50,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--eval-frames", type=positive_int, default=1000, help="held-out frames per sequence (default 1000)")
     p.add_argument("--timing-steps", type=positive_int, default=200, help="timed steps per graph (default 200)")
     p.add_argument("--no-int8", action="store_true", help="skip the INT8 graphs of the unpruned and chosen models")
-    p.add_argument("--threads", type=positive_int, default=2, help="torch and runtime threads (default 2)")
+    add_threads(p, "torch and runtime threads")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
     return p
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         target_latency_ms=args.target_latency_ms[1] if args.target_latency_ms and args.target_latency_ms[0] == "ms" else None,
         target_latency_pct=args.target_latency_ms[1] if args.target_latency_ms and args.target_latency_ms[0] == "pct" else None,
         rounds=args.rounds, extra_rounds=args.extra_rounds, shrink=args.shrink, steps=args.steps,
-        labels=args.labels, budget_pct=args.budget_pct, threads=args.threads, seed=args.seed,
+        labels=args.labels, budget_pct=args.budget_pct, threads=args.threads or os.cpu_count() or 1, seed=args.seed,
         timing_steps=args.timing_steps, eval_frames=args.eval_frames, lr=args.lr,
     )
     refuse_existing_output(args.out, args.force)  # before the long run, not after it

@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def _register_advanced(group: argparse._ArgumentGroup) -> None:
-    from e3dpsm.quantize.options import FLOAT_OUTPUT_CHOICES, STATE_SOURCES, WEIGHT_ROUNDINGS
+    from e3dpsm.quantize.options import FLOAT_OUTPUT_CHOICES, WEIGHT_ROUNDINGS
 
     group.add_argument("--budget-pct", type=positive_float, default=1.0,
                        help="allowed rise of MPJPE and PA-MPJPE over fp32, %% (default 1)")
@@ -70,8 +70,6 @@ def _register_advanced(group: argparse._ArgumentGroup) -> None:
                        "free on ONNX Runtime; all: Conv too, slower there)")
     group.add_argument("--ranges-from-checkpoint", default=None, metavar="CKPT",
                        help="activation ranges learned by `distill --qat-ranges-only` (the graph must be CKPT's export)")
-    group.add_argument("--state-source", choices=STATE_SOURCES, default="rollout",
-                       help="states the calibration frames carry (default rollout; the others measure what it buys)")
     group.add_argument("--timing-steps", type=positive_int, default=200,
                        help="steps the graph is timed beside fp32 for the verdict (default 200)")
 
@@ -83,7 +81,7 @@ def options_from_args(args: argparse.Namespace):
     advanced = Advanced(holdout_frames=args.holdout_frames, search_frames=args.search_frames,
                         rank_frames=args.rank_frames, weight_rounding=args.weight_rounding,
                         float_outputs=args.float_outputs, ranges_from_checkpoint=args.ranges_from_checkpoint,
-                        state_source=args.state_source, timing_steps=args.timing_steps, budget=budget)
+                        timing_steps=args.timing_steps, budget=budget)
     return QuantizeOptions(mode=args.mode, exclude=args.exclude, target=args.target, calibration=args.calibration,
                            frames=args.frames, split=args.split, search_split=args.search_split,
                            holdout_split=args.holdout_split, holdout_data=args.holdout_data,

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
 
+from e3dpsm.cli._common import add_force, add_threads
 from e3dpsm.cli._run_common import (
     check_gaps, check_stream_options, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row,
     report_head,
@@ -53,12 +54,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "a.h5 b.h5 -> a.csv b.csv, deeper clashes join folders with __ (a__seq_0000.csv)")
     parser.add_argument("--window-ms", type=float, default=None,
                         help="window length T in ms (default: the graph's training window, 20)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: ORT's)")
+    add_threads(parser, "onnxruntime intra-op threads")
     parser.add_argument("--start-us", type=int, default=None,
                         help="start of the first window in us (default: the first event); earlier events are skipped")
     parser.add_argument("--chunk-events", type=int, default=DEFAULT_CHUNK_EVENTS,
                         help=f"events handed to the runtime per chunk (default {DEFAULT_CHUNK_EVENTS})")
-    parser.add_argument("--force", action="store_true", help="replace an existing --out file")
+    add_force(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--render", default=None, metavar="PATH",
                         help="also write a video (.gif; .mp4 with imageio + imageio-ffmpeg) of each window's LNES "

@@ -8,6 +8,7 @@ import argparse
 import datetime as _dt
 import math
 from pathlib import Path
+from e3dpsm.cli._common import add_threads
 
 DEFAULT_OUT_ROOT = "serve-reports"
 
@@ -39,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed factor of a recording (default 1)")
     parser.add_argument("--compare", default=None, metavar="GRAPH",
                         help="a second step graph run on the same events; its skeleton is overlaid")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads per graph")
+    add_threads(parser, "onnxruntime intra-op threads per graph")
     parser.add_argument("--window-ms", type=float, default=None,
                         help="window length T in ms (default: the graph's training window)")
     parser.add_argument("--out", default=None,

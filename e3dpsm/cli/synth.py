@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from e3dpsm.cli._common import add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -24,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="parallel processes (default: up to 2)")
     p.add_argument("--preview", action="store_true", help="write preview PNGs into DIR/preview/")
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_force(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
     return p

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from e3dpsm.training.ablations import ABLATIONS
+from e3dpsm.cli._common import add_threads, add_force
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -25,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     length.add_argument("--steps", type=int, help="optimizer steps in total")
     length.add_argument("--epochs", type=float, help="epochs in total (an epoch covers every training frame once)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
-    p.add_argument("--force", action="store_true", help="restart a run folder that already holds a run")
+    add_force(p)
     p.add_argument("--init-from", metavar="CKPT",
                    help="fine-tune: start from this checkpoint's weights (same variant and frame size)")
     p.add_argument("--qat", action="store_true",
@@ -49,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--save-every", type=int, default=200)
     p.add_argument("--stop-at", type=int, help="stop after this step, leaving a resumable checkpoint")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--threads", type=int, help="torch CPU threads per process")
+    add_threads(p, "torch CPU threads per process")
     p.add_argument("--num-workers", type=int, default=0, help="data-loader worker processes (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

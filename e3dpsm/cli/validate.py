@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from e3dpsm.cli._common import positive_float, positive_int
+from e3dpsm.cli._common import add_force, add_threads, positive_float, positive_int
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -20,8 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--window-ms", type=positive_float, default=None,
                    help="window length the data was prepared with (default: the data's)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence (default: all)")
-    p.add_argument("--threads", type=positive_int, default=None)
-    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_threads(p)
+    add_force(p)
     p.set_defaults(func=run)
     return p
 
