@@ -24,9 +24,8 @@ from typing import Any
 
 from e3dpsm.budget import TaskBudget
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.quantize import QuantizeOptions, quantize_graph
+from e3dpsm.quantize import Advanced, QuantizeOptions, quantize_graph
 from e3dpsm.quantize.holdout import held_out, judge
-from e3dpsm.quantize.step_timer import SideBySideTimer
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 from e3dpsm.utils.isa import detect_isa
@@ -43,16 +42,18 @@ def export(checkpoint: str, out: Path) -> Path:
     return export_step(model, out / "step.onnx")
 
 
-def row(label: str, graph: Path, fp32: Path, check, report: dict[str, Any], args: argparse.Namespace) -> dict:
-    judged = judge(graph, check, TaskBudget(), RUNTIMES, args.threads)
-    speed = {r: SideBySideTimer(check.lnes[0], check.window_ms, args.threads, runtime=r).compare(graph, fp32,
-                                                                                              args.timing_steps)
-             for r in RUNTIMES}
-    return {"label": label, "within": judged.within, "by_runtime": {r: c.to_dict() for r, c in judged.by_runtime.items()},
-            "out_of_8_bits": report["written"]["compute_nodes_out_of_8_bits"],
+def row(label: str, graph: Path, report: dict[str, Any], judged: Any | None = None) -> dict:
+    """A table row from the quantiser's own report: its held-out check and its timing beside
+    fp32 (`judged` replaces the check where the graph must be judged against another fp32)."""
+    by_runtime = ({r: c.to_dict() for r, c in judged.by_runtime.items()} if judged is not None
+                  else report["check"]["by_runtime"])
+    return {"label": label, "artifact": graph.name, "within": all(c["within"] for c in by_runtime.values()),
+            "by_runtime": by_runtime, "out_of_8_bits": report["written"]["compute_nodes_out_of_8_bits"],
+            "float_nodes": (report.get("placement") or {}).get("float_nodes", []),
             "size_ratio": report["written"]["size_ratio"], "bytes": report["written"]["bytes"],
             "speed": {r: {k: s[k] for k in ("p50_ms", "fp32_p50_ms", "speedup_vs_fp32", "interval")}
-                      for r, s in speed.items()}}
+                      for r, s in report["verdict"]["timings"].items()},
+            "headline": report["verdict"]["headline"]}
 
 
 def markdown(result: dict) -> str:
@@ -76,6 +77,30 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def headline(result: dict) -> str:
+    """README's INT8 sentence, every figure from `result` (tests/test_docs.py holds README to it)."""
+    rows = {r["label"]: r for r in result["rows"]}
+    default, full = rows["default"], rows["--exclude none"]
+    ort = default["by_runtime"]["onnxruntime"]["metrics"]
+    isa = result["machine"]["isa"]["kind"]
+
+    def speeds(row: dict) -> str:
+        return " / ".join(f"{row['speed'][r]['speedup_vs_fp32']:.2f}x" for r in RUNTIMES if r in row["speed"])
+
+    def upper(row: dict, metric: str) -> float:
+        return max(c["metrics"][metric]["upper_pct"] for c in row["by_runtime"].values())
+
+    return (f"the trained `small` quantises to INT8 (`quantize --mode int8`, defaults) within its task budget on "
+            f"{result['holdout']['frames']:,} held-out frames: MPJPE {ort['mpjpe']['change_pct']:+.2f}% "
+            f"(upper bound {upper(default, 'mpjpe'):+.2f}% over both runtimes), PA-MPJPE "
+            f"{ort['pa_mpjpe']['change_pct']:+.2f}%, jitter {ort['jitter']['change_pct']:+.2f}% against fp32 on "
+            f"ONNX Runtime, at {default['size_ratio']:.3f}x fp32's size with {default['out_of_8_bits']} "
+            f"Conv/MatMul/Gemm out of 8 bits, {speeds(default)} fp32's speed (ONNX Runtime / OpenVINO, side by "
+            f"side, {isa} host); full integer (`--exclude none`) MPJPE "
+            f"{full['by_runtime']['onnxruntime']['metrics']['mpjpe']['change_pct']:+.2f}% (upper bound "
+            f"{upper(full, 'mpjpe'):+.2f}%), {full['size_ratio']:.3f}x the size, {speeds(full)} the speed")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoint", required=True)
@@ -93,10 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-int8-") as work:
         work = Path(work)
         fp32 = export(args.checkpoint, work / "fp32")
-        check = held_out(fp32, PreparedData.open(args.holdout_data).split("all"), 20.0, 0, args.holdout_data,
-                         args.threads)
-        common = dict(frames=args.frames, holdout_data=args.holdout_data, holdout_split="all",
-                      runtimes=RUNTIMES, threads=args.threads)
+        common = dict(frames=args.frames, holdout_data=args.holdout_data, holdout_split="all", runtimes=RUNTIMES,
+                      threads=args.threads, advanced=Advanced(timing_steps=args.timing_steps))
         rows = []
         for label, graph, options in [("default", fp32, QuantizeOptions(**common)),
                                       ("--exclude none", fp32, QuantizeOptions(exclude="none", **common)),
@@ -104,12 +127,17 @@ def main(argv: list[str] | None = None) -> int:
                                           QuantizeOptions(exclude="none", **common))] if args.qat_checkpoint else [])]:
             q = work / label.replace(" ", "_").replace(",", "")
             report = quantize_graph(graph, args.data, q, options)
-            rows.append(row(label, q / report["artifact"], fp32, check, report, args))
-            print(markdown({**result, "holdout": {"frames": check.frames, "data": args.holdout_data}, "rows": rows}))
-    result.update(holdout={"frames": check.frames, "data": Path(args.holdout_data).name}, rows=rows)
+            judged = None
+            if graph != fp32:  # QAT: its INT8 against the base model's fp32, on the same frames
+                check = held_out(fp32, PreparedData.open(args.holdout_data).split("all"), 20.0, 0,
+                                 Path(args.holdout_data).name, args.threads)
+                judged = judge(q / report["artifact"], check, TaskBudget(), RUNTIMES, args.threads)
+            rows.append(row(label, q / report["artifact"], report, judged))
+            print(markdown({**result, "holdout": report["check"], "rows": rows}))
+    result.update(holdout={"frames": report["check"]["frames"], "data": report["check"]["data"]}, rows=rows)
     write_json_atomic(out, result)
     write_text_atomic(out.with_suffix(".md"), markdown(result))
-    print(f"wrote {out}")
+    print(f"wrote {out}\nREADME: {headline(result)}")
     return 0
 
 

@@ -1,12 +1,10 @@
 """The precision each Conv/MatMul/Gemm of a QDQ graph computes in, read off the graph.
 
-The search's bookkeeping (precision.py) says which nodes it *asked* to leave 8 bits; the
-issue's bar ("at most 5 Conv/MatMul/Gemm nodes out of 8 bits") is about what the artifact
-*does*, including the recurrent groups' projections, which are kept out of the search. So the
-census reads each compute node's inputs: an input behind a DequantizeLinear has the width of
-that DequantizeLinear's integer input (an initializer's dtype for weights, the producing
-QuantizeLinear's zero point or `output_dtype` for activations); an input not behind one is
-float.
+What a quantiser *asked* for and what an artifact *does* can differ (the recurrent groups'
+projections are never searched; a runtime reads what the graph holds), so this reads each
+compute node's inputs: an input behind a DequantizeLinear has the width of that
+DequantizeLinear's integer input (an initializer's dtype for weights, the producing
+QuantizeLinear's zero point or `output_dtype` for activations); any other input is float.
 
 Labels (cheapest first): `int8` (8-bit activations and weights), `int16` (16-bit
 activations, 8-bit weights), `int16w16` (16-bit both), `float` (any data input in float);

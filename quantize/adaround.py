@@ -13,13 +13,8 @@ the Gram matrix of the layer's inputs, H = sum over rows x x^T (a Conv's rows ar
 patches, zero padding included): one pass over the calibration frames, then each layer
 alone. The scales stay ONNX Runtime's, so only the integers in the graph change.
 
-Measured on the committed trained `small` (AMD EPYC, AVX-512 VNNI; calibrated on 200 frames
-of prep96_test's `train`, distance on 200 frames each of `test` and unseen `val`), with every
-activation 16-bit so that the weights' rounding is the error left: round to nearest 0.825% /
-0.823% of MPJPE; AdaRound 0.421% / 0.461% (lambda 0.1, 1,000 steps per layer; each layer's
-output error 0.15x nearest's, median over 109 weights). With 8-bit activations the
-activations' error dominates (full int8 9.79% -> 10.07%): AdaRound pays where the search
-keeps activations at 16 bits.
+What it buys on `small`: docs/quantize.md ("What it measures now") and the record in
+benchmarks/results/quantize_history.md ("AdaRound weights").
 
 Grouped convolutions (none in `small` or `paper`) and weights shared between nodes keep
 nearest rounding.

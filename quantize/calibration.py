@@ -2,10 +2,9 @@
 
 ONNX Runtime's calibrator feeds each sample through the graph once; it never feeds the
 recurrent states back. A recurrent step graph calibrated with zero states sees activations
-a running stream never produces (an uninitialised Kalman filter, empty S5 memories), and
-random states are worse (FACTS section 7). So the samples are recorded from continuous
-FP32 rollouts of real sequences: every calibration frame is paired with the states the
-FP32 graph carried into that frame, never reset mid-sequence.
+a running stream never produces (an uninitialised Kalman filter, empty S5 memories). So
+the samples are recorded from continuous FP32 rollouts of real sequences: every calibration
+frame is paired with the states the FP32 graph carried into that frame, never reset.
 """
 from __future__ import annotations
 
@@ -23,8 +22,8 @@ from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.runtime import StepSession
 
 MIN_CALIBRATION_FRAMES = 16
-StateSource = Literal["rollout", "zeros", "random"]
-STATE_SOURCES: tuple[str, ...] = ("rollout", "zeros", "random")
+StateSource = Literal["rollout", "zeros"]
+STATE_SOURCES: tuple[str, ...] = ("rollout", "zeros")
 
 
 @dataclass
@@ -83,20 +82,19 @@ def frame_plan(sequences: Sequence[PreparedSequence], frames: int) -> dict[str, 
 
 def record_calibration_set(
     fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequence], frames: int, window_ms: float,
-    *, state_source: StateSource = "rollout", seed: int = 0, threads: int | None = None,
+    *, state_source: StateSource = "rollout", threads: int | None = None,
 ) -> CalibrationSet:
     """Calibration feeds for `frames` frames of `sequences`.
 
     `state_source="rollout"` (the default, and the right one) pairs each frame with the
-    states of a continuous FP32 rollout up to it. "zeros" (initial states) and "random"
-    (standard-normal states, initialised flag drawn 0/1) exist to measure what that buys.
+    states of a continuous FP32 rollout up to it; "zeros" (initial states, what ONNX
+    Runtime's calibrator alone would see) exists to measure what that buys.
     """
     if state_source not in STATE_SOURCES:
         raise ConfigError(f"unknown state source {state_source!r}; choose from {list(STATE_SOURCES)}")
     started = time.perf_counter()
     session = StepSession(fp32_model, threads=threads)
     plan = frame_plan(sequences, frames)
-    rng = np.random.default_rng(seed)
     feeds: list[dict[str, np.ndarray]] = []
     for seq in sequences:
         wanted = set(plan[seq.name])
@@ -106,22 +104,8 @@ def record_calibration_set(
         for f in range(max(wanted) + 1):
             lnes = np.asarray(seq.lnes[f : f + 1], dtype=np.float32)
             if f in wanted:
-                feeds.append(session.feeds(lnes, _calibration_state(session, state, state_source, rng), window_ms))
+                feeds.append(session.feeds(lnes, state if state_source == "rollout" else session.init_state(1),
+                                           window_ms))
             if state_source == "rollout" and f < max(wanted):
                 _, state = session.step(lnes, state, window_ms)
     return CalibrationSet(feeds, state_source, plan, time.perf_counter() - started)
-
-
-def _calibration_state(session: StepSession, carried: dict[str, np.ndarray], source: str,
-                       rng: np.random.Generator) -> dict[str, np.ndarray]:
-    if source == "rollout":
-        return carried
-    if source == "zeros":
-        return session.init_state(1)
-    state = {}
-    for spec in session.states:
-        shape = (1, *spec.shape)
-        # A flag-like state (one value per stream) takes 0/1; everything else N(0, 1).
-        state[spec.name] = (rng.integers(0, 2, shape) if math.prod(spec.shape) == 1
-                            else rng.standard_normal(shape)).astype(np.float32)
-    return state

@@ -22,7 +22,6 @@ CHECK_RUNTIMES: tuple[str, ...] = ("onnxruntime", "openvino")
 TARGETS: tuple[str, ...] = ("auto", *ISA_KINDS, "npu")
 WEIGHT_ROUNDINGS: tuple[str, ...] = ("nearest", "adaround")
 FLOAT_OUTPUT_CHOICES: tuple[str, ...] = ("none", "matmul", "all")
-STATE_SOURCES: tuple[str, ...] = ("rollout", "zeros", "random")
 CALIBRATIONS: tuple[str, ...] = ("minmax", "entropy", "percentile", "mse")
 
 
@@ -39,14 +38,12 @@ class Advanced:
     # costs ONNX Runtime nothing and lowers the error; "all" (Conv outputs too) is slower there.
     float_outputs: str = "matmul"
     ranges_from_checkpoint: str | None = None  # learned ranges (distill --qat-ranges-only)
-    state_source: str = "rollout"  # what states calibration frames carry (rollout is right)
     timing_steps: int = 200        # steps the artifact is timed beside fp32 for the verdict
     budget: TaskBudget = field(default_factory=TaskBudget)
 
     def __post_init__(self) -> None:
         _choice("--weight-rounding", self.weight_rounding, WEIGHT_ROUNDINGS)
         _choice("--float-outputs", self.float_outputs, FLOAT_OUTPUT_CHOICES)
-        _choice("--state-source", self.state_source, STATE_SOURCES)
         for name in ("rank_frames", "max_trials", "timing_steps"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}")

@@ -8,12 +8,8 @@ kernel with an 8-bit output (QLinearConv, QLinearMatMul), and costs accuracy. Wh
 Conv/MatMul/Gemm *reads* is unchanged (8-bit weights and activations; census.py), so a node
 stays an 8-bit node; its int32 accumulator is dequantised instead of requantised.
 
-Measured on the committed trained `small` (AVX2 host, full integer `--exclude none --calibration
-mse`, calibrated on `train`, 200 frames of `test` / all 1,000 of the unseen `val`;
-2026-12-01): every output pair kept 6.62% / 5.52% of MPJPE from fp32 at 1.01x fp32 speed on
-ONNX Runtime; MatMul and Gemm outputs in float 4.89% at 1.01x (ONNX Runtime runs them as
-integer kernels with a float output); Conv outputs too 3.68% / 3.10% but 0.77x (ONNX
-Runtime's QLinearConv needs an 8-bit output; without one the Conv runs in float).
+What each choice cost on `small`: benchmarks/results/quantize_history.md ("The full-integer
+graph: the carried state, and outputs nothing quantised reads").
 """
 from __future__ import annotations
 
@@ -22,7 +18,7 @@ from typing import Iterable
 import onnx
 
 from e3dpsm.onnx_graph import drop_unused_initializers
-from e3dpsm.quantize.census import COMPUTE_OPS
+from e3dpsm.onnx_precision import COMPUTE_OPS
 
 # "matmul": MatMul and Gemm outputs (no speed cost on ONNX Runtime); "all": Conv outputs too.
 FLOAT_OUTPUTS: dict[str, tuple[str, ...]] = {"none": (), "matmul": ("MatMul", "Gemm"), "all": COMPUTE_OPS}

@@ -121,7 +121,7 @@ def calibrate_graph(prepared: PreparedGraph, model_path: str | os.PathLike, sequ
                     options: QuantizeOptions, work: Path) -> Calibration:
     started = time.perf_counter()
     calib = record_calibration_set(model_path, sequences, options.frames, prepared.meta.train_window_ms,
-                                   state_source=options.advanced.state_source, threads=options.threads)
+                                   threads=options.threads)
     cache = work / "calibration.json"
     ranges = calibrate(prepared.path, prepared.config, calib, cache)
     learned, report = {}, None

@@ -272,15 +272,6 @@ def quantize_int8(
     log.debug("quantised %s -> %s (%d nodes kept float)", src, dst, len(set(exclude)))
 
 
-def quantised_node_count(model: onnx.ModelProto) -> dict[str, int]:
-    """How many QuantizeLinear / DequantizeLinear nodes the QDQ graph carries."""
-    counts = {"QuantizeLinear": 0, "DequantizeLinear": 0}
-    for node in model.graph.node:
-        if node.op_type in counts:
-            counts[node.op_type] += 1
-    return counts
-
-
 def ort_overrides(learned: Mapping[str, Mapping[str, Any]], int16: Sequence[str] = (),
                   int16_ranges: Mapping[str, tuple[float, float]] | None = None) -> dict[str, list[dict]]:
     """ONNX Runtime's TensorQuantOverrides for learned U8 ranges and 16-bit activations

@@ -1,6 +1,6 @@
 """Pass 6, the verdict: is the graph within budget, and is it faster than fp32 here?
 
-The artifact is timed beside the fp32 graph (step_timer.py: interleaved rounds, a bootstrap
+The artifact is timed beside the fp32 graph (profiles/step_timing.py: interleaved rounds, a bootstrap
 interval of the speed-up) on each runtime it was checked on. The first line of report.md
 says what to do with the graph: ship it for speed, ship it for size and integer-only
 accelerators while naming what is faster on this host, or do not ship it (over budget).
@@ -21,7 +21,7 @@ class Verdict:
     check: BudgetCheck                       # the final check, worst runtime
     check_runtime: str
     size_ratio: float
-    timings: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # runtime -> SideBySideTimer.compare
+    timings: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)  # runtime -> profiles.step_timing.time_beside
     isa: Mapping[str, Any] = field(default_factory=dict)                     # utils.isa.CpuIsa.to_dict()
 
     @property
@@ -76,8 +76,18 @@ class Verdict:
 
 def time_beside_fp32(graph: Any, fp32: Any, frames: Any, window_ms: float, runtimes: tuple[str, ...],
                      threads: int | None, steps: int) -> dict[str, dict[str, Any]]:
-    """The graph against fp32, side by side, on each runtime (SideBySideTimer.compare)."""
-    from e3dpsm.quantize.step_timer import SideBySideTimer
+    """The graph against fp32, side by side on the same frames with states carried, on each
+    runtime (profiles.step_timing.time_beside)."""
+    import numpy as np
 
-    return {runtime: SideBySideTimer(frames, window_ms, threads, runtime=runtime).compare(graph, fp32, steps)
-            for runtime in runtimes}
+    from e3dpsm.profiles.step_timing import time_beside
+    from e3dpsm.quantize.holdout import open_stepper
+    from e3dpsm.runtime.session import CarriedStateRunner
+
+    timings = {}
+    for runtime in runtimes:
+        candidate, reference = (CarriedStateRunner(open_stepper(path, runtime, threads), window_ms)
+                                for path in (graph, fp32))
+        timed = time_beside(candidate, reference, np.asarray(frames, dtype=np.float32), steps)
+        timings[runtime] = {**timed, "timer": {**timed["timer"], "runtime": runtime, "threads": threads}}
+    return timings

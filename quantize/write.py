@@ -23,7 +23,7 @@ from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.onnx_constants import retile_constants
 from e3dpsm.quantize.adaround import AdaRoundConfig, adaround_weights, apply_rounding
 from e3dpsm.quantize.artifact import finalize, save_model
-from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
+from e3dpsm.onnx_precision import compute_precisions, out_of_8_bits, precision_counts
 from e3dpsm.quantize.compact import compact_qdq, graph_names
 from e3dpsm.quantize.outputs import FLOAT_OUTPUTS, dequantised_outputs
 from e3dpsm.quantize.prepare import Calibration, PreparedGraph

@@ -3,6 +3,7 @@ test command is the one CI runs, and every command's --help names its guide page
 from __future__ import annotations
 
 import argparse
+import json
 import importlib
 import importlib.util
 import re
@@ -173,3 +174,29 @@ def test_console_help_names_the_guide():
     out = subprocess.run([sys.executable, "-m", "e3dpsm", "quantize", "--help"], capture_output=True,
                          text=True, check=True, cwd=ROOT).stdout
     assert "Guide: docs/quantize.md" in out
+
+
+INT8_RESULTS = ROOT / "benchmarks" / "results" / "int8_small_vnni.json"
+
+
+def _bench_int8():
+    spec = importlib.util.spec_from_file_location("bench_int8", ROOT / "benchmarks" / "bench_int8.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _flat(text: str) -> str:
+    return " ".join(text.split())
+
+
+def test_readme_int8_figures_are_the_results_files():
+    """README's INT8 sentence is the one benchmarks/bench_int8.py writes from its results file:
+    every figure in it (budget changes, bounds, frames, size, nodes, speeds) comes from there."""
+    result = json.loads(INT8_RESULTS.read_text(encoding="utf-8"))
+    sentence = _bench_int8().headline(result)
+    assert _flat(sentence) in _flat((ROOT / "README.md").read_text(encoding="utf-8"))
+    # the check bites: one figure changed in the results is no longer README's sentence
+    rows = result["rows"]
+    rows[0]["size_ratio"] += 0.01
+    assert _flat(_bench_int8().headline(result)) not in _flat((ROOT / "README.md").read_text(encoding="utf-8"))

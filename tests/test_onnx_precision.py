@@ -7,7 +7,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from e3dpsm.quantize.census import compute_precisions, out_of_8_bits, precision_counts
+from e3dpsm.onnx_precision import compute_precisions, out_of_8_bits, precision_counts
 
 
 def _qdq_graph() -> onnx.ModelProto:

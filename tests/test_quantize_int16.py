@@ -143,7 +143,7 @@ def test_an_npu_target_returns_nodes_at_16_bits_not_float(tmp_path, trained_grap
     """Under the test budget the full-integer graph fails (_quantize_helpers): on an NPU target
     the search's nodes take 16-bit activations (8-bit weights), on the CPU they return to float."""
     from e3dpsm.quantize import quantize_graph
-    from e3dpsm.quantize.census import compute_precisions
+    from e3dpsm.onnx_precision import compute_precisions
 
     report = quantize_graph(trained_graph, quant_data, tmp_path / "npu", fast(mode="int8", target="npu",
                                                                                  budget=int8_test_budget))

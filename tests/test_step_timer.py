@@ -1,4 +1,4 @@
-"""The artifact's timing beside fp32 and the interval the verdict quotes (quantize/step_timer.py)."""
+"""The artifact's timing beside fp32 and the interval the verdict quotes (profiles/step_timing.py)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from e3dpsm.quantize.step_timer import SideBySideTimer, speedup_interval
+from e3dpsm.profiles.step_timing import speedup_interval, time_beside
+from e3dpsm.quantize.verdict import time_beside_fp32
 
 
 def _by_loop(candidate: np.ndarray, reference: np.ndarray, chunk: int, picks: list[list[int]]) -> list[float]:
@@ -53,11 +54,11 @@ def test_mismatched_timings_are_refused(bad) -> None:
         speedup_interval(bad["candidate"], bad["reference"], bad["chunk"])
 
 
-def test_compare_times_a_graph_beside_its_reference(tiny_graph: Path) -> None:
+def test_the_graph_is_timed_beside_its_reference_on_each_runtime(tiny_graph: Path) -> None:
     """The same graph against itself: a speed-up near 1x whose interval holds it, over the steps asked."""
     frames = np.zeros((4, *_lnes_shape(tiny_graph)), dtype=np.float32)
-    timed = SideBySideTimer(frames, 20.0, threads=1, warmup=2, chunk=5).compare(tiny_graph, tiny_graph, steps=20)
-    assert timed["timer"]["steps"] == 20 and timed["interval"]["rounds"] == 4
+    timed = time_beside_fp32(tiny_graph, tiny_graph, frames, 20.0, ("onnxruntime",), 1, steps=20)["onnxruntime"]
+    assert timed["timer"]["steps"] == 20 and timed["interval"]["rounds"] == 2 and timed["timer"]["runtime"] == "onnxruntime"
     assert timed["speedup_vs_fp32"] == pytest.approx(timed["fp32_p50_ms"] / timed["p50_ms"])
     assert timed["interval"]["low"] <= timed["speedup_vs_fp32"] <= timed["interval"]["high"]
 
@@ -77,17 +78,36 @@ def test_one_step_rounds_are_allowed() -> None:
     assert got.rounds == 12 and got.speedup == pytest.approx(0.5) and got.low == pytest.approx(0.5)
 
 
-def test_the_timer_reports_median_milliseconds_per_graph() -> None:
-    """__call__ turns each graph's per-step seconds into its median in milliseconds."""
-    timer = SideBySideTimer(np.zeros((2, 1)), 20.0)
-    timer._seconds = lambda graphs, steps: {"a": np.array([0.004, 0.001, 0.002]), "b": np.array([0.010, 0.030])}
-    assert timer({"a": "a.onnx", "b": "b.onnx"}) == pytest.approx({"a": 2.0, "b": 20.0})
+class _FakeTime:
+    """A clock that only steps move: each runner's step advances it by that runner's cost."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def runner(self, seconds: float) -> "_Runner":
+        return _Runner(self, seconds)
 
 
-def test_the_timer_describes_itself_and_needs_frames() -> None:
-    """What the report records of the timing (its defaults: 30 steps after 5, rounds of 10)."""
-    assert SideBySideTimer(np.zeros((3, 1)), 20.0, threads=2).describe() == {
-        "kind": "side_by_side", "runtime": "onnxruntime", "threads": 2, "steps": 30, "warmup": 5, "chunk": 10,
-        "frames": 3}
+class _Runner:
+    def __init__(self, clock: _FakeTime, seconds: float) -> None:
+        self.clock, self.seconds = clock, seconds
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, lnes: np.ndarray) -> None:
+        self.clock.now += self.seconds
+
+
+def test_time_beside_reports_both_medians_in_milliseconds_and_needs_frames() -> None:
+    clock = _FakeTime()
+    timed = time_beside(clock.runner(0.004), clock.runner(0.002), np.zeros((3, 1)), steps=6, warmup=1, chunk=3,
+                        clock=clock)
+    assert timed["p50_ms"] == pytest.approx(4.0) and timed["fp32_p50_ms"] == pytest.approx(2.0)
+    assert timed["speedup_vs_fp32"] == pytest.approx(0.5) and timed["interval"]["rounds"] == 2
+    assert timed["timer"] == {"kind": "side_by_side", "steps": 6, "warmup": 1, "chunk": 3, "frames": 3}
     with pytest.raises(ValueError, match="at least one frame"):
-        SideBySideTimer(np.zeros((0, 1)), 20.0)
+        time_beside(clock.runner(0), clock.runner(0), np.zeros((0, 1)), steps=2)

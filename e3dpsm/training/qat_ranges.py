@@ -274,7 +274,7 @@ def coverage_in_graph(report: dict[str, Any], model: onnx.ModelProto, learned: M
     every tensor a graph of the model may quantise (`learned_overrides`' list): the written one
     quantises fewer (a search's float and 16-bit nodes, the outputs `--float-outputs` leaves
     float)."""
-    from e3dpsm.quantize.census import quantised_activation_bits
+    from e3dpsm.onnx_precision import quantised_activation_bits
 
     bits = quantised_activation_bits(model)
     eight = {t for t, b in bits.items() if b == 8}
