@@ -1,4 +1,5 @@
-"""Benchmark: the PyTorch step on a CUDA GPU, states carried (issue 14's GPU check).
+"""Benchmark: the PyTorch step on a CUDA GPU, states carried: how fast the step
+runs where the paper measured it, beside the paper's figures.
 
     python benchmarks/bench_gpu.py [--variant paper] [--checkpoint CKPT] [--steps 500]
         [--modes eager cudagraph cudagraph-tf32 cudagraph-bf16 compile compile-cudagraph]

@@ -1,11 +1,12 @@
-"""Benchmark: the `paper` variant profiled side by side on CPU targets (issue 7).
+"""Benchmark: the `paper` variant profiled side by side on CPU targets, at the paper's
+192 x 256 input.
 
     python benchmarks/bench_profile_paper.py [--data PREPARED] [--int8-model G] [--fp16-model G]
         [--out /work/runs/profile_paper] [--steps 300] [--threads 2]
 
 With --data and no --int8-model / --fp16-model, the graphs are made here with
 `e3dpsm quantize` (fp32 graph exported once, reused on later runs). Runs `e3dpsm profile` and
-prints the headline figures against the issue's bars:
+prints the headline figures against the bars set for the `paper` variant on CPU:
 - ONNX Runtime fp32 >= 1.5x faster than PyTorch eager and >= 80 Hz (p50), 2 threads;
 - INT8 >= 2x faster than fp32 (when an int8 graph exists);
 - PyTorch and ONNX MAC counts within 2%.
