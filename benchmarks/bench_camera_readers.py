@@ -8,7 +8,10 @@ decoder replaced it), so the two figures compare the same work. HDF5 is read twi
 process (what it did before), to show what the isolation costs.
 
     python benchmarks/bench_camera_readers.py                    # writes benchmarks/results/camera_readers.{json,md}
-    python benchmarks/bench_camera_readers.py --events 1000000 --out /tmp/camera_readers
+    python benchmarks/bench_camera_readers.py --events 1000000 --out runs/camera_readers
+
+The recordings (large) go to --out, kept for a look afterwards, or by default to a fresh
+temporary folder removed when the run ends.
 
 Needs the `cameras` extra (dv-processing, expelliarmus, lz4). The EVT 3.0 file is written by the
 tests' spec encoder, a Python loop (about a minute for 10 M events).
@@ -16,9 +19,11 @@ tests' spec encoder, a Python loop (about a minute for 10 M events).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -38,6 +43,8 @@ from e3dpsm.utils.isa import detect_isa  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 FILES = ("events.h5", "events.aedat4", "evt2.raw", "evt3.raw", "events.dat")
+DV_KEY = "events.aedat4 via dv-processing"
+H5_KEY = "events.h5 via h5py in this process"
 
 
 def stream(n: int, seed: int = 0) -> EventStream:
@@ -123,36 +130,50 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="/tmp/camera_readers", help="folder for the recordings (large)")
-    parser.add_argument("--events", type=int, default=10_000_000)
-    parser.add_argument("--results", default=str(RESULTS / "camera_readers"),
-                        help="report path without suffix (.json and .md are written)")
-    args = parser.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    s = stream(args.events)
+def recordings_folder(out: str | None) -> contextlib.AbstractContextManager[str]:
+    """Where the recordings go: `out`, created and kept, or a temporary folder removed on exit."""
+    if out is None:
+        return tempfile.TemporaryDirectory(prefix="e3dpsm-bench-readers-")
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return contextlib.nullcontext(out)
+
+
+def measure(out: Path, s: EventStream) -> tuple[dict, float]:
+    """Median read of every file written to `out`, plus the two reference readers, and the
+    load average when the reads began (after the writing, which loads the CPU itself)."""
     write_all(s, out)
     load_start = os.getloadavg()[0]
     results = {}
     for name in FILES:
         results[name] = median_read(read_events, out / name, s)
         print(name, results[name], flush=True)
-    key = "events.aedat4 via dv-processing"
-    results[key] = median_read(read_aedat4_with_dv_processing, out / "events.aedat4", s)
-    print(key, results[key], flush=True)
-    h5_key = "events.h5 via h5py in this process"
-    results[h5_key] = median_read(read_h5_in_this_process, out / "events.h5", s)
-    print(h5_key, results[h5_key], flush=True)
+    results[DV_KEY] = median_read(read_aedat4_with_dv_processing, out / "events.aedat4", s)
+    print(DV_KEY, results[DV_KEY], flush=True)
+    results[H5_KEY] = median_read(read_h5_in_this_process, out / "events.h5", s)
+    print(H5_KEY, results[H5_KEY], flush=True)
+    return results, load_start
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=None,
+                        help="folder for the recordings (large), kept afterwards; default: a fresh "
+                             "temporary folder, removed when the run ends")
+    parser.add_argument("--events", type=int, default=10_000_000)
+    parser.add_argument("--results", default=str(RESULTS / "camera_readers"),
+                        help="report path without suffix (.json and .md are written)")
+    args = parser.parse_args()
+    s = stream(args.events)
+    with recordings_folder(args.out) as out:
+        results, load_start = measure(Path(out), s)
     report = {**report_header("bench_camera_readers", {"events": len(s)}),
               "command": "python benchmarks/bench_camera_readers.py" + (
                   f" --events {args.events}" if args.events != 10_000_000 else ""),
               "isa": detect_isa().to_dict(), "results": results,
               "load_average": [round(load_start, 2), round(os.getloadavg()[0], 2)],
               "aedat4_e3dpsm_over_dv_processing":
-                  round(results[key]["median_s"] / results["events.aedat4"]["median_s"], 2),
-              "hdf5_isolated_over_in_process": round(results[h5_key]["median_s"] / results["events.h5"]["median_s"], 2)}
+                  round(results[DV_KEY]["median_s"] / results["events.aedat4"]["median_s"], 2),
+              "hdf5_isolated_over_in_process": round(results[H5_KEY]["median_s"] / results["events.h5"]["median_s"], 2)}
     write_json_atomic(f"{args.results}.json", report)
     write_text_atomic(f"{args.results}.md", markdown(report))
     print(f"AEDAT4: {report['aedat4_e3dpsm_over_dv_processing']}x dv-processing -> {args.results}.md")

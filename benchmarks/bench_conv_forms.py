@@ -1,5 +1,5 @@
 """Benchmark: can an exact, MAC-reducing form of the CNN's 3x3 convolutions beat ONNX
-Runtime's own Conv on this CPU? (issue 14: the fp32 step's convolutions already run near
+Runtime's own Conv on this CPU? (The fp32 step's convolutions already run near
 the machine's dense peak, so a faster fp32 step needs fewer multiplications.)
 
     python benchmarks/bench_conv_forms.py [--variant paper] [--steps 200] [--threads 2] \

@@ -1,7 +1,8 @@
-"""Benchmark: deformable attention in the exported fp32 step graph, before vs after (issue 14).
+"""Benchmark: deformable attention in the exported fp32 step graph, before vs after its
+rewrite for CPU speed.
 
-    python benchmarks/bench_deformable.py --graph before=/work/runs/before_paper/step.onnx \
-        --graph after=/work/runs/after_paper/step.onnx [--graph NAME=PATH ...] \
+    python benchmarks/bench_deformable.py --graph before=runs/before_paper/step.onnx \
+        --graph after=runs/after_paper/step.onnx [--graph NAME=PATH ...] \
         [--steps 200] [--threads 2] [--profile-steps 30] [--out benchmarks/results/deformable]
 
 Every graph runs the same synthetic LNES frames (moving edges, 20 ms windows) with its states

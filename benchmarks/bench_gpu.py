@@ -1,4 +1,5 @@
-"""Benchmark: the PyTorch step on a CUDA GPU, states carried (issue 14's GPU check).
+"""Benchmark: the PyTorch step on a CUDA GPU, states carried: how fast the step
+runs where the paper measured it, beside the paper's figures.
 
     python benchmarks/bench_gpu.py [--variant paper] [--checkpoint CKPT] [--steps 500]
         [--modes eager cudagraph cudagraph-tf32 cudagraph-bf16 compile compile-cudagraph]
@@ -28,7 +29,7 @@ it is measured, and a mode that fails records its error, so a run cut short keep
 measured. Modes that would start after `--budget-s` seconds are skipped and say so.
 
 Writes OUT_DIR/gpu_<device>.json and .md beside the paper's figures (one A6000: 80 Hz,
-6.64 M parameters, 8.16 GFLOPs, 74 MB GPU memory; FACTS.md, the paper's efficiency table).
+6.64 M parameters, 8.16 GFLOPs, 74 MB GPU memory; the paper's Table 5, App. C).
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ PAPER_REFERENCE = {
     "params_m": 6.64,
     "gflops": 8.16,
     "gpu_memory_mb": 74.0,
-    "source": "paper, model efficiency table (one A6000); ../shared/reference/FACTS.md",
+    "source": "paper, Table 5 (model efficiency comparison, one A6000), App. C",
 }
 ALL_MODES = ("eager", "cudagraph", "cudagraph-tf32", "cudagraph-bf16", "compile", "compile-cudagraph")
 FP32_MODES = {"eager", "cudagraph", "compile", "compile-cudagraph"}

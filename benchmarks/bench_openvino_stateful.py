@@ -1,4 +1,4 @@
-"""Benchmark: per-step latency of the stateful OpenVINO IR vs explicit-state OpenVINO (issue 16).
+"""Benchmark: per-step latency of the stateful OpenVINO IR vs explicit-state OpenVINO.
 
     python benchmarks/bench_openvino_stateful.py [--variants tiny small] [--steps 200] [--threads 2] \
         [--out benchmarks/results/openvino_stateful]

@@ -1,7 +1,7 @@
 """Benchmark: does `e3dpsm profile` agree with the runtimes' own timers and with bare loops?
 
     python benchmarks/bench_profile_agreement.py --variants small paper --threads 2 \
-        [--steps 150] [--outside-seconds 5] [--work /work/runs/profile_agreement] [--out benchmarks/results]
+        [--steps 150] [--outside-seconds 5] [--work runs/profile_agreement] [--out benchmarks/results]
 
 Per variant (initial weights, seed 0: latency does not depend on training), in one run:
 
@@ -36,6 +36,7 @@ TARGETS = ("ort-cpu-fp32", "ort-cpu-fp32-static", "openvino-cpu-fp32", "openvino
            "openvino-cpu-stateful-fp32-static", "openvino-cpu-bf16-static")
 PAIRS = {"dynamic": ("openvino-cpu-fp32", "ort-cpu-fp32"), "static": ("openvino-cpu-fp32-static", "ort-cpu-fp32-static")}
 TOLERANCE = 0.10
+RUNS = Path(__file__).resolve().parents[1] / "runs"  # git-ignored scratch of the repository
 CHUNK = 25
 
 
@@ -242,7 +243,10 @@ def main() -> int:
     parser.add_argument("--profile-steps", type=int, default=30)
     parser.add_argument("--diagnose-steps", type=int, default=100)
     parser.add_argument("--targets", default=",".join(TARGETS))
-    parser.add_argument("--work", default="/work/runs/profile_agreement")
+    parser.add_argument("--work", default=str(RUNS / "profile_agreement"),
+                        help="folder for the exported graphs (kept and reused by later runs) and the "
+                             "profile reports; default: runs/profile_agreement in the repository "
+                             "(git-ignored)")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
     args = parser.parse_args()
 

@@ -1,11 +1,12 @@
-"""Benchmark: the `paper` variant profiled side by side on CPU targets (issue 7).
+"""Benchmark: the `paper` variant profiled side by side on CPU targets, at the paper's
+192 x 256 input.
 
     python benchmarks/bench_profile_paper.py [--data PREPARED] [--int8-model G] [--fp16-model G]
-        [--out /work/runs/profile_paper] [--steps 300] [--threads 2]
+        [--out runs/profile_paper] [--steps 300] [--threads 2]
 
 With --data and no --int8-model / --fp16-model, the graphs are made here with
 `e3dpsm quantize` (fp32 graph exported once, reused on later runs). Runs `e3dpsm profile` and
-prints the headline figures against the issue's bars:
+prints the headline figures against the bars set for the `paper` variant on CPU:
 - ONNX Runtime fp32 >= 1.5x faster than PyTorch eager and >= 80 Hz (p50), 2 threads;
 - INT8 >= 2x faster than fp32 (when an int8 graph exists);
 - PyTorch and ONNX MAC counts within 2%.
@@ -22,6 +23,7 @@ from pathlib import Path
 TARGETS = ("torch-eager-cpu,ort-cpu-fp32,ort-cpu-fp32-static,ort-cpu-int8,ort-cpu-fp16,openvino-cpu-fp32,"
            "openvino-cpu-fp32-static,openvino-cpu-stateful-fp32-static,openvino-cpu-int8,openvino-cpu-bf16-static,"
            "ort-cuda-fp32,ort-tensorrt-fp16")
+RUNS = Path(__file__).resolve().parents[1] / "runs"  # git-ignored scratch of the repository
 
 
 def e3dpsm(*args: str) -> None:
@@ -47,7 +49,10 @@ def quantised(work: Path, data: str, mode: str, threads: int) -> Path:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default="/work/runs/profile_paper")
+    parser.add_argument("--out", default=str(RUNS / "profile_paper"),
+                        help="folder for the profile report; the graphs go beside it in OUT_graphs (kept "
+                             "and reused by later runs); default: runs/profile_paper in the repository "
+                             "(git-ignored)")
     parser.add_argument("--data", help="prepared folder: feeds the runs and calibrates the int8 graph")
     parser.add_argument("--int8-model")
     parser.add_argument("--fp16-model")

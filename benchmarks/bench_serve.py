@@ -11,9 +11,9 @@ arriving at the server (its scheduled replay time) to the pose drawn on the canv
 
 Runs, one after the other: (1) one page; (2) two pages plus a stalled client (a raw WebSocket
 that completes the handshake and never reads); (3) unless --no-control, two pages alone, which
-separates the stalled client's cost from the second browser's CPU. Checks (issue 26): every pose reaches each page
-in order; page latency p50 <= 1.5x and p99 <= 3x the median step time; with the stalled client
-the two pages' p99 within 20% of the single page's, and the server's RSS flat.
+separates the stalled client's cost from the second browser's CPU. Checks: every pose
+reaches each page in order; page latency p50 <= 1.5x and p99 <= 3x the median step time;
+with the stalled client the two pages' p99 within 20% of the single page's, and the server's RSS flat.
 """
 from __future__ import annotations
 
@@ -129,7 +129,7 @@ def one_run(name: str, model: Path, events: Path, seconds: float, threads: int, 
 
 
 def verdicts(single: dict, crowded: dict, control: dict | None = None) -> dict[str, bool]:
-    """The issue's checks; with `control` (two pages, no stalled client) also the stalled
+    """The checks above; with `control` (two pages, no stalled client) also the stalled
     client's own cost, apart from the second browser's: on two cores a second headless
     Chromium competes with the server for the CPU, which no server design can remove."""
     page = single["pages_measured"][0]

@@ -7,8 +7,10 @@ Convention (used everywhere in e3dpsm, including the synthetic data):
   down therefore has the wearer's body at positive z.
 * Pixels: u is the column, v the row, both in sensor pixels of the 640 x 480 image,
   (0, 0) the centre of the top-left pixel. No v flip.
-* Projection (FACTS section 2): with n = sqrt(x^2 + y^2) and theta = atan2(z, n) (the
-  elevation of the ray above the image plane; pi/2 on the optical axis),
+* Projection (Scaramuzza's omnidirectional model: paper Sec. 4.3, Eq. 19, and
+  docs/model.md#citations, Fisheye camera): with n = sqrt(x^2 + y^2) and
+  theta = atan2(z, n) (the elevation of the ray above the image plane; pi/2 on the
+  optical axis),
   rho = invpol(theta) and
       u = xc + (x/n) rho c + (y/n) rho d,   v = yc + (x/n) rho e + (y/n) rho.
   Back-projection inverts the affine part and lifts the pixel to the ray
@@ -30,7 +32,8 @@ import numpy as np
 
 from e3dpsm.errors import InputError
 
-# Public calibration of the EE3D head-mounted camera (FACTS section 2).
+# Public calibration of the EE3D head-mounted camera, rounded (EventEgo3D++'s intrinsics.json:
+# docs/model.md#citations, Fisheye camera).
 EE3D_POL: tuple[float, ...] = (161.1467, 0.0, -2.5831e-3, 6.0351e-6, -2.5573e-8)
 EE3D_CENTRE: tuple[float, float] = (321.365, 236.255)
 EE3D_SIZE: tuple[int, int] = (640, 480)  # (width, height)

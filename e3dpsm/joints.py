@@ -1,4 +1,5 @@
-"""The 16-joint skeleton of the EE3D benchmarks (FACTS section 1)."""
+"""The 16-joint skeleton of the EE3D benchmarks (paper Sec. 4: J = 16; the order and parents
+of the released code: docs/model.md#citations, Skeleton)."""
 from __future__ import annotations
 
 JOINT_NAMES: tuple[str, ...] = (

@@ -1,4 +1,4 @@
-"""Pose-accuracy metrics of the E-3DPSM benchmarks (FACTS section 5), numpy only.
+"""Pose-accuracy metrics of the E-3DPSM benchmarks (paper Sec. 5.1, Eqs. 23-24), numpy only.
 
 All arrays are `[N, J, 3]` in millimetres, camera frame; N frames of ONE continuous
 sequence (the smoothness metric compares consecutive frames, so callers must not

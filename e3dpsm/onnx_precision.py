@@ -93,5 +93,5 @@ def precision_counts(precisions: dict[str, str]) -> dict[str, int]:
 
 
 def out_of_8_bits(precisions: dict[str, str]) -> int:
-    """Compute nodes not at int8 (the issue's measure)."""
+    """Compute nodes not at int8 (the 'nodes out of 8 bits' figure of the reports)."""
     return sum(1 for label in precisions.values() if label != "int8")

@@ -12,8 +12,9 @@ Convention (one place; both counters and every report use it):
   activations, residual adds, softmax, the attention weighting) is not in MACs; the ONNX
   counter reports it separately as "elementwise" (one op per output value of such nodes).
 
-The paper's efficiency table counts FLOPs = 2 x MACs over a 2-frame input (FACTS sections 3
-and 7): comparable with it is 2 x MACs x PAPER_FRAMES of ours.
+The paper's 8.16 GFLOPs (Table 5, App. C) are FLOPs = 2 x MACs over the 2-frame input that the
+released `compute_performance_metrics.py` counts (docs/model.md#citations, Efficiency):
+comparable with it is 2 x MACs x PAPER_FRAMES of ours.
 """
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 FUZZ_EXAMPLES = 25
 SLOW_EXAMPLES = int(os.environ.get("E3DPSM_FUZZ_EXAMPLES", "1000"))
 BOUND_S = 20.0  # per input, in-process reader calls (they take milliseconds)
-CLI_BOUND_S = 90.0  # per command (the bound for a damaged recording)
+CLI_BOUND_S = 90.0  # per command (the bound set for a damaged recording)
 MUTATIONS = ("flip", "truncate", "insert", "duplicate", "length")
 
 

@@ -1,4 +1,4 @@
-"""`e3dpsm compare` at its edges (issue 25, part 6): a change exactly at its limit is no
+"""`e3dpsm compare` at its edges: a change exactly at its limit is no
 regression, and each kind of figure is held to its own limit. Hand-made reports whose
 figures make the percentages exact in binary (10 -> 11 is +10.0 exactly, 200 -> 201 is
 +0.5 exactly), so float noise never decides a verdict."""

@@ -1,5 +1,7 @@
 """The documentation holds together: links resolve, the README stays short, the README's
-test command is the one CI runs, and every command's --help names its guide page."""
+test command is the one CI runs, every command's --help names its guide page, and code and
+docs cite the paper and the public code directly, never notes outside the repository or an
+issue number."""
 from __future__ import annotations
 
 import argparse
@@ -131,6 +133,55 @@ def test_readme_first_block_installs_cpu_torch_first():
                        None)
     assert torch_at is not None and editable_at is not None, block
     assert torch_at < editable_at, f"torch==2.13.0 must be installed before -e .: {block}"
+
+
+# Citations point at what a reader can open: the paper (section, equation, table) or the public
+# code (URL and path), gathered in docs/model.md#citations. Two kinds of pointer cannot be
+# followed from a clone: the development setup's reference notes (a file outside the
+# repository) and issue numbers. benchmarks/results/ holds records and is left as written.
+CITATION_RULES: dict[str, re.Pattern[str]] = {
+    "cites the reference notes outside the repository; cite the paper or the public code "
+    "(docs/model.md#citations)": re.compile(r"\bFACTS\b"),
+    "names an issue number; say what it is about instead": re.compile(r"\b[Ii]ssues?\s*#?\d"),
+}
+CITATION_SUFFIXES = (".py", ".md", ".toml")
+RECORDS = "benchmarks/results/"
+
+
+def citation_problems(text: str) -> list[str]:
+    """'line N: what is wrong: the line' for every line that breaks a citation rule."""
+    return [f"line {number}: {why}: {line.strip()}"
+            for number, line in enumerate(text.splitlines(), 1)
+            for why, pattern in CITATION_RULES.items() if pattern.search(line)]
+
+
+def cited_sources() -> list[str]:
+    """Tracked .py, .md and .toml files (repository-relative), records excluded."""
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, text=True)
+    if listed.returncode != 0:
+        pytest.skip(f"not a git checkout: {listed.stderr.strip()}")
+    return [name for name in listed.stdout.split("\0")
+            if name.endswith(CITATION_SUFFIXES) and not name.startswith(RECORDS) and (ROOT / name).is_file()]
+
+
+def test_code_and_docs_cite_directly():
+    sources = cited_sources()
+    assert "docs/model.md" in sources and "e3dpsm/layers/fusion.py" in sources  # the listing works
+    problems = {name: citation_problems((ROOT / name).read_text(encoding="utf-8")) for name in sources}
+    problems = {name: found for name, found in problems.items() if found}
+    assert problems == {}, "\n".join(f"{name} {p}" for name, found in problems.items() for p in found)
+
+
+def test_citation_checker_bites():
+    notes, issue = "FAC" + "TS", "iss" + "ue"  # split so this file passes its own check
+    for bad in (f"(see {notes} section 3)", f"{notes}.md", f"at its edges ({issue} 25, part 6)",
+                f"({issue}s 24 and 27)", f"{issue.capitalize()} 24's route", f"{issue} #14", f"{issue}14"):
+        assert len(citation_problems(f"ok\n{bad}\n")) == 1, bad
+    assert citation_problems(f"a\nb ({notes} section 4)")[0].startswith("line 2: cites the reference notes")
+    # near misses: other words that contain the letters, and an issue without a number
+    for fine in ("_ARTIFACTS = (CHECKPOINT_NAME,)", "ARTIFACTS[fmt]", "facts from the paper", "a tissue 3 mm thick",
+                 f"the {issue}'s 20% bar", "paper Sec. 4.2, Eq. 16; docs/model.md#citations, Kalman fusion"):
+        assert citation_problems(fine) == [], fine
 
 
 def cli_names() -> dict[str, str]:

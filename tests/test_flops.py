@@ -28,7 +28,8 @@ def conv_macs(h: int, w: int, c_in: int, c_out: int, k: int) -> int:
 
 
 def encoder_macs(cfg) -> int:
-    """Stem and stages of E3DPSM written out from the architecture (FACTS section 3)."""
+    """Stem and stages of E3DPSM written out from the architecture (paper Sec. 4.1, Eq. 4, and the
+    released stages: docs/model.md#citations, Encoder stages)."""
     h, w = cfg.height // 2, cfg.width // 2
     total = conv_macs(h, w, cfg.in_channels, cfg.stem_width, 3)
     c_in = cfg.stem_width

@@ -1,4 +1,4 @@
-"""The stateful OpenVINO IR's Kalman covariance start, seen through behaviour (issue 25, part 6).
+"""The stateful OpenVINO IR's Kalman covariance start, seen through behaviour.
 
 Why parity with PyTorch cannot see a wrong covariance initialiser (x0 or x10 passes it): a
 stream's first step has `fusion_initialised` = 0, and the fusion then outputs the direct

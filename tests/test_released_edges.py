@@ -1,6 +1,6 @@
-"""The released importer's Kalman identity check at its edge (issue 25, part 6): F, B and H
-must be the identity, off the diagonal too. The element-wise filter of this project is
-exact only for A = B = H = I; an off-diagonal coupling would be silently dropped."""
+"""The released importer's Kalman identity check at its edge: F, B and H must be the
+identity, off the diagonal too. The element-wise filter of this project is exact only for
+A = B = H = I; an off-diagonal coupling would be silently dropped."""
 from __future__ import annotations
 
 import json

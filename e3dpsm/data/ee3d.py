@@ -1,4 +1,4 @@
-"""Reader of the public EE3D-R / EE3D-W sequence layout (FACTS section 6).
+"""Reader of the public EE3D-R / EE3D-W sequence layout (docs/model.md#citations, Dataset layout).
 
 Sequence folder::
 

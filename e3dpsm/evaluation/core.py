@@ -1,7 +1,8 @@
 """Benchmark figures from per-frame predictions (torch-free; used by `e3dpsm evaluate` for
 PyTorch models and by `validate` for ONNX predictions).
 
-Conventions (FACTS section 5): totals are the unweighted mean of the per-action means
+Conventions (paper Sec. 5.1, Table 13; docs/model.md#citations, Benchmark totals): totals
+are the unweighted mean of the per-action means
 (frames with action -1 form an "unknown" group); occlusion-only figures count the joints
 with visible == 0; e_smooth pairs consecutive frames of the same sequence only, and a pair
 belongs to the action (and joint mask) of its later frame. Per-joint figures and

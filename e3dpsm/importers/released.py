@@ -10,12 +10,13 @@ q and kv, S5's (real, imaginary) pairs into separate tensors, the Kalman log-var
 [48] into [16, 3]. The Kalman F, B and H must be identities (the element-wise filter
 relies on it) and are checked, not stored.
 
-Units: the released network predicts metres and its evaluation multiplies by 1000 (FACTS
-section 3). The `released` variant keeps the heads' weights as they are and scales their
-output to millimetres (`pose_unit_mm`), and runs the Kalman filter in millimetres: the learned
-log-variances move by ln(1e6) (m^2 -> mm^2) and the filter starts from P0 = 1e6 mm^2
-(the release's identity in m^2). The gain, a ratio of variances, is unchanged, so the
-fused pose is exactly the release's x 1000. `import.json` records the conversion.
+Units: the released network predicts metres and its evaluation multiplies by 1000
+(docs/model.md#citations, Units). The `released` variant keeps the heads' weights as they
+are and scales their output to millimetres (`pose_unit_mm`), and runs the Kalman filter in
+millimetres: the learned log-variances move by ln(1e6) (m^2 -> mm^2) and the filter starts
+from P0 = 1e6 mm^2 (the release's identity in m^2). The gain, a ratio of variances, is
+unchanged, so the fused pose is exactly the release's x 1000. `import.json` records the
+conversion.
 
 Reading never executes code: `torch.load(weights_only=True)`, which admits tensors and plain
 containers, plus an allow-list of inert types a Lightning checkpoint pickles

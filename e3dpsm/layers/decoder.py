@@ -1,5 +1,6 @@
 """Joint-query decoder: J learned queries read the deepest-stage tokens through a standard
-post-norm transformer decoder (Vaswani et al. 2017), no positional encoding (FACTS section 3).
+post-norm transformer decoder (Vaswani et al. 2017), no positional encoding (paper Sec. 4.1,
+Eq. 7).
 
 Written out rather than taken from `nn.TransformerDecoder`, whose inference fast path
 (`_native_multi_head_attention`) has no ONNX export; the parameter count is the same

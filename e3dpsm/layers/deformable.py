@@ -5,7 +5,7 @@ Two sampling layouts of the same weights:
 - "2d" (the paper): the tokens form their h x w map and each token has its own 2-D
   reference point, initialised on the uniform grid of token centres and learned;
 - "1d" (the released code): the h*w tokens form one (h*w) x 1 column, and every reference
-  point is the fixed centre (0.5, 0.5) (FACTS section 3).
+  point is the fixed centre (0.5, 0.5) (docs/model.md#citations, Deformable attention).
 
 The block wiring is the release's in both layouts (its `BasicTransformerBlock` around an
 mmcv `MultiScaleDeformableAttention`): an outer value and output projection around mmcv's
@@ -214,7 +214,7 @@ class DeformableAttention(nn.Module):
 
 
 class DeformableTransformerBlock(nn.Module):
-    """The release's spatial transformer (FACTS section 3):
+    """The release's spatial transformer (docs/model.md#citations, Deformable attention):
     t = proj_in(GN x); q = LN t; t = t + out_proj(attn(q, value_proj(q))); t = t + FF(LN t);
     out = x + proj_out(t), with a GEGLU feed-forward of 4x width.
 

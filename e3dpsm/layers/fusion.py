@@ -1,9 +1,10 @@
 """Pose fusion of the direct pose (observation) and the delta pose (motion update).
 
-Learned Kalman fusion (paper section 3.3): state X (the pose, 48 values) and covariance
-Sigma, A = B = H = I, learned constant Q and R. With diagonal Q, R and P0 = I every matrix
-in the filter stays diagonal, so the filter is exact in element-wise form: no matrix
-inverse, which ONNX lacks (FACTS section 7). Covariances are carried per coordinate, [J, 3].
+Learned Kalman fusion (paper Sec. 4.2, Eqs. 12-16): state X (the pose, 48 values) and
+covariance Sigma, A = B = H = I, learned constant Q and R. With diagonal Q, R and P0 = I
+every matrix in the filter stays diagonal, so the filter is exact in element-wise form: no
+matrix inverse, which ONNX lacks (docs/model.md#citations, Kalman fusion). Covariances are
+carried per coordinate, [J, 3].
 
 Modes (the paper's ablations):
 - "learned": Kalman filter with learned log Q, log R (init Q = 1e-3, R = 1e-2, poses in mm);

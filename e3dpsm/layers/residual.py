@@ -7,7 +7,8 @@ from torch import nn
 
 class PreActResBlock(nn.Module):
     """BN-SiLU-conv3x3, BN-SiLU-conv3x3, plus the shortcut: the identity where the widths
-    match, a 1x1 conv only where they differ, as released (FACTS section 3).
+    match, a 1x1 conv only where they differ, as released (docs/model.md#citations, Encoder
+    stages).
 
     `hidden` (default `out_ch`): the width between the two convs, which pruning cuts; 0
     removes the residual branch, leaving the shortcut alone."""
@@ -34,7 +35,8 @@ class PreActResBlock(nn.Module):
 
 class EncoderStage(nn.Module):
     """One pyramid stage as released: two residual blocks, a 3x3 stride-2 conv, one more
-    residual block (FACTS section 3; the paper text omits the third block)."""
+    residual block (docs/model.md#citations, Encoder stages; the paper's Sec. 4.1, Eq. 4 omits
+    the third block)."""
 
     def __init__(
         self, in_ch: int, out_ch: int, extra_block: bool = True, hidden: tuple[int, ...] | None = None,

@@ -19,8 +19,9 @@ backward scan x_b,t = Lambda_bar x_b,t+1 + B_bar u_t from a zero state after the
 frame; `backward_first_frame="own_input"` reproduces the released scan, whose first frame
 is gated by the carried backward state (zero at a stream's start), so that x_b,0 = B_bar u_0.
 
-The released code's carried *forward* state never reaches the output (FACTS section 4);
-here the carried state is exact: chunked and step-by-step runs reproduce whole runs.
+The released code's carried *forward* state never reaches the output
+(docs/model.md#citations, Carried S5 state); here the carried state is exact: chunked and
+step-by-step runs reproduce whole runs.
 """
 from __future__ import annotations
 
@@ -94,9 +95,10 @@ class S5(nn.Module):
         self.backward_first_frame = backward_first_frame
         gen = torch.Generator().manual_seed(seed) if seed is not None else None
 
-        # Initialisation as released (FACTS section 4): HiPPO-LegS normal-part eigenvalues;
-        # B = V^-1 B0 with B0 LeCun-normal of fan-in P; each readout C = C0 V with the real and
-        # imaginary parts of C0 LeCun-normal of fan-in H * P; D ~ U[0, 1).
+        # Initialisation as released (docs/model.md#citations, S5 layer): HiPPO-LegS
+        # normal-part eigenvalues; B = V^-1 B0 with B0 LeCun-normal of fan-in P; each readout
+        # C = C0 V with the real and imaginary parts of C0 LeCun-normal of fan-in H * P;
+        # D ~ U[0, 1).
         lam, vecs = hippo_legs_normal_eigs(state_dim)
         v_inv = torch.from_numpy(vecs.conj().T).to(torch.complex64)
         self.log_neg_lambda_re = nn.Parameter(torch.from_numpy(np.log(-lam.real)).float())
@@ -219,7 +221,8 @@ class S5(nn.Module):
 
 class S5Block(nn.Module):
     """Residual S5 block on a feature map [B, C, h, w] (per-location over time), as
-    released (FACTS section 3): n = LN1 x; h = n + GELU(S5(n)); m = LN2 h; out = m + GEGLU(m)
+    released (docs/model.md#citations, S5 placement and block):
+    n = LN1 x; h = n + GELU(S5(n)); m = LN2 h; out = m + GEGLU(m)
     with a bias-free feed-forward of width C.
 
     Both residuals carry the *normed* tensor, so the block re-normalises the encoder's

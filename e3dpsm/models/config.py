@@ -30,7 +30,7 @@ class E3DPSMConfig:
     attn_head_dim: tuple[int, ...] = (8, 16, 32, 32)
     attn_points: int = 8
     # "2d": the paper's learned 2-D reference grid; "1d": the release's (h*w) x 1 column with
-    # every reference point at (0.5, 0.5) (FACTS section 3).
+    # every reference point at (0.5, 0.5) (docs/model.md#citations, Deformable attention).
     attn_layout: str = "2d"
     # S5 blocks: after these stages (0-based). Released code: stages 1 and 4 -> (0, 3);
     # the paper's text: stages 2 and 4 -> (1, 3). State size P = width * ssm_state_ratio.
@@ -41,7 +41,8 @@ class E3DPSMConfig:
     ssm_bandlimit: float | None = 0.5
     # Non-causal backward branch at a sequence's first frame: "scan" (the full backward scan)
     # or "own_input" (the release: its carried backward state, zero at a stream's start,
-    # gates that frame, which then sees its own input only; FACTS section 4).
+    # gates that frame, which then sees its own input only; docs/model.md#citations,
+    # Carried S5 state).
     ssm_backward_first_frame: str = "scan"
     # Joint-query decoder over the last stage's tokens (its width is widths[-1]).
     decoder_layers: int = 3
@@ -58,7 +59,8 @@ class E3DPSMConfig:
     # frame in causal runs and steps, over the whole tensor in non-causal runs.
     input_norm: str = "none"
     # Millimetres per unit of the heads' output: the heads predict metres (the release's unit,
-    # FACTS section 3), the model's outputs and its Kalman filter are in millimetres.
+    # docs/model.md#citations, Units), the model's outputs and its Kalman filter are in
+    # millimetres.
     pose_unit_mm: float = 1000.0
     train_window_ms: float = 20.0
     seed: int = 0

@@ -5,8 +5,8 @@ from __future__ import annotations
 from e3dpsm.models.config import E3DPSMConfig
 from e3dpsm.models.registry import register_model
 
-# The release works in metres and evaluates in millimetres (x1000, FACTS section 3), so its
-# Kalman variances (m^2) are x1e6 in this project's millimetre filter.
+# The release works in metres and evaluates in millimetres (x1000, docs/model.md#citations,
+# Units), so its Kalman variances (m^2) are x1e6 in this project's millimetre filter.
 RELEASED_VARIANCE_TO_MM2 = 1000.0**2
 
 

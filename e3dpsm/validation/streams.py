@@ -1,5 +1,6 @@
 """Run a model over one sequence as a continuous stream: states start from the graph's
-initial values and are carried from frame to frame, never reset (FACTS section 5)."""
+initial values and are carried from frame to frame, never reset (paper Sec. 5.1; App. E.2,
+Table 8)."""
 from __future__ import annotations
 
 from typing import Any
