@@ -50,3 +50,20 @@ def test_an_interval_that_holds_one_is_not_faster():
 def test_within_budget_at_the_edge_is_within():
     assert Verdict("int8", _check(5.0), "onnxruntime", 0.3, {}, VNNI).within
     assert not Verdict("int8", _check(5.000001), "onnxruntime", 0.3, {}, VNNI).within
+
+
+def test_a_speed_up_timed_on_an_oversubscribed_host_is_not_trusted():
+    """The same interval above 1x: trusted at a load of the core count, not above it."""
+    import os
+
+    cores = os.cpu_count() or 1
+
+    def timed(load: float) -> dict:
+        t = _timing(1.6, 1.1, 1.9)
+        return {**t, "timer": {**t["timer"], "load_average": load}}
+
+    quiet = Verdict("int8", _check(3.0), "onnxruntime", 0.3, {"onnxruntime": timed(cores)}, VNNI)
+    assert quiet.headline().startswith("Verdict: ship it:")
+    busy = Verdict("int8", _check(3.0), "onnxruntime", 0.3, {"onnxruntime": timed(cores + 0.5)}, VNNI)
+    assert busy.headline().startswith("Verdict: no int8 graph beats fp32 on this vnni host (loaded while timed: "
+                                      "time it again on a quiet host) (ONNX Runtime 1.60x fp32's speed)")
