@@ -235,3 +235,26 @@ def test_int8_profile_growth_bound_end_to_end(late, passed):
     if not passed:
         assert state.first_failing_step == 30 and result.first_failure["step"] == 30
     assert state.growth_limit == 4.0
+
+
+@pytest.mark.parametrize("entries, readable", [
+    ([{"file": "host/step_int8-onnxruntime.npz", "sha256": "ab", "runtime": "onnxruntime"}], True),
+    ([], True),
+    ([{"file": "../step_int8-onnxruntime.npz", "sha256": "ab", "runtime": "onnxruntime"}], False),
+    ([{"file": "host/../../etc/x.npz", "sha256": "ab", "runtime": "onnxruntime"}], False),
+    ([{"file": "/tmp/x.npz", "sha256": "ab", "runtime": "onnxruntime"}], False),
+    ([{"file": "host/x.pkl", "sha256": "ab", "runtime": "onnxruntime"}], False),
+    ([{"file": "host/x.npz", "sha256": 3, "runtime": "onnxruntime"}], False),
+    ({"file": "host/x.npz"}, False),
+])
+def test_host_rollouts_name_files_inside_the_golden_only(entries, readable, tmp_path):
+    """golden check reads host/NAME.npz for a listed graph: a damaged or hand-edited manifest
+    naming anything else is refused before any file is opened."""
+    from e3dpsm.errors import DataError
+    from e3dpsm.golden.store_checks import _check_host_rollouts
+
+    if readable:
+        _check_host_rollouts(entries, tmp_path / "golden.json")
+    else:
+        with pytest.raises(DataError, match="host_rollouts"):
+            _check_host_rollouts(entries, tmp_path / "golden.json")

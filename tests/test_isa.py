@@ -59,7 +59,7 @@ def test_golden_check_compares_the_host_with_the_graphs_isa(monkeypatch) -> None
 
 
 def test_every_kind_is_a_target_quantize_accepts() -> None:
-    """`quantize --target-isa` takes exactly the kinds reports name (one list, ISA_KINDS)."""
+    """`quantize --target` takes exactly the kinds reports name (one list, ISA_KINDS), plus auto and npu."""
     from e3dpsm.cli import build_parser
     from e3dpsm.utils.isa import ISA_KINDS
 
@@ -67,7 +67,7 @@ def test_every_kind_is_a_target_quantize_accepts() -> None:
     assert kinds == set(ISA_KINDS)
     for kind in ISA_KINDS:
         assert build_parser().parse_args(["quantize", "--model", "m", "--data", "d", "--out", "o",
-                                          "--target-isa", kind]).target_isa == kind
+                                          "--target", kind]).target == kind
 
 
 def _int8_matmul(weight_max: int):

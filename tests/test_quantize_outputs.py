@@ -104,12 +104,12 @@ def test_op_types_not_named_and_graph_outputs_keep_their_pairs() -> None:
 
 
 def test_float_outputs_option_defaults_and_errors() -> None:
-    assert QuantizeOptions(exclude="none").outputs_in_float == ("MatMul", "Gemm")
-    assert QuantizeOptions().outputs_in_float == ()  # the search (docs/quantize.md)
-    assert QuantizeOptions(float_outputs="matmul").outputs_in_float == ("MatMul", "Gemm")
-    assert QuantizeOptions(float_outputs="all").outputs_in_float == ("Conv", "MatMul", "Gemm")
-    assert QuantizeOptions(exclude="none", ranges_from_checkpoint="x.pt").outputs_in_float == ()  # QAT simulated the pairs
+    """MatMul and Gemm outputs float by default (free on ONNX Runtime), Conv too with "all"."""
+    from e3dpsm.quantize import Advanced
+    from e3dpsm.quantize.outputs import FLOAT_OUTPUTS
+
+    assert QuantizeOptions().advanced.float_outputs == "matmul"
+    assert FLOAT_OUTPUTS["matmul"] == ("MatMul", "Gemm") and FLOAT_OUTPUTS["none"] == ()
+    assert FLOAT_OUTPUTS["all"] == ("Conv", "MatMul", "Gemm")
     with pytest.raises(ConfigError, match="--float-outputs"):
-        QuantizeOptions(float_outputs="conv")
-    with pytest.raises(ConfigError, match="--mode fp16"):
-        QuantizeOptions(mode="fp16", float_outputs="all")
+        Advanced(float_outputs="conv")

@@ -135,15 +135,18 @@ def test_ort_rules_calibrate_as_quantize_static_does(tmp_path, method) -> None:
         np.testing.assert_array_equal(np.ravel(ours[name].range_value), np.ravel(theirs[name].range_value))
 
 
-@pytest.mark.parametrize("target, weight_limit", [("avx2", 64), ("other", 64), ("vnni", 127), ("dotprod", 127)])
-def test_targets_without_int8_dot_products_get_7_bit_weights(tmp_path, target, weight_limit) -> None:
+@pytest.mark.parametrize("target, isa, weight_limit", [("avx2", "avx2", 64), ("other", "other", 64), ("vnni", "vnni", 127),
+                                                       ("dotprod", "dotprod", 127), ("auto", "avx2", 64),
+                                                       ("npu", "avx2", 127)])
+def test_targets_without_int8_dot_products_get_7_bit_weights(tmp_path, target, isa, weight_limit) -> None:
     """ONNX Runtime's non-VNNI U8S8 kernels add u8 x s8 product pairs in 16-bit saturating
-    arithmetic: 7-bit weights (reduce_range) keep a pair inside 16 bits (255 * 64 * 2 < 2^15)."""
+    arithmetic: 7-bit weights (reduce_range) keep a pair inside 16 bits (255 * 64 * 2 < 2^15).
+    An NPU's integer kernels do not saturate so: 8-bit weights whatever the host."""
     from onnx import numpy_helper
 
     _one_matmul_graph(tmp_path / "g.onnx")
     feeds = [{"x": np.random.default_rng(6).laplace(0, 1, (16, 8)).astype(np.float32)} for _ in range(20)]
-    config = StaticConfig.for_target(target)
+    config = StaticConfig.for_target(target, isa)
     quantize_int8(tmp_path / "g.onnx", tmp_path / "q.onnx", config, calibration=CalibrationSet(feeds, "test"),
                   cache=tmp_path / "cache.json")
     model = onnx.load(str(tmp_path / "q.onnx"))
@@ -154,8 +157,10 @@ def test_targets_without_int8_dot_products_get_7_bit_weights(tmp_path, target, w
 def test_an_unknown_target_is_refused() -> None:
     from e3dpsm.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="unknown --target-isa 'arm'"):
-        StaticConfig.for_target("arm")
+    from e3dpsm.quantize import QuantizeOptions
+
+    with pytest.raises(ConfigError, match="--target"):
+        QuantizeOptions(target="arm")
 
 
 def test_an_empty_histogram_keeps_its_range_and_stays_finite() -> None:

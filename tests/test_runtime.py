@@ -271,7 +271,7 @@ BAD_INPUTS = {
     "out_under_file": (None, "is a file"),
     "out_exists": (None, "--force"),
     "chunk_events": (None, "--chunk-events must be positive"),
-    "threads": (None, "--threads must be positive"),
+    "threads": (None, "--threads: expected a positive whole number"),
 }
 
 
@@ -309,7 +309,7 @@ def test_cli_bad_input_fails_cleanly(case, tiny_graph, stream, tmp_path, capsys)
         events = tmp_path / "missing.npz"
 
     options = [f"--{case.replace('_', '-')}", "0"] if case in ("chunk_events", "threads") else []
-    code = main(["run", "--model", str(model), "--events", str(events), "--out", str(out), *options])
+    code = _exit_code(["run", "--model", str(model), "--events", str(events), "--out", str(out), *options])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and err[0].startswith("e3dpsm run: error:"), err
@@ -318,3 +318,11 @@ def test_cli_bad_input_fails_cleanly(case, tiny_graph, stream, tmp_path, capsys)
     assert leftovers == {"out_under_file": ["plain_file"], "out_exists": ["poses.csv"]}.get(case, [])
     if case == "out_exists":
         assert out.read_text() == "keep me"
+
+
+def _exit_code(argv: list[str]) -> int:
+    """main's return code, or argparse's exit code for an argument it refused (one line too)."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return int(exc.code)

@@ -274,7 +274,7 @@ def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, cap
 SEVERAL_FILES_ERRORS = {  # case: words the error line must contain
     "same_file": "same file", "same_file_other_spelling": "same file", "extension_only": "only in their extension",
     "one_too_short": "no complete", "out_exists": "--force", "chunk_events": "--chunk-events must be positive",
-    "threads": "--threads must be positive", "render": "single --events file",
+    "threads": "--threads: expected a positive whole number", "render": "single --events file",
     "render_max_frames": "single --events file",
 }
 
@@ -304,7 +304,8 @@ def test_cli_several_files_fail_cleanly(case, tiny_graph, tmp_path, capsys):
         out.mkdir()
         (out / "two.csv").write_text("keep me")
     inputs = sorted(p.name for p in tmp_path.rglob("*"))
-    code = main(["run", "--model", str(tiny_graph[1]), "--events", *map(str, files), "--out", str(out), *options])
+    code = _exit_code(["run", "--model", str(tiny_graph[1]), "--events", *map(str, files), "--out", str(out),
+                       *options])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("e3dpsm run: error:"), err
     assert SEVERAL_FILES_ERRORS[case] in err[0], err
@@ -362,3 +363,11 @@ def test_stream_names_rule(events, names):
 def test_stream_names_refuses_paths_it_cannot_tell_apart(events, words):
     with pytest.raises(ConfigError, match=re.escape(words)):
         stream_names(events)
+
+
+def _exit_code(argv: list[str]) -> int:
+    """main's return code, or argparse's exit code for an argument it refused (one line too)."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return int(exc.code)

@@ -12,7 +12,7 @@ import importlib
 import importlib.util
 import logging
 import sys
-from typing import Sequence
+from typing import NoReturn, Sequence
 
 from e3dpsm.errors import E3DPSMError
 
@@ -57,14 +57,23 @@ def _set_guide(parser: argparse.ArgumentParser, page: str) -> None:
         target.epilog = f"{target.epilog} Guide: {page}" if target.epilog else f"Guide: {page}"
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, with a refused argument on one line like every other bad input (`e3dpsm CMD:
+    error: ...`, exit 2) instead of the usage block first."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {' '.join(message.split())}\n")
+        raise SystemExit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="e3dpsm",
         description="Train, export, quantise, verify and profile the E-3DPSM event-based "
         "egocentric 3D pose model.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     for name in COMMANDS:
         module_name = f"e3dpsm.cli.{name}"
         if importlib.util.find_spec(module_name) is None:

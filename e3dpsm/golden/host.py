@@ -100,12 +100,13 @@ def host_rollout_for(golden: GoldenRecord, sha256: str, runtime: str) -> HostRol
                   if e.get("sha256") == sha256 and e.get("runtime") == runtime), None)
     if entry is None or golden.folder is None:
         return None
+    from e3dpsm.data.formats.npz import load_arrays
+
     path = golden.folder / entry["file"]
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            outputs = {name: npz[f"out.{name}"] for name in golden.output_names}
-    except (OSError, KeyError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read the host rollout ({exc}); record it again with golden record --also") from exc
+    if not path.is_file():
+        raise DataError(f"{path}: the host rollout the manifest lists is missing; record it again with golden record --also")
+    arrays = load_arrays(path, tuple(f"out.{name}" for name in golden.output_names), ndim=3, what="the host rollout")
+    outputs = {name: arrays[f"out.{name}"] for name in golden.output_names}
     if any(v.shape[0] != golden.steps for v in outputs.values()):
         raise DataError(f"{path} does not hold the golden's {golden.steps} steps; record it again")
     return HostRollout(entry, outputs)

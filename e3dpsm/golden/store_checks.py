@@ -9,6 +9,7 @@ S snapshot steps, J joints, and per state a shape [batch, *dims] with K sampled 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,19 @@ def check_manifest(manifest: Any, path: Path) -> None:
     if scale is not None and not (_finite_number(scale) and scale > 0):
         raise bad("mpjpe_scale_mm", "a positive number or null")
     _check_tolerances(manifest.get("tolerances", {}), path)
+    _check_host_rollouts(manifest.get("host_rollouts", []), path)
+
+
+# golden record --also writes host/<graph stem>-<runtime>.npz: nothing else is read.
+_HOST_FILE = re.compile(r"host/[A-Za-z0-9_.+-]+\.npz")
+
+
+def _check_host_rollouts(entries: Any, path: Path) -> None:
+    fields = ("file", "sha256", "runtime")
+    if not isinstance(entries, list) or not all(
+            isinstance(e, dict) and all(isinstance(e.get(k), str) for k in fields)
+            and _HOST_FILE.fullmatch(e["file"]) for e in entries):
+        raise DataError(f"{path}: 'host_rollouts' must list {{file: host/NAME.npz, sha256, runtime}} objects; {FIX}")
 
 
 def _check_tolerances(tolerances: Any, path: Path) -> None:
@@ -71,10 +85,8 @@ def _check_tolerances(tolerances: Any, path: Path) -> None:
             profile = ToleranceProfile.from_dict(entry)
         except InputError as exc:
             raise DataError(f"{path}: tolerance profile {name!r}: {exc}; {FIX}") from exc
-        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.budget_pct, profile.step_factor,
-                   profile.max_growth)
-        required = profile.pose_atol_mm if profile.kind == "exact" else profile.budget_pct
-        if profile.kind not in ("exact", "budget") or required is None or \
+        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.max_growth)
+        if profile.kind not in ("exact", "budget") or (profile.kind == "exact" and profile.pose_atol_mm is None) or \
                 not all(v is None or (_finite_number(v) and v >= 0) for v in numbers):
             raise DataError(f"{path}: tolerance profile {name!r} is broken ({entry}); {FIX}")
 

@@ -53,13 +53,12 @@ def native_log_silenced():
 
 
 def load_program(path: str | os.PathLike) -> Any:
-    runtime = require("executorch.runtime", "to run .pte programs").Runtime.get()
     path = Path(path)
     if not path.is_file():
         raise DataError(f"model {path} does not exist")
     try:
         with native_log_silenced():
-            return runtime.load_program(path)
+            return require("executorch.runtime", "to run .pte programs").Runtime.get().load_program(path)
     except Exception as exc:  # the binding raises RuntimeError / ValueError for unreadable programs
         head = path.read_bytes()[:8]
         raise DataError(f"ExecuTorch {executorch_version()} cannot load {path} (file identifier "
@@ -89,11 +88,12 @@ class ExecuTorchStepSession(ArtifactSession):
         self._torch = torch
         program = load_program(path)
         meta, self.artifact = program_metadata(path, program)
-        if threads:
-            from executorch.extension.pybindings import portable_lib
+        with native_log_silenced():  # XNNPACK probes the CPU (cpuinfo) when it first starts
+            if threads:
+                from executorch.extension.pybindings import portable_lib
 
-            portable_lib._unsafe_reset_threadpool(int(threads))  # XNNPACK's pool is per process
-        self._method = program.load_method("forward")
+                portable_lib._unsafe_reset_threadpool(int(threads))  # XNNPACK's pool is per process
+            self._method = program.load_method("forward")
         self._program = program
         self._bind(path, meta, list(self.artifact.get("inputs", [])), list(self.artifact.get("outputs", [])))
 
