@@ -145,7 +145,7 @@ def test_recurrent_groups_cover_state_updates_and_stay_out_of_the_cnn(tiny_graph
         assert not leaked, f"{name} reaches into {leaked}"
 
 
-def test_state_aware_calibration_beats_zero_and_random_states(tmp_path, trained_graph, quant_data):  # noqa: F811
+def test_state_aware_calibration_beats_zero_states(tmp_path, trained_graph, quant_data):  # noqa: F811
     """On the trained tiny, with every node quantised (states included), calibrating with
     the states of FP32 rollouts moves the poses less than calibrating with zero states, what
     a calibration reader that does not feed states back gives (measured: 16.6 vs 20.3 mm;

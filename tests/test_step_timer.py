@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from e3dpsm.profiles.step_timing import speedup_interval, time_beside
+from test_profiles_agreement import FakeClock, StepOnlyRunner
 from e3dpsm.quantize.verdict import time_beside_fp32
 
 
@@ -78,36 +79,12 @@ def test_one_step_rounds_are_allowed() -> None:
     assert got.rounds == 12 and got.speedup == pytest.approx(0.5) and got.low == pytest.approx(0.5)
 
 
-class _FakeTime:
-    """A clock that only steps move: each runner's step advances it by that runner's cost."""
-
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    def runner(self, seconds: float) -> "_Runner":
-        return _Runner(self, seconds)
-
-
-class _Runner:
-    def __init__(self, clock: _FakeTime, seconds: float) -> None:
-        self.clock, self.seconds = clock, seconds
-
-    def reset(self) -> None:
-        pass
-
-    def step(self, lnes: np.ndarray) -> None:
-        self.clock.now += self.seconds
-
-
 def test_time_beside_reports_both_medians_in_milliseconds_and_needs_frames() -> None:
-    clock = _FakeTime()
-    timed = time_beside(clock.runner(0.004), clock.runner(0.002), np.zeros((3, 1)), steps=6, warmup=1, chunk=3,
-                        clock=clock)
+    clock = FakeClock()
+    timed = time_beside(StepOnlyRunner(clock, 0.004), StepOnlyRunner(clock, 0.002), np.zeros((3, 1)), steps=6,
+                        warmup=1, chunk=3, clock=clock)
     assert timed["p50_ms"] == pytest.approx(4.0) and timed["fp32_p50_ms"] == pytest.approx(2.0)
     assert timed["speedup_vs_fp32"] == pytest.approx(0.5) and timed["interval"]["rounds"] == 2
     assert timed["timer"] == {"kind": "side_by_side", "steps": 6, "warmup": 1, "chunk": 3, "frames": 3}
     with pytest.raises(ValueError, match="at least one frame"):
-        time_beside(clock.runner(0), clock.runner(0), np.zeros((0, 1)), steps=2)
+        time_beside(StepOnlyRunner(clock, 0), StepOnlyRunner(clock, 0), np.zeros((0, 1)), steps=2)
