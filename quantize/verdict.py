@@ -16,6 +16,11 @@ from e3dpsm.budget import BudgetCheck
 RUNTIME_NAMES = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}
 
 
+# What a graph that is not faster here still serves, by mode.
+ACCELERATORS = {"int8": "integer-only accelerators", "int8-dynamic": "integer-only accelerators",
+                "fp16": "fp16 accelerators (GPUs, NPUs)"}
+
+
 @dataclass(frozen=True)
 class Verdict:
     mode: str
@@ -64,7 +69,8 @@ class Verdict:
         if best is not None and self.loaded(best[0]):
             host += " (loaded while timed: time it again on a quiet host)"
         return (f"Verdict: no {self.mode} graph beats fp32 on {host}" + (f" ({speeds} fp32's speed)" if speeds else "")
-                + f"; this one is {budget}: ship it for size and integer-only accelerators. Faster here: "
+                + f"; this one is {budget}: ship it for size and {ACCELERATORS.get(self.mode, 'accelerators')}. "
+                + "Faster here: "
                 + ", ".join(self.faster_alternatives()) + ".")
 
     def faster_alternatives(self) -> list[str]:

@@ -67,3 +67,8 @@ def test_a_speed_up_timed_on_an_oversubscribed_host_is_not_trusted():
     busy = Verdict("int8", _check(3.0), "onnxruntime", 0.3, {"onnxruntime": timed(cores + 0.5)}, VNNI)
     assert busy.headline().startswith("Verdict: no int8 graph beats fp32 on this vnni host (loaded while timed: "
                                       "time it again on a quiet host) (ONNX Runtime 1.60x fp32's speed)")
+
+
+def test_an_fp16_graph_not_faster_here_is_for_fp16_accelerators():
+    line = Verdict("fp16", _check(3.0), "onnxruntime", 0.52, {"onnxruntime": _timing(0.97, 0.9, 1.05)}, VNNI).headline()
+    assert "ship it for size and fp16 accelerators (GPUs, NPUs)" in line and "integer-only" not in line
