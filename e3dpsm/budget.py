@@ -81,11 +81,16 @@ class MetricChange:
         return bool(self.upper_pct <= self.limit_pct)
 
     @property
+    def surely_over(self) -> bool:
+        """Over its limit even at the interval's lower end: more frames would not save it."""
+        return bool(self.lower_pct > self.limit_pct)
+
+    @property
     def precise(self) -> bool:
         return bool(self.noise_pct <= PRECISION_SHARE * self.limit_pct)
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "within": self.within, "precise": self.precise}
+        return {**asdict(self), "within": self.within, "surely_over": self.surely_over, "precise": self.precise}
 
 
 @dataclass(frozen=True)
@@ -107,6 +112,14 @@ class BudgetCheck:
         return all(m.precise for m in self.metrics)
 
     @property
+    def answer(self) -> str:
+        """"within" (every upper end within its limit), "over" (some lower end over its limit)
+        or "undecided" (an interval straddles its limit: too few frames to tell)."""
+        if self.within:
+            return "within"
+        return "over" if any(m.surely_over for m in self.metrics) else "undecided"
+
+    @property
     def fidelity_pct(self) -> float:
         """The distance to fp32's poses relative to fp32's MPJPE (the former budget's measure)."""
         return 100.0 * self.fidelity_mm / self.metric("mpjpe").fp32_mm
@@ -120,7 +133,8 @@ class BudgetCheck:
         return next(m for m in self.metrics if m.name == name)
 
     def to_dict(self) -> dict:
-        return {"within": self.within, "precise": self.precise, "frames": self.frames, "sequences": self.sequences,
+        return {"within": self.within, "answer": self.answer, "precise": self.precise, "frames": self.frames,
+                "sequences": self.sequences,
                 "fidelity_mm": self.fidelity_mm, "fidelity_pct": self.fidelity_pct,
                 "metrics": {m.name: m.to_dict() for m in self.metrics}, "budget": self.budget.to_dict()}
 

@@ -138,7 +138,8 @@ def _question_lines(result) -> list[str]:
             "`golden record --also GRAPH --also-runtime RUNTIME`)" if host is None else
             f"{'yes' if host else 'NO'}, against the host rollout of {result.host['graph']} made on a "
             f"{result.host['isa']['kind']} host")
-    return [f"within its accuracy budget: {'yes' if b.within else 'NO'} ({changes}; {b.frames} frames)",
+    said = {"within": "yes", "over": "NO", "undecided": "undecided, too few frames to bound it inside its limit"}
+    return [f"within its accuracy budget: {said[b.answer]} ({changes}; {b.frames} frames)",
             f"computes what the host computed: {same}"]
 
 
@@ -194,7 +195,8 @@ def run_check(args: argparse.Namespace) -> int:
 def summary_markdown(verdicts: list[dict]) -> str:
     lines = ["| graph | runtime | profile | verdict | within budget | same as host | pose error (max / mean) "
              "| first failure | ms/step |", "|---|---|---|---|---|---|---:|---|---:|"]
-    answer = {True: "yes", False: "**no**", None: "-"}
+    answer = {True: "yes", False: "**no**", None: "-", "within": "yes", "over": "**no**",
+              "undecided": "undecided (too few frames)"}
     for v in verdicts:
         if v["status"] == "skipped":
             lines.append(f"| {Path(v['model']).name} | {v['runtime']} | - | skipped: {v['reason']} | - | - | - | - | - |")

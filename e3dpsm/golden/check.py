@@ -132,13 +132,18 @@ class GoldenCheck:
 
     @property
     def passed(self) -> bool:
-        return all(t.passed for t in self.tensors) and (self.budget is None or self.budget.within)
+        """Every judged tensor within its limits, and the budget not surely over. An undecided
+        budget (a golden too short to bound a metric inside its limit) does not fail a device:
+        the quantiser held the graph to the budget on its own held-out frames; the host
+        question is what a device answers (the summary says the budget is undecided)."""
+        return all(t.passed for t in self.tensors) and (self.budget is None or self.budget.answer != "over")
 
     @property
     def questions(self) -> dict[str, Any]:
-        """A compressed graph's two answers: within its budget; the same as the host computed."""
+        """A compressed graph's two answers: its budget ("within", "over", "undecided"); the
+        same as the host computed."""
         host = [t for t in self.tensors if t.measure == HOST_MEASURE]
-        return {"within_budget": None if self.budget is None else self.budget.within,
+        return {"within_budget": None if self.budget is None else self.budget.answer,
                 "same_as_host": all(t.passed for t in host) if host else None}
 
     @property
@@ -151,6 +156,11 @@ class GoldenCheck:
                 "step_limit": tensor.step_limit, "mean_limit": tensor.mean_limit, "measure": tensor.measure}
 
     def summary(self) -> str:
+        if self.passed and self.budget is not None and self.budget.answer == "undecided":
+            worst = max(self.budget.metrics, key=lambda m: m.upper_pct / m.limit_pct)
+            return (f"PASSED: {self.steps} steps within the {self.profile.name} profile; budget undecided on "
+                    f"{self.budget.frames} frames ({worst.name} {worst.change_pct:+.2f}%, upper bound "
+                    f"{worst.upper_pct:+.2f}% over +{worst.limit_pct:g}%): record a longer golden to decide")
         if self.passed:
             return f"PASSED: {self.steps} steps within the {self.profile.name} profile"
         f = self.first_failure
@@ -237,8 +247,11 @@ def check_golden(runner: GraphStepper, golden: GoldenRecord, profile: ToleranceP
             errors = _finite(joint_errors(got, host.outputs[name].astype(np.float64)).mean(axis=1))
             tensors.append(TensorCheck(name, "output", HOST_MEASURE, errors, step_limit, mean_limit=mean_limit))
     for name, errors in state_err.items():
+        # A compressed graph's states are not fp32's (INT8 S5 states sit ~0.5 relative RMS
+        # away): how far is reported; that they stay bounded (growth) is judged.
         tensors.append(TensorCheck(name, "state", "rel_to_absmax" if exact else "rel_rms", _finite(errors),
-                                   profile.state_rtol, growth_limit=None if exact else profile.max_growth))
+                                   profile.state_rtol if exact else math.inf,
+                                   growth_limit=None if exact else profile.max_growth))
     accuracy = None
     if not exact:
         from e3dpsm.budget import TaskBudget, check_budget
