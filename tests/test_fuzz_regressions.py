@@ -131,7 +131,7 @@ def test_run_refuses_an_hour_of_silence_in_seconds_instead_of_stepping_it(tiny_g
 
 
 def test_the_gap_check_spans_chunks_as_the_live_source_delivers_them():
-    from e3dpsm.cli._run_common import check_gaps
+    from e3dpsm.runtime.run_output import check_gaps
 
     check_gaps(np.array([5_000_000, 6_000_000]), 60, 20, "dv://h:1", previous_us=0)  # 5 s: fine
     with pytest.raises(DataError, match=r"^dv://h:1: event 0 and the event before it are 70 s apart: 3,500 empty "

@@ -171,3 +171,31 @@ def test_serve_has_no_import_cycle_even_in_its_type_annotations():
     edges = import_edges(serve, type_checking=True)
     assert "e3dpsm.serve.clients" in edges["e3dpsm.serve.report"]  # a TYPE_CHECKING import is seen
     assert cycles(edges) == []
+
+
+def _imported_names(tree: ast.Module, package: str) -> set[str]:
+    """Every module an import anywhere in the file names (inside functions too), relative ones resolved."""
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            anchor = package.split(".")[: len(package.split(".")) - max(node.level - 1, 0)] if node.level else []
+            base = ".".join([*anchor, node.module] if node.module else anchor)
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def test_the_library_never_imports_the_cli():
+    """The CLI parses and delegates: no module outside e3dpsm.cli reaches into it, not even from
+    inside a function (the entry point `e3dpsm.__main__` excepted)."""
+    offenders = []
+    for name, path in package_modules().items():
+        if name == "e3dpsm.cli" or name.startswith("e3dpsm.cli.") or name == "e3dpsm.__main__":
+            continue
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        imported = _imported_names(ast.parse(path.read_text(), str(path)), package)
+        offenders += [f"{name} -> {target}" for target in sorted(imported)
+                      if target == "e3dpsm.cli" or target.startswith("e3dpsm.cli.")]
+    assert offenders == [], offenders

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -14,7 +15,7 @@ import onnx
 import pytest
 
 from e3dpsm.cli import main
-from e3dpsm.errors import InputError
+from e3dpsm.errors import ConfigError, InputError
 from e3dpsm.runtime import StreamingPoseEstimator
 from _runtime_helpers import (
     WINDOW_US, chunked, exported_tiny, reference_frames, shared_session, step_frames, synthetic_stream,
@@ -154,9 +155,10 @@ def test_bad_chunks_raise_input_error(session, stream, bad):
 # -- torch-free and metadata-only operation ---------------------------------------------------
 
 def test_runtime_imports_no_torch():
-    # The many-file form takes its helpers from _run_common, never from run.py (no import circle).
-    code = ("import sys, e3dpsm.runtime, e3dpsm.runtime.stream, e3dpsm.cli._run_many; "
-            "assert 'e3dpsm.cli.run' not in sys.modules, 'run.py imported by _run_many'; "
+    # `run`'s body is library code: its forms load without the CLI, and neither pulls in torch.
+    code = ("import sys, e3dpsm.runtime, e3dpsm.runtime.stream, e3dpsm.runtime.run_command, e3dpsm.runtime.run_file, "
+            "e3dpsm.runtime.run_many, e3dpsm.runtime.run_live; "
+            "cli = [m for m in sys.modules if m.startswith('e3dpsm.cli')]; assert not cli, cli; "
             "import e3dpsm.cli.run; assert 'torch' not in sys.modules, 'torch imported'")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -239,6 +241,8 @@ def test_cli_writes_poses_and_report(tiny_graph, session, stream, tmp_path, caps
 
     report = json.loads((tmp_path / "out" / "poses.report.json").read_text())
     assert report["command"] == "run" and "versions" in report
+    assert report["config"] == {"model": str(tiny_graph[1]), "events": str(events), "out": str(out), "window_ms": 20.0,
+                                "threads": 1, "start_us": None, "chunk_events": 700}
     assert report["windows"] == len(starts) and report["empty_windows"] == int((counts == 0).sum())
     assert report["events"] == int(counts.sum()) and report["events_in_file"] == stream[2].size
     assert report["mean_step_ms"] > 0 and report["overhead_ms"] >= 0
@@ -247,6 +251,41 @@ def test_cli_writes_poses_and_report(tiny_graph, session, stream, tmp_path, caps
     assert 0 < step["p50"] <= window["p50"] and step["max"] <= window["max"]
     assert step["max"] + 1e-3 >= report["mean_step_ms"]  # the largest (exact, 3 decimals) of the steps averaged
     assert sorted(p.name for p in out.parent.iterdir()) == ["poses.csv", "poses.report.json"]
+
+
+def test_run_is_one_library_call_that_writes_what_the_command_writes(tiny_graph, stream, tmp_path, capsys):
+    from e3dpsm.runtime.run_command import RunRequest, run_poses
+
+    events = write_npz(tmp_path / "events.npz", *stream)
+    assert main(["run", "--model", str(tiny_graph[1]), "--events", str(events), "--out", str(tmp_path / "cli.csv"),
+                 "--threads", "1", "--no-progress"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    result = run_poses(RunRequest(model=str(tiny_graph[1]), events=(str(events),), out=str(tmp_path / "lib.csv"),
+                                  threads=1))
+    assert (tmp_path / "lib.csv").read_text() == (tmp_path / "cli.csv").read_text()
+    assert result.report == json.loads((tmp_path / "lib.report.json").read_text())  # the report as written
+    cli_report = json.loads((tmp_path / "cli.report.json").read_text())
+    assert result.report.keys() == cli_report.keys() and result.report["config"].keys() == cli_report["config"].keys()
+    assert len(printed) == len(result.summary) == 1
+    assert result.summary[0].split(" at ")[0] == printed[0].split(" at ")[0]  # counts agree; timings differ
+    assert result.summary[0].endswith(f"-> {tmp_path / 'lib.csv'}")
+
+
+@pytest.mark.parametrize("fields, words", [
+    ({"events": ("a.h5", "dv://h:1")}, "a live dv:// source runs alone"),
+    ({"events": ("dv://h:1",), "render": "x.gif"}, "not available for a live dv:// source"),
+    ({"events": ("dv://h:1",), "max_seconds": 0}, "--max-seconds must be positive"),
+    ({"render_max_frames": 3}, "--render-max-frames needs --render PATH"),
+    ({"events": ("a.h5", "b.h5"), "render_max_frames": 3}, "--render draws one stream"),
+    ({"max_gap_s": 0.0}, "--max-gap-s must be positive"),
+    ({"events": ()}, "at least one --events"),
+])
+def test_run_request_refuses_what_the_command_refuses_before_any_file_is_touched(tmp_path, fields, words):
+    from e3dpsm.runtime.run_command import RunRequest
+
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        RunRequest(**{"model": "missing.onnx", "events": ("a.h5",), "out": tmp_path / "p.csv", **fields})
+    assert list(tmp_path.iterdir()) == []
 
 
 def stripped_graph(path: Path, folder: Path) -> Path:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from e3dpsm.cli import main
-from e3dpsm.cli._run_many import stream_names
+from e3dpsm.runtime.run_many import stream_names
 from e3dpsm.data.readers import write_events_h5
 from e3dpsm.data.sequence import EventStream
 from e3dpsm.errors import ConfigError, InputError

@@ -1,34 +1,16 @@
 """`e3dpsm run`: drive an exported step graph over an event file, poses to CSV.
 
-Torch-free (numpy, onnxruntime, the csv module): the command a device runs.
-
-Output: `--out poses.csv` with columns t_us (window end) then <joint>_x/_y/_z in mm for the
-joints named in the graph's metadata, and `poses.report.json` beside it. Both are written
-under temporary names and renamed only when the whole stream ran, so a failure leaves
-nothing behind. A stream that yields no complete window (no events, or shorter than one
-window) is an error rather than an empty CSV: a pipeline waiting for poses should stop.
+Options only; the body is e3dpsm.runtime.run_command (one file, several files or a live
+dv:// source; docs/runtimes.md). Torch-free, like the runtime: the command a device runs.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
-import csv
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
 
 from e3dpsm.cli._common import add_force, add_threads
-from e3dpsm.cli._run_common import (
-    check_gaps, check_stream_options, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row,
-    report_head,
-)
-
-if TYPE_CHECKING:  # pragma: no cover
-    from e3dpsm.runtime import StreamingPoseEstimator
-    from e3dpsm.runtime.stream import EventChunk
-
-DEFAULT_CHUNK_EVENTS = 100_000
-MAX_GAP_S = 60.0
+from e3dpsm.runtime.run_command import DEFAULT_CHUNK_EVENTS, LIVE_TIMEOUT_S, MAX_GAP_S, RunRequest, run_poses
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -73,122 +55,20 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         help="refuse a silence longer than this between two events (default "
                         f"{MAX_GAP_S:g} s): every empty window is stepped, so a corrupted timestamp would keep "
                         "run stepping for hours; an event camera is never silent that long")
-    parser.add_argument("--live-timeout-s", type=float, default=5.0,
-                        help="dv:// source: connect timeout, and how long a silent stream counts as stopped (default 5)")
+    parser.add_argument("--live-timeout-s", type=float, default=LIVE_TIMEOUT_S,
+                        help="dv:// source: connect timeout, and how long a silent stream counts as stopped "
+                        f"(default {LIVE_TIMEOUT_S:g})")
     parser.set_defaults(func=run)
     return parser
 
 
-def report_path(out: Path) -> Path:
-    return out.with_name(out.stem + ".report.json")
-
-
 def run(args: argparse.Namespace) -> int:
-    from e3dpsm.data.readers import read_events
-    from e3dpsm.errors import ConfigError, DataError, OutputExistsError
-    from e3dpsm.runtime import StreamingPoseEstimator
-    from e3dpsm.runtime.stepping import open_stepper
-    from e3dpsm.utils.io import atomic_path, write_json_atomic
-
-    # The one --render check for both forms: the many-file form never sees --render.
-    if len(args.events) > 1 and (args.render is not None or args.render_max_frames is not None):
-        raise ConfigError("--render draws one stream: pass a single --events file")
-    check_stream_options(args)
-    from e3dpsm.data.live import is_live_url
-
-    if len(args.events) > 1 and any(is_live_url(e) for e in args.events):
-        raise ConfigError("a live dv:// source runs alone: pass it as the only --events")
-    if len(args.events) > 1:  # several streams, one session: e3dpsm/cli/_run_many.py
-        from e3dpsm.cli._run_many import run_many
-
-        return run_many(args)
-    args.events = args.events[0]  # one file: exactly the single-stream command below
-    out = Path(args.out)
-    if out.is_dir():
-        raise DataError(f"--out {out} is a folder; expected a CSV file path")
-    if out.exists() and not args.force:
-        raise OutputExistsError(f"{out} exists; pass --force to replace it")
-    check_writable_folder(out.parent)  # fail before minutes of inference, not after
-    if is_live_url(args.events):
-        from e3dpsm.cli._run_live import run_live
-
-        return run_live(args, out, report_path(out))
-    if args.render is None and args.render_max_frames is not None:
-        raise ConfigError("--render-max-frames needs --render PATH")
-    if args.render is not None:  # a missing .mp4 encoder is reported before the stream runs
-        from e3dpsm.runtime.render import check_render_path
-
-        check_render_path(args.render, force=args.force, max_frames=args.render_max_frames)
-        check_writable_folder(Path(args.render).parent)
-
-    session = open_stepper(args.model, threads=args.threads)  # a bad graph fails before reading events
-    # The file's own sensor size (attributes or event_meta.json) wins over the graph's default.
-    stream = read_events(args.events)
-    estimator = StreamingPoseEstimator(
-        session, window_ms=args.window_ms, start_us=args.start_us, sensor_hw=stream.sensor_hw,
-        keep_frames=args.render is not None,
+    request = RunRequest(
+        model=args.model, events=tuple(args.events), out=Path(args.out), window_ms=args.window_ms,
+        threads=args.threads, start_us=args.start_us, chunk_events=args.chunk_events, max_gap_s=args.max_gap_s,
+        force=args.force, progress=not args.no_progress and sys.stderr.isatty(), render=args.render,
+        render_max_frames=args.render_max_frames, max_seconds=args.max_seconds, live_timeout_s=args.live_timeout_s,
     )
-    check_gaps(stream.t_us, args.max_gap_s, estimator.window_ms, args.events)
-    video = _stream_render(args, estimator)
-    chunks = event_chunks(stream, args.chunk_events)
-    if not args.no_progress and sys.stderr.isatty():
-        chunks = _with_progress(chunks, len(stream))
-
-    # Rows go to the temporary CSV as they come (memory stays flat on long recordings); both
-    # files appear under their names only once the whole stream ran.
-    with atomic_path(out, suffix=".csv") as tmp_csv, atomic_path(report_path(out), suffix=".json") as tmp_report, \
-            video or contextlib.nullcontext():
-        with open(tmp_csv, "w", newline="", encoding="utf-8") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(pose_columns(estimator.joints))
-            for pose in estimator.run(chunks):
-                writer.writerow(pose_row(pose))
-                if video is not None:
-                    video.add(pose)
-        if estimator.stats.windows == 0:  # documented choice: an error, not an empty CSV
-            raise no_window_error(args.events, stream, estimator.window_ms, estimator.stats)
-        report = _report(args, out, estimator, len(stream))
-        write_json_atomic(tmp_report, report)
-    print(
-        f"{report['windows']} poses ({report['empty_windows']} empty windows, {report['events']} events) at "
-        f"{report['mean_step_ms']:.2f} ms/step + {report['overhead_ms']:.2f} ms runtime overhead -> {out}"
-    )
-    if video is not None:
-        done = video.video.summary()
-        first = f" (the first {done.frames} of {done.poses_seen} poses)" if done.frames < done.poses_seen else ""
-        print(f"render: {done.frames} frames{first}, {done.frames_with_ground_truth} with ground truth -> {done.path}")
+    for line in run_poses(request).summary:
+        print(line)
     return 0
-
-
-def _stream_render(args: argparse.Namespace, estimator: StreamingPoseEstimator):  # -> StreamRender | None
-    if args.render is None:
-        return None
-    from e3dpsm.runtime.render_stream import StreamRender
-
-    return StreamRender(args.render, args.events, estimator.window_us, estimator.sensor_hw,
-                        max_frames=args.render_max_frames, force=args.force)
-
-
-def _report(args: argparse.Namespace, out: Path, estimator: StreamingPoseEstimator, events_in_file: int) -> dict:
-    summary = estimator.stats.to_dict()
-    return {
-        **report_head(args, out, estimator, str(args.events)),
-        "sensor_hw": list(estimator.sensor_hw),
-        "first_window_start_us": estimator.first_window_start_us,
-        "events_in_file": events_in_file,
-        **summary,
-        "overhead_ms": summary["mean_overhead_ms"],  # per window: validation, windowing, LNES, feeds
-    }
-
-
-def _with_progress(chunks: Iterator[EventChunk], total_events: int) -> Iterator[EventChunk]:
-    try:
-        from tqdm import tqdm
-    except ImportError:  # devices without tqdm run without a bar
-        yield from chunks
-        return
-    with tqdm(total=total_events, unit="ev", unit_scale=True, desc="run", file=sys.stderr) as bar:
-        for chunk in chunks:
-            yield chunk
-            bar.update(len(chunk[2]))
-

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     check_options(args)
     import asyncio
 
-    from e3dpsm.cli._run_common import check_writable_folder
+    from e3dpsm.utils.io import check_writable_folder
     from e3dpsm.joints import JOINT_NAMES, PARENTS
     from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.serve.clients import ClientHub

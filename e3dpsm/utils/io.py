@@ -71,6 +71,18 @@ def refuse_existing_output(path: str | os.PathLike, force: bool) -> Path:
     return target
 
 
+def check_writable_folder(folder: str | os.PathLike) -> None:
+    """The nearest existing ancestor of `folder` must be a writable directory; commands call it
+    before minutes of work, so that an output they cannot write fails first, not last."""
+    probe = Path(folder).absolute()
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise DataError(f"cannot write to {folder}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise DataError(f"cannot write to {folder}: {probe} is not writable")
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike, *, force: bool = False) -> Iterator[Path]:
     """Build an output folder under a temporary name and rename it into place at the end.

@@ -1,45 +1,24 @@
-"""What `e3dpsm run` shares between its one-file form (run.py) and its many-file form
-(_run_many.py): option checks, event chunking, CSV rows, the report's common part and the
-no-window error, the gap check. Both import from here and neither imports the other's helpers,
-so there is no import circle. Torch-free: the standard library and numpy (imported where it is
-used); onnxruntime comes in through the objects passed in.
+"""What the forms of `e3dpsm run` (run_file.py, run_many.py, run_live.py) share: the gap check,
+event chunking, the CSV's columns and rows, the report's common parts and the no-window error.
+Torch-free: the standard library and numpy (imported where it is used); onnxruntime comes in
+through the objects passed in.
 """
 from __future__ import annotations
 
-import argparse
+import csv
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterable, Iterator
 
-from e3dpsm.errors import ConfigError, DataError
+from e3dpsm.errors import DataError
 
 if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.data.sequence import EventStream
-    from e3dpsm.runtime.stream import EventChunk, PoseEstimate, StreamStats
+    from e3dpsm.runtime.run_command import RunRequest
+    from e3dpsm.runtime.stream import EventChunk, PoseEstimate, StreamingPoseEstimator, StreamStats
 
 PRECISION = 4  # decimals of a joint coordinate (mm) in the CSV
-
-
-def check_stream_options(args: argparse.Namespace) -> None:
-    """Refuse option values the runtime cannot use, before any file is opened."""
-    if args.chunk_events <= 0:
-        raise ConfigError(f"--chunk-events must be positive, got {args.chunk_events}")
-    if args.threads is not None and args.threads <= 0:
-        raise ConfigError(f"--threads must be positive, got {args.threads}")
-    if not args.max_gap_s > 0:
-        raise ConfigError(f"--max-gap-s must be positive, got {args.max_gap_s}")
-
-
-def check_writable_folder(folder: Path) -> None:
-    """The nearest existing ancestor of `folder` must be a writable directory."""
-    probe = folder.absolute()
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise DataError(f"cannot write to {folder}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise DataError(f"cannot write to {folder}: {probe} is not writable")
 
 
 def check_gaps(t_us: Any, max_gap_s: float, window_ms: float, source: str, previous_us: int | None = None) -> None:
@@ -80,8 +59,22 @@ def pose_row(pose: PoseEstimate) -> list[Any]:
     return [pose.t_us, *(f"{v:.{PRECISION}f}" for v in pose.pose.reshape(-1).tolist())]
 
 
-def report_head(args: argparse.Namespace, out: Path, estimator: Any, events: str | list[str]) -> dict[str, Any]:
-    """The part of run's JSON report both forms write: header with the config, graph, policies.
+def write_pose_csv(path: str | os.PathLike, joints: list[str], poses: Iterable[PoseEstimate]) -> None:
+    """Rows go to the file as they come, so memory stays flat on long recordings."""
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(pose_columns(joints))
+        for pose in poses:
+            writer.writerow(pose_row(pose))
+
+
+def report_path(out: Path) -> Path:
+    """The one-stream forms' report, beside the CSV: poses.csv -> poses.report.json."""
+    return out.with_name(out.stem + ".report.json")
+
+
+def report_head(request: RunRequest, out: Path, estimator: Any, events: str | list[str]) -> dict[str, Any]:
+    """The part of run's JSON report every form writes: header with the config, graph, policies.
 
     `estimator` is a StreamingPoseEstimator or a MultiStreamEstimator (same session, window_ms,
     frame_hw attributes)."""
@@ -89,8 +82,8 @@ def report_head(args: argparse.Namespace, out: Path, estimator: Any, events: str
 
     meta = estimator.session.meta
     config = {
-        "model": str(args.model), "events": events, "out": str(out), "window_ms": estimator.window_ms,
-        "threads": args.threads, "start_us": args.start_us, "chunk_events": args.chunk_events,
+        "model": str(request.model), "events": events, "out": str(out), "window_ms": estimator.window_ms,
+        "threads": request.threads, "start_us": request.start_us, "chunk_events": request.chunk_events,
     }
     return {
         **report_header("run", config),
@@ -98,6 +91,21 @@ def report_head(args: argparse.Namespace, out: Path, estimator: Any, events: str
                   "frame_hw": list(estimator.frame_hw)},
         "pose_timestamp": "window end",
         "empty_window_policy": "stepped with an all-zero LNES frame (states decay, fusion runs)",
+    }
+
+
+def stream_report(request: RunRequest, estimator: StreamingPoseEstimator, source: str,
+                  **middle: Any) -> dict[str, Any]:
+    """The one-stream forms' report: the head, the stream's grid, `middle` (what the form adds),
+    then the estimator's statistics."""
+    summary = estimator.stats.to_dict()
+    return {
+        **report_head(request, request.out, estimator, source),
+        "sensor_hw": list(estimator.sensor_hw),
+        "first_window_start_us": estimator.first_window_start_us,
+        **middle,
+        **summary,
+        "overhead_ms": summary["mean_overhead_ms"],  # per window: validation, windowing, LNES, feeds
     }
 
 

@@ -1,58 +1,47 @@
-"""`e3dpsm run --events a.h5 b.h5 ... --out DIR`: several event files as independent streams
-through one session (e3dpsm.runtime.MultiStreamEstimator), one CSV per file.
+"""`e3dpsm run`'s many-file form: several event files as independent streams through one
+session (e3dpsm.runtime.MultiStreamEstimator), one CSV per file.
 
 Each file is one stream with its own window grid and states; the streams' chunks are pushed
-together, so the windows they complete share batched session calls. `--out` is a folder: one
-CSV per file, named by `stream_names` (same columns as the one-file form), and one
+together, so the windows they complete share batched session calls. The request's `out` is a
+folder: one CSV per file, named by `stream_names` (same columns as the one-file form), and one
 `run.report.json` recording which file went to which CSV. Everything is written under
 temporary names and renamed only once every stream ran; a file that yields no complete window
-fails the whole run, as in the one-file form. Torch-free, like the one-file command.
-
-run.py checks the options both forms share (and refuses --render here) before dispatching;
-this module takes its helpers from _run_common and never imports run.py.
+fails the whole run, as in the one-file form. Torch-free, like the one-file form.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
-from e3dpsm.cli._run_common import (
-    check_gaps, check_writable_folder, event_chunks, no_window_error, pose_columns, pose_row, report_head,
-)
 from e3dpsm.errors import ConfigError
+from e3dpsm.runtime.run_command import RunResult
+from e3dpsm.runtime.run_output import check_gaps, event_chunks, no_window_error, pose_columns, pose_row, report_head
+
+if TYPE_CHECKING:  # pragma: no cover
+    from e3dpsm.runtime.run_command import RunRequest
 
 NAME_JOIN = "__"  # between the folder names that tell two sequences apart: a__seq_0000.csv
 REPORT_NAME = "run.report.json"
 
 
-def run_many(args: argparse.Namespace) -> int:
-    """The many-file form of `e3dpsm run`; `args` as run.run passes them, shared options checked."""
+def run_many(request: RunRequest) -> RunResult:
+    """The many-file form; the request's options already checked (RunRequest)."""
     from e3dpsm.data.readers import read_events
-    from e3dpsm.errors import DataError, OutputExistsError
     from e3dpsm.runtime import MultiStreamEstimator
     from e3dpsm.runtime.stepping import open_stepper
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise DataError(f"--out {out} is a file; with several --events files it names a folder of CSVs")
-    sources = dict(zip(stream_names(args.events), args.events))  # stream name -> event file
-    targets = {name: out / f"{name}.csv" for name in sources}
-    existing = [str(p) for p in [*targets.values(), out / REPORT_NAME] if p.exists()]
-    if existing and not args.force:
-        raise OutputExistsError(f"{existing[0]} exists; pass --force to replace it")
-    check_writable_folder(out)
-
-    session = open_stepper(args.model, threads=args.threads)  # a bad graph fails before reading events
+    out = request.out
+    sources, targets = _outputs(request)
+    session = open_stepper(request.model, threads=request.threads)  # a bad graph fails before reading events
     streams = {name: read_events(path) for name, path in sources.items()}
-    estimator = MultiStreamEstimator(session, window_ms=args.window_ms)
+    estimator = MultiStreamEstimator(session, window_ms=request.window_ms)
     for name, stream in streams.items():  # the file's own sensor size wins over the graph's default
-        estimator.add_stream(name, start_us=args.start_us, sensor_hw=stream.sensor_hw)
-        check_gaps(stream.t_us, args.max_gap_s, estimator.window_ms, sources[name])
+        estimator.add_stream(name, start_us=request.start_us, sensor_hw=stream.sensor_hw)
+        check_gaps(stream.t_us, request.max_gap_s, estimator.window_ms, sources[name])
 
     with contextlib.ExitStack() as stack:
         stack.enter_context(_removed_on_failure_if_new(out))  # entered first: leaves after the temporaries
@@ -63,23 +52,36 @@ def run_many(args: argparse.Namespace) -> int:
                                               newline="", encoding="utf-8"))
             writers[name] = csv.writer(handle)
             writers[name].writerow(pose_columns(estimator.joints))
-        _run_streams(estimator, {name: event_chunks(stream, args.chunk_events) for name, stream in streams.items()},
-                     writers)
+        _run_streams(estimator, {name: event_chunks(stream, request.chunk_events)
+                                 for name, stream in streams.items()}, writers)
         for name, stream in streams.items():  # documented choice: an error, not an empty CSV
             stats = estimator.stream_stats(name)
             if stats.windows == 0:  # every stream has the estimator's window
                 raise no_window_error(sources[name], stream, estimator.window_ms, stats)
-        report = _report(args, out, estimator, streams, sources, targets)
+        report = _report(request, estimator, streams, sources, targets)
         write_json_atomic(tmp_report, report)
     totals = report["totals"]
-    print(
+    return RunResult(report, (
         f"{len(streams)} streams, {totals['rows_stepped']} poses in {totals['session_calls']} batched steps "
         f"(mean batch {totals['mean_batch']:.2f}) at {totals['mean_step_ms_per_pose']:.2f} ms/pose + "
-        f"{totals['mean_overhead_ms_per_pose']:.2f} ms runtime overhead -> {out}"
-    )
-    return 0
+        f"{totals['mean_overhead_ms_per_pose']:.2f} ms runtime overhead -> {out}",))
 
 
+def _outputs(request: RunRequest) -> tuple[dict[str, str], dict[str, Path]]:
+    """Stream name -> event file and stream name -> CSV, refusing outputs it must not replace."""
+    from e3dpsm.errors import DataError, OutputExistsError
+    from e3dpsm.utils.io import check_writable_folder
+
+    out = request.out
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out} is a file; with several --events files it names a folder of CSVs")
+    sources = dict(zip(stream_names(list(request.events)), request.events))
+    targets = {name: out / f"{name}.csv" for name in sources}
+    existing = [str(p) for p in [*targets.values(), out / REPORT_NAME] if p.exists()]
+    if existing and not request.force:
+        raise OutputExistsError(f"{existing[0]} exists; pass --force to replace it")
+    check_writable_folder(out)
+    return sources, targets
 def stream_names(events: list[str]) -> list[str]:
     """One name per event file (its CSV is `<name>.csv`), saying what tells the files apart.
 
@@ -165,7 +167,7 @@ def _run_streams(estimator: Any, chunk_iterators: dict[str, Any], writers: dict[
                     writers[name].writerow(pose_row(pose))
 
 
-def _report(args: argparse.Namespace, out: Path, estimator: Any, streams: dict, sources: dict[str, str],
+def _report(request: RunRequest, estimator: Any, streams: dict, sources: dict[str, str],
             targets: dict[str, Path]) -> dict:
     per_stream = {}
     for name, stream in streams.items():
@@ -176,7 +178,7 @@ def _report(args: argparse.Namespace, out: Path, estimator: Any, streams: dict, 
             "events_in_file": len(stream), **stats,
         }
     return {
-        **report_head(args, out, estimator, [str(e) for e in args.events]),
+        **report_head(request, request.out, estimator, list(request.events)),
         "batching": "the streams' complete windows share batched session calls (one row per stream)",
         "csv_naming": "each CSV is named by the shortest end of its event file's path (folders, stem; joined with "
                       f"{NAME_JOIN!r}) that tells it apart from the other files, after the end they all share",
