@@ -188,3 +188,5 @@ def test_bisection_stops_at_its_probe_limit():
     fits = lambda k: probes.append(k) or k >= 11  # noqa: E731
     assert smallest_prefix(40, fits, max_probes=6) == 12  # the sixth probe fits: the best measured so far
     assert probes == [1, 2, 4, 8, 16, 12]
+    probes.clear()
+    assert smallest_prefix(40, fits, max_probes=7) == 12 and probes == [1, 2, 4, 8, 16, 12, 10]  # one more: 10 is over
