@@ -3,12 +3,14 @@ pooled MPJPE / PA-MPJPE, an explicit loop for jitter and for the block bootstrap
 cases for the inclusive edge and the noise rule."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from e3dpsm.errors import ConfigError
 from e3dpsm.metrics import jitter, mpjpe, pa_mpjpe
-from e3dpsm.budget import (PRECISION_SHARE, MetricChange, TaskBudget, block_sums, check_budget,
+from e3dpsm.budget import (PRECISION_SHARE, BudgetCheck, MetricChange, TaskBudget, block_sums, check_budget,
                                     paired_change)
 
 
@@ -51,23 +53,28 @@ def test_block_sums_never_cross_a_sequence():
     assert counts.tolist() == [2, 1, 2, 1]
 
 
+def _explicit_bootstrap(graph, fp32, block: int, resamples: int, seed: int) -> list[float]:
+    """The paired block bootstrap's draws, block by block in plain Python."""
+    blocks = [(seq, s) for seq, f in enumerate(fp32) for s in range(0, len(f), block)]
+    picks = np.random.default_rng(seed).integers(0, len(blocks), size=(resamples, len(blocks)))
+    draws = []
+    for row in picks:
+        g_total = f_total = 0.0
+        for b in row:
+            seq, start = blocks[b]
+            g_total += float(np.sum(graph[seq][start:start + block]))
+            f_total += float(np.sum(fp32[seq][start:start + block]))
+        draws.append(100 * (g_total / f_total - 1))
+    return draws
+
+
 def test_bootstrap_against_an_explicit_loop():
     rng = np.random.default_rng(3)
     fp32 = [rng.uniform(50, 150, 197), rng.uniform(50, 150, 41)]
     graph = [f * rng.normal(1.01, 0.05, f.shape) for f in fp32]
     budget = TaskBudget(block_frames=10, resamples=200, seed=5)
     got = paired_change(graph, fp32, 1.0, "mpjpe", budget)
-    # the same draws, block by block in plain Python
-    blocks = [(seq, s) for seq, f in enumerate(fp32) for s in range(0, len(f), 10)]
-    picks = np.random.default_rng(5).integers(0, len(blocks), size=(200, len(blocks)))
-    draws = []
-    for row in picks:
-        g_total = f_total = 0.0
-        for b in row:
-            seq, start = blocks[b]
-            g_total += float(np.sum(graph[seq][start:start + 10]))
-            f_total += float(np.sum(fp32[seq][start:start + 10]))
-        draws.append(100 * (g_total / f_total - 1))
+    draws = _explicit_bootstrap(graph, fp32, 10, 200, 5)
     assert got.upper_pct == pytest.approx(np.percentile(draws, 95), rel=1e-9)
     assert got.lower_pct == pytest.approx(np.percentile(draws, 5), rel=1e-9)
     assert got.noise_pct == pytest.approx(np.std(draws), rel=1e-9)
@@ -138,5 +145,103 @@ def test_bad_budgets_are_refused(fields):
 def test_mismatched_frames_are_refused():
     with pytest.raises(ValueError, match="same"):
         paired_change([np.ones(10)], [np.ones(11)], 1.0, "mpjpe", TaskBudget())
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match=r"^mpjpe: fp32's value is 0.0; a relative budget needs a positive reference$"):
         paired_change([np.ones(10)], [np.zeros(10)], 1.0, "mpjpe", TaskBudget())
+
+
+# The documented budget and bootstrap (docs/quantize.md, "The accuracy budget"): each figure
+# below is read from there, not from the code.
+
+def test_the_default_budget_is_the_documented_one():
+    budget = TaskBudget()
+    assert budget.limits == {"mpjpe": 1.0, "pa_mpjpe": 1.0, "jitter": 5.0}
+    assert budget.block_frames == 50  # one second of 50 Hz poses
+    # the one-sided 95% bound is the upper end of the 90% interval
+    assert "(90% interval)" in _hand_check().table()[0]
+
+
+def test_a_validated_budget_and_its_results_cannot_be_changed_afterwards():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TaskBudget().mpjpe_pct = -1.0  # would skip __post_init__'s check
+    check = _hand_check()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        check.metrics[0].upper_pct = 0.0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        check.frames = 0
+
+
+@pytest.mark.parametrize("fields", [{"mpjpe_pct": 0.5}, {"confidence": 0.5}, {"block_frames": 1}, {"resamples": 10}])
+def test_budgets_at_the_edge_of_their_ranges_are_accepted(fields):
+    assert TaskBudget(**fields).to_dict()[next(iter(fields))] == next(iter(fields.values()))
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"mpjpe_pct": 0}, r"^the mpjpe budget must be positive, got 0$"),
+    ({"pa_mpjpe_pct": -2.0}, r"^the pa_mpjpe budget must be positive, got -2.0$"),
+    ({"jitter_pct": 0.0}, r"^the jitter budget must be positive, got 0.0$"),
+    ({"confidence": 0.49}, r"^the budget's confidence must be in \[0.5, 1\), got 0.49$"),
+    ({"resamples": 9}, r"^the budget's bootstrap needs block_frames >= 1 and resamples >= 10$")])
+def test_a_refused_budget_names_the_field_and_its_range(fields, message):
+    with pytest.raises(ConfigError, match=message):
+        TaskBudget(**fields)
+
+
+@pytest.mark.parametrize("frames, block", [(200, 10), (30, 1)])
+def test_short_rollouts_shorten_their_blocks_to_draw_twenty(frames, block):
+    """200 frames: 20 blocks of 10 (not 4 of 50); 30 frames: blocks of one frame (never 0)."""
+    rng = np.random.default_rng(6)
+    fp32 = [rng.uniform(80, 120, frames)]
+    graph = [f * rng.normal(1.0, 0.05, frames) for f in fp32]
+    got = paired_change(graph, fp32, 1.0, "mpjpe", TaskBudget(resamples=50, seed=2))
+    draws = _explicit_bootstrap(graph, fp32, block, 50, 2)
+    assert got.noise_pct == pytest.approx(np.std(draws), rel=1e-9)
+    assert got.upper_pct == pytest.approx(np.percentile(draws, 95), rel=1e-9)
+
+
+def test_precision_is_a_tenth_of_each_limit():
+    """docs: noisy when the bootstrap sd is over a tenth of its limit (here a 5% limit)."""
+    assert MetricChange("jitter", 1, 1, 0, 0, 0, 0.5, 5.0).precise
+    assert not MetricChange("jitter", 1, 1, 0, 0, 0, 0.5001, 5.0).precise
+
+
+def _hand_check(uppers=(0.5, 0.2, 4.0), limits=(1.0, 1.0, 5.0), noise=(0.01, 0.01, 0.9)) -> BudgetCheck:
+    metrics = tuple(MetricChange(name, 50.0, 50.1, u - 0.1, u - 0.2, u, n, lim)
+                    for name, u, lim, n in zip(("mpjpe", "pa_mpjpe", "jitter"), uppers, limits, noise))
+    return BudgetCheck(metrics, 300, 2, 2.5, TaskBudget())
+
+
+def test_worst_share_and_fidelity_by_hand():
+    check = _hand_check()
+    assert check.worst_share == pytest.approx(0.8)  # jitter: 4.0 of its 5.0
+    assert check.fidelity_pct == pytest.approx(5.0)  # 2.5 mm of fp32's 50 mm MPJPE
+    assert check.within and not check.precise  # jitter's sd 0.9 is over a tenth of 5
+
+
+def test_the_report_dict_carries_each_verdict():
+    check = _hand_check(uppers=(0.5, 1.5, 4.0))
+    report = check.to_dict()
+    assert report["within"] is False and report["precise"] is False
+    assert (report["frames"], report["sequences"], report["fidelity_mm"]) == (300, 2, 2.5)
+    assert report["fidelity_pct"] == pytest.approx(5.0)
+    assert report["budget"] == TaskBudget().to_dict()
+    assert [(k, v["within"], v["precise"]) for k, v in report["metrics"].items()] == [
+        ("mpjpe", True, True), ("pa_mpjpe", False, True), ("jitter", True, False)]
+    assert report["metrics"]["jitter"]["upper_pct"] == 4.0
+
+
+def test_the_report_table_by_hand():
+    rows = _hand_check(uppers=(0.5, 1.5, 4.0)).table()
+    assert rows[0] == "| metric | fp32 mm | graph mm | change % (90% interval) | limit % | within |"
+    assert rows[1] == "|---|---:|---:|---|---:|---|"
+    assert rows[2] == "| mpjpe | 50.000 | 50.100 | +0.400 (+0.300 to +0.500) | +1 | yes |"
+    assert rows[3] == "| pa_mpjpe | 50.000 | 50.100 | +1.400 (+1.300 to +1.500) | +1 | **no** |"
+    assert rows[4] == "| jitter | 50.000 | 50.100 | +3.900 (+3.800 to +4.000) | +5 | yes (noisy: more frames) |"
+    assert len(rows) == 5
+
+
+def test_sequences_must_pair_with_ground_truth_and_frames_must_exist():
+    poses = [np.zeros((10, 16, 3))]
+    with pytest.raises(ValueError, match=r"^need one pose array per ground-truth sequence, got 1 and 2$"):
+        check_budget(poses, poses, poses * 2)
+    with pytest.raises(ValueError, match=r"^mpjpe: the graph and fp32 must be measured on the same, non-empty frames$"):
+        paired_change([np.zeros(0)], [np.zeros(0)], 1.0, "mpjpe", TaskBudget())

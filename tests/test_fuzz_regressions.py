@@ -85,6 +85,26 @@ def test_golden_whose_arrays_fail_their_crc_is_one_error_line(tmp_path):
         load_golden(folder)
 
 
+
+def test_golden_with_the_recorded_tolerance_profiles_loads(tmp_path):
+    """AttributeError 'budget_pct' out of every `golden check` (the long fuzz pass, flip 0 of
+    any input): the store's checks read two fields the budget profiles no longer have."""
+    from e3dpsm.golden.store import load_golden
+    from e3dpsm.golden.tolerances import PROFILES
+
+    folder = small_golden(tmp_path / "g")
+    _edit_manifest(folder, lambda m: m.update(tolerances={name: p.to_dict() for name, p in PROFILES.items()}))
+    assert load_golden(folder).manifest["tolerances"]["int8"] == {"name": "int8", "kind": "budget", "state_rtol": 0.5,
+                                                                  "max_growth": 4.0}
+    _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(max_growth=-4.0))
+    with pytest.raises(DataError, match=r"golden\.json: tolerance profile 'int8' is broken \(.*\); record the golden "
+                                        r"again$"):
+        load_golden(folder)
+    _edit_manifest(folder, lambda m: m["tolerances"]["fp32"].pop("pose_atol_mm"))
+    _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(max_growth=4.0))
+    with pytest.raises(DataError, match=r"tolerance profile 'fp32' is broken"):
+        load_golden(folder)
+
 # `run` and a corrupted timestamp ----------------------------------------------------------------
 def _gap_npz(path, gap_s: float) -> None:
     """Four events, the last `gap_s` after the third: what one corrupted timestamp makes."""

@@ -13,7 +13,8 @@ import pytest
 
 from e3dpsm.budget import TaskBudget
 from e3dpsm.golden.check import HOST_MEASURE, MIN_GROWTH_STEPS, TensorCheck, check_golden
-from e3dpsm.golden.host import HostRollout, KernelParity
+from e3dpsm.errors import DataError
+from e3dpsm.golden.host import HostRollout, KernelParity, host_rollout_for
 from e3dpsm.golden.tolerances import PROFILES
 from e3dpsm.golden.store import GoldenRecord, GoldenWriter
 from e3dpsm.graph_metadata import GraphMetadata
@@ -282,3 +283,105 @@ def test_the_budget_question_is_within_over_or_undecided(lower, upper, answer, p
     assert check.budget.answer == answer and check.passed is passed
     assert check.questions["within_budget"] == answer
     assert ("budget undecided on 200 frames" in check.summary()) is (answer == "undecided")
+
+
+# -- 5. the fp32 profile: parity at every step, no budget ------------------------------------
+@pytest.mark.parametrize("pose_mm, state_rel, passed", [(0.009, 9e-5, True), (0.011, 9e-5, False),
+                                                         (0.009, 1.1e-4, False)])
+def test_fp32_profile_is_max_abs_per_step_and_state_relative_to_its_magnitude(pose_mm, state_rel, passed):
+    """0.01 mm on every pose coordinate, 1e-4 of the state's largest magnitude (docs: parity)."""
+    pose, rel = np.zeros(STEPS), np.zeros(STEPS)
+    pose[12], rel[20] = pose_mm, state_rel  # step 20 is a snapshot step (1-2-5 series): whole-state path
+    rel[7] = state_rel  # step 7 is not: the sampled elements against the recorded magnitude
+    result = _run("fp32", pose, rel)
+    output, state = _tensor(result, "output"), _tensor(result, "state")
+    assert output.measure == "max_abs_mm" and state.measure == "rel_to_absmax"
+    np.testing.assert_allclose(output.errors, pose, rtol=0, atol=2e-4)
+    np.testing.assert_allclose(state.errors, rel, rtol=1e-2, atol=1e-9)
+    assert result.budget is None and result.questions == {"within_budget": None, "same_as_host": None}
+    assert result.passed is passed and state.growth_limit is None
+    if not passed:
+        assert result.first_failure["step"] == (12 if pose_mm > 0.01 else 7)
+
+
+def test_the_verdict_lines_and_report_by_hand():
+    pose = np.zeros(STEPS)
+    pose[12] = 2.0**-5  # exact beside the float32 poses (about 1,000 mm: steps of 2^-14)
+    failed = _run("fp32", pose, np.zeros(STEPS))
+    assert failed.summary() == "FAILED: first at step 12, output pose (max_abs_mm 3.125e-02, step limit 1.00e-02)"
+    assert failed.first_failure == {"step": 12, "tensor": "pose", "kind": "output", "error": 2.0**-5,
+                                    "step_limit": 0.01, "mean_limit": None, "measure": "max_abs_mm"}
+    output = _tensor(failed, "output")
+    assert output.at_steps().keys() == {"1", "10", str(STEPS)}  # steps 1, 10, 100 and the last, where they exist
+    assert output.at_steps()["1"] == 0.0
+    row = output.to_dict()
+    assert (row["passed"], row["max_at_step"], row["first_failing_step"]) == (False, 12, 12)
+    assert row["max"] == 2.0**-5 and row["mean"] == pytest.approx(2.0**-5 / STEPS, rel=1e-12)
+    assert output.line().startswith("output pose                   max 3.125e-02 mm (step limit 1.00e-02)")
+    assert output.line().endswith("FAIL from step 12")
+    report = failed.to_dict()
+    assert (report["passed"], report["steps"], report["scale_mm"], report["budget"]) == (False, STEPS, 100.0, None)
+    assert report["first_failure"]["step"] == 12 and len(report["tensors"]) == 2
+    passed = _run("fp32", np.zeros(STEPS), np.zeros(STEPS))
+    assert passed.summary() == f"PASSED: {STEPS} steps within the fp32 profile" and passed.first_failure is None
+    assert _tensor(passed, "state").line().endswith("  ok")
+
+
+def test_the_first_failure_is_the_earliest_step_then_the_first_tensor():
+    pose, rel = np.zeros(STEPS), np.zeros(STEPS)
+    pose[15], rel[15], rel[3] = 0.05, 0.5, 0.0
+    both = _run("fp32", pose, rel)  # output and state both fail at 15: the output comes first
+    assert both.first_failure["step"] == 15 and both.first_failure["kind"] == "output"
+    rel[11] = 0.5  # the state now fails earlier
+    assert _run("fp32", pose, rel).first_failure["kind"] == "state"
+
+
+# -- the host rollout a check reads (golden/host.py) ------------------------------------------
+def _golden_with_host(tmp_path, entries, arrays=None, steps: int = STEPS):
+    golden = make_golden(steps)
+    (tmp_path / "host").mkdir()
+    for name, npz in (arrays or {}).items():
+        np.savez(tmp_path / "host" / name, **npz)
+    return GoldenRecord({**golden.manifest, "host_rollouts": entries}, golden.arrays, tmp_path)
+
+
+def _entry(sha="abc", runtime="onnxruntime", kind="vnni", file="host/g-onnxruntime.npz"):
+    return {"file": file, "graph": "g.onnx", "sha256": sha, "runtime": runtime, "isa": {"kind": kind}, "threads": 1}
+
+
+def test_the_host_rollout_is_the_one_of_this_graph_and_runtime(tmp_path):
+    poses = np.stack([_golden_pose(k) for k in range(STEPS)])
+    other = _entry(runtime="openvino", file="host/g-openvino.npz")
+    golden = _golden_with_host(tmp_path, [other, _entry(), _entry(sha="def", file="host/h.npz")],
+                               {"g-onnxruntime.npz": {"out.pose": poses}, "g-openvino.npz": {"out.pose": poses + 1},
+                                "h.npz": {"out.pose": poses + 2}})
+    found = host_rollout_for(golden, "abc", "onnxruntime")
+    assert found.entry == _entry() and np.array_equal(found.outputs["pose"], poses)
+    assert np.array_equal(host_rollout_for(golden, "abc", "openvino").outputs["pose"], poses + 1)
+    assert host_rollout_for(golden, "abc", "tensorrt") is None and host_rollout_for(golden, "xyz", "onnxruntime") is None
+    assert found.same_kind("vnni") and not found.same_kind("avx2")
+    assert not HostRollout({"file": "x"}, {}).same_kind("")  # no ISA recorded: never the same kind
+    in_memory = GoldenRecord(golden.manifest, golden.arrays)  # recorded, not loaded: no folder to read from
+    assert host_rollout_for(in_memory, "abc", "onnxruntime") is None
+
+
+@pytest.mark.parametrize("arrays, message", [
+    ({}, r"^\S+g-onnxruntime.npz: the host rollout the manifest lists is missing; record it again with golden "
+         r"record --also$"),
+    ({"g-onnxruntime.npz": {"out.other": np.zeros((STEPS, J, 3))}}, r"g-onnxruntime.npz: missing arrays \['out.pose'\]"),
+    ({"g-onnxruntime.npz": {"out.pose": np.zeros((STEPS - 1, J, 3))}},
+     rf"^\S+g-onnxruntime.npz does not hold the golden's {STEPS} steps; record it again$")])
+def test_a_host_rollout_that_cannot_be_read_or_is_short_is_one_error(tmp_path, arrays, message):
+    golden = _golden_with_host(tmp_path, [_entry()], arrays)
+    with pytest.raises(DataError, match=message):
+        host_rollout_for(golden, "abc", "onnxruntime")
+
+
+@pytest.mark.parametrize("step_shift, passed", [(0.09, True), (0.11, False)])
+def test_one_step_over_the_same_kind_step_limit_fails(step_shift, passed):
+    """The host's own kind: 0.1 mm at any one step (the mean, 0.11 / 40, is far under 0.01 mm)."""
+    shift = np.zeros(STEPS)
+    shift[9] = step_shift
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="vnni")
+    host = next(t for t in result.tensors if t.measure == HOST_MEASURE)
+    assert host.mean_passed and result.passed is passed and host.first_failing_step == (None if passed else 9)

@@ -3,6 +3,8 @@ top-ranked nodes back to float, 16-bit activations first only on an NPU target, 
 edge, FP16's greedy groups."""
 from __future__ import annotations
 
+import dataclasses
+import logging
 from dataclasses import dataclass
 
 import pytest
@@ -111,3 +113,80 @@ def test_greedy_groups_add_the_most_helpful_group_until_within():
     assert easy.float_nodes == () and len(easy.trials) == 1
     stuck = greedy_groups(groups, lambda f, i, label: Verdict(3.0))
     assert stuck.float_nodes == () and not stuck.within and len(stuck.trials) == 4  # no group helps: stop
+
+
+# -- edges of the search and its report, by hand ----------------------------------------------
+def test_no_compute_nodes_means_no_probe_beyond_full_integer():
+    probes = []
+    assert smallest_prefix(0, lambda k: probes.append(k) or True, max_probes=24) is None and probes == []
+    plan = place_precisions([], evaluator(2.0), COST.__getitem__)
+    assert not plan.within and plan.float_nodes == () and [t.label for t in plan.trials] == ["full-integer"]
+
+
+def test_one_node_is_probed_and_an_unfitting_end_is_probed_once():
+    assert smallest_prefix(1, lambda k: True, max_probes=24) == 1
+    probes = []
+    assert smallest_prefix(5, lambda k: probes.append(k) or False, max_probes=24) is None
+    assert probes == [1, 2, 4, 5]  # doubling, then the whole list once: no probe repeats
+
+
+def test_placement_report_by_hand():
+    plan = place_precisions(list(COST), evaluator(2.0), COST.__getitem__)  # a, then a + b: hand-checked above
+    assert plan.report_lines("test[:100]") == [
+        "## Placement (search on test[:100])", "",
+        "Full integer first, then the fewest top-ranked nodes out of 8 bits: 2 nodes return to float, "
+        "0 take 16-bit activations.", "",
+        "| trial | nodes to float | nodes at int16 | worst upper bound / limit | distance to fp32 % | within |",
+        "|---|---:|---:|---:|---:|---|",
+        "| full-integer | 0 | 0 | 2.000 | 2.000 | no |",
+        "| top1-float | 1 | 0 | 1.100 | 1.100 | no |",
+        "| top2-float | 2 | 0 | 0.600 | 0.600 | yes |", ""]
+    assert plan.to_dict() == {
+        "float_nodes": ["a", "b"], "int16_nodes": [], "within": True,
+        "trials": [{"label": "full-integer", "float_nodes": 0, "int16_nodes": 0, "within": False,
+                    "worst_share": 2.0, "distance_pct": 2.0},
+                   {"label": "top1-float", "float_nodes": 1, "int16_nodes": 0, "within": False,
+                    "worst_share": pytest.approx(1.1), "distance_pct": pytest.approx(1.1)},
+                   {"label": "top2-float", "float_nodes": 2, "int16_nodes": 0, "within": True,
+                    "worst_share": pytest.approx(0.6), "distance_pct": pytest.approx(0.6)}],
+        "ranking": [{"node": n, "distance_pct": c} for n, c in COST.items()]}
+    full = place_precisions(list(COST), evaluator(0.5), COST.__getitem__)
+    assert "nodes out of 8 bits: the full-integer graph meets the budget there." in full.report_lines("x")[2]
+    assert full.to_dict()["ranking"] == [] and full.to_dict()["trials"][0]["within"] is True
+    npu = place_precisions(list(COST), evaluator(1.9, int16_factor=0.5), COST.__getitem__, int16=True)
+    assert "0 nodes return to float, 4 take 16-bit activations." in npu.report_lines("x")[2]
+    assert npu.to_dict()["int16_nodes"] == ["a", "b", "c", "d"]
+
+
+def test_a_plan_cannot_be_changed_afterwards():
+    plan = place_precisions(list(COST), evaluator(2.0), COST.__getitem__)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.within = False
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.trials[0].within = True
+
+
+def test_each_trial_is_evaluated_under_the_label_it_is_reported_by(caplog):
+    calls = []
+    caplog.set_level(logging.INFO, logger="e3dpsm.quantize.place")
+    plan = place_precisions(list(COST), evaluator(2.0, calls), COST.__getitem__)
+    assert [c[2] for c in calls] == [t.label for t in plan.trials] == ["full-integer", "top1-float", "top2-float"]
+    assert caplog.records[-1].getMessage() == "2 ranked node(s) at float meet the budget"
+    greedy_calls = []
+    greedy = greedy_groups([("g1", ["a"]), ("g2", ["b", "c"])], evaluator(2.0, greedy_calls))
+    assert [c[2] for c in greedy_calls] == [t.label for t in greedy.trials] == ["all-fp16", "g1", "g2", "g2"]
+
+
+def test_running_out_of_probes_is_said_in_one_warning(caplog):
+    place_precisions(list(COST), lambda f, i, label: Verdict(5.0), COST.__getitem__, max_trials=3)
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        "no prefix of the ranked nodes met the budget within 3 trials; every ranked node returns to float"]
+
+
+def test_bisection_stops_at_its_probe_limit():
+    probes = []
+    fits = lambda k: probes.append(k) or k >= 11  # noqa: E731
+    assert smallest_prefix(40, fits, max_probes=6) == 12  # the sixth probe fits: the best measured so far
+    assert probes == [1, 2, 4, 8, 16, 12]
+    probes.clear()
+    assert smallest_prefix(40, fits, max_probes=7) == 12 and probes == [1, 2, 4, 8, 16, 12, 10]  # one more: 10 is over

@@ -72,3 +72,59 @@ def test_a_speed_up_timed_on_an_oversubscribed_host_is_not_trusted():
 def test_an_fp16_graph_not_faster_here_is_for_fp16_accelerators():
     line = Verdict("fp16", _check(3.0), "onnxruntime", 0.52, {"onnxruntime": _timing(0.97, 0.9, 1.05)}, VNNI).headline()
     assert "ship it for size and fp16 accelerators (GPUs, NPUs)" in line and "integer-only" not in line
+
+
+def test_over_budget_names_the_metric_furthest_over_its_own_limit():
+    """Each metric's upper end is read against its own limit: jitter's +6% of 5% (1.2x) is
+    further over than mpjpe's +1.1% of 1% (1.1x); mpjpe's +1.5% of 1% (1.5x) further than both."""
+    metrics = (MetricChange("mpjpe", 100.0, 101.0, 1.0, 0.9, 1.1, 0.1, 1.0),
+               MetricChange("pa_mpjpe", 100.0, 101.0, 0.1, 0.0, 0.2, 0.1, 1.0),
+               MetricChange("jitter", 100.0, 105.0, 5.5, 5.0, 6.0, 0.1, 5.0))
+    line = Verdict("int8", BudgetCheck(metrics, 500, 1, 2.0, TaskBudget()), "onnxruntime", 0.3, {}, AVX2).headline()
+    assert line == ("Verdict: over budget, do not ship: jitter +5.50% (upper bound +6.00%, limit +5%) on 500 held-out "
+                    "frames (ONNX Runtime); keep more nodes float (`--exclude`) or calibrate on more frames.")
+    # mpjpe furthest over (1.5x against jitter's 1.2x): named even though jitter's upper end is the larger number
+    worse = (MetricChange("mpjpe", 100.0, 101.0, 1.4, 1.3, 1.5, 0.1, 1.0), *metrics[1:])
+    assert "over budget, do not ship: mpjpe +1.40%" in Verdict(
+        "int8", BudgetCheck(worse, 500, 1, 2.0, TaskBudget()), "tensorrt", 0.3, {}, AVX2).headline()
+    assert "(tensorrt)" in Verdict("int8", BudgetCheck(worse, 500, 1, 2.0, TaskBudget()), "tensorrt", 0.3, {},
+                                   AVX2).headline()  # a runtime without a display name keeps its own
+
+
+def test_an_interval_whose_low_end_is_exactly_one_is_not_surely_faster():
+    verdict = Verdict("int8", _check(3.0), "onnxruntime", 0.29, {"onnxruntime": _timing(1.2, 1.0, 1.4)}, AVX2)
+    assert not verdict.surely_faster("onnxruntime") and "no int8 graph beats fp32" in verdict.headline()
+    assert Verdict("int8", _check(3.0), "onnxruntime", 0.29, {"onnxruntime": _timing(1.2, 1.0001, 1.4)},
+                   AVX2).surely_faster("onnxruntime")
+    assert not verdict.surely_faster("openvino")  # not timed there: never surely faster
+
+
+def test_untimed_runtimes_are_left_out_and_the_full_line_reads_by_hand():
+    timings = {"onnxruntime": _timing(0.9, 0.8, 1.0), "openvino": {"p50_ms": 10.0}}  # openvino: no speed-up
+    verdict = Verdict("int8", _check(3.0), "onnxruntime", 0.25, timings, AVX2)
+    assert verdict.fastest == ("onnxruntime", 0.9)
+    assert verdict.headline() == (
+        "Verdict: no int8 graph beats fp32 on this avx2 host (ONNX Runtime 0.90x fp32's speed); this one is within "
+        "budget on 3000 held-out frames, 0.25x fp32's size: ship it for size and integer-only accelerators. Faster "
+        "here: structured pruning (`e3dpsm prune`: 3.2x on `small`), OpenVINO with the states inside the IR "
+        "(`convert openvino --stateful`, fp32).")
+    untimed = Verdict("fp16", _check(3.0), "onnxruntime", 0.5, {}, {})
+    assert untimed.fastest is None
+    assert untimed.headline().startswith("Verdict: no fp16 graph beats fp32 on this unknown host; this one is within")
+    assert untimed.to_dict()["fastest"] is None and untimed.to_dict()["surely_faster"] is False
+
+
+def test_bf16_hosts_are_offered_bf16_second():
+    assert Verdict("int8", _check(3.0), "onnxruntime", 0.3, {}, VNNI).faster_alternatives() == [
+        "structured pruning (`e3dpsm prune`: 3.2x on `small`)",
+        "bf16 on this CPU's bf16 units (profile target openvino-cpu-bf16)",
+        "OpenVINO with the states inside the IR (`convert openvino --stateful`, fp32)"]
+
+
+def test_the_verdict_dict_by_hand():
+    timings = {"onnxruntime": _timing(1.1, 1.02, 1.2)}
+    verdict = Verdict("int8", _check(3.0), "openvino", 0.29, timings, VNNI)
+    assert verdict.to_dict() == {
+        "headline": verdict.headline(), "within_budget": True, "check_runtime": "openvino", "size_ratio": 0.29,
+        "timings": timings, "fastest": {"runtime": "onnxruntime", "speedup_vs_fp32": 1.1}, "surely_faster": True}
+    assert verdict.headline().startswith("Verdict: ship it: int8 within budget")

@@ -8,8 +8,10 @@ from __future__ import annotations
 import asyncio
 import base64
 import hashlib
+import hmac
 import json
 import re
+import socket
 
 import aiohttp
 import pytest
@@ -18,7 +20,8 @@ from _runtime_helpers import exported_tiny
 from _serve_helpers import ServerProcess, write_recording
 from e3dpsm.cli import main
 from e3dpsm.serve import protocol
-from e3dpsm.serve.security import Access, TokenBucket, normalise_origin, parse_host_header
+from e3dpsm.serve.security import (Access, TokenBucket, csp_hash, is_loopback, netloc, new_token, normalise_origin,
+                                   parse_host_header, response_headers)
 
 ALLOWED = "http://viewer.example:9000"  # the shared server's --allow-origin
 
@@ -119,6 +122,79 @@ def test_no_token_off_loopback_is_refused_with_one_line(capsys):
         assert main(["serve", "--model", "none.onnx", "--source", "none.h5", "--host", host, "--no-token"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("e3dpsm serve: error: --no-token") and host in err[0]
+
+
+
+def test_csp_hash_matches_the_csp_specifications_example():
+    # CSP Level 2, "hash-source" (https://www.w3.org/TR/CSP2/#script-src-hash-usage): alert('Hello, world.');
+    assert csp_hash("alert('Hello, world.');") == "'sha256-qznLcsROx4GACP2dm0UCKCzCG+HiZ1guq6ZZDob/Tng='"
+
+
+def test_the_page_headers_admit_its_own_script_style_and_socket_only():
+    headers = response_headers("127.0.0.1:8765", ("'sha256-AAA='", "'sha256-BBB='"))
+    directives = dict(part.strip().split(" ", 1) for part in headers["Content-Security-Policy"].split(";"))
+    assert directives == {"default-src": "'none'", "script-src": "'sha256-AAA='", "style-src": "'sha256-BBB='",
+                          "connect-src": "'self' ws://127.0.0.1:8765", "base-uri": "'none'", "form-action": "'none'",
+                          "frame-ancestors": "'none'"}
+    assert {k: v for k, v in headers.items() if k != "Content-Security-Policy"} == {
+        "X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
+        "Cache-Control": "no-store"}
+    for host, hashes in ((None, ("'sha256-AAA='", "'sha256-BBB='")), ("127.0.0.1:8765", None)):
+        other = response_headers(host, hashes)["Content-Security-Policy"]  # an error page, or no Host: runs nothing
+        assert other == "default-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+
+
+@pytest.mark.parametrize("host, loopback", [("localhost", True), ("LOCALHOST", True), ("127.0.0.1", True),
+                                            ("127.8.9.10", True), ("::1", True), ("[::1]", True),
+                                            ("0.0.0.0", False), ("192.0.2.7", False), ("localhost.example", False),
+                                            ("", False)])
+def test_loopback_is_the_127_net_ipv6_one_and_localhost(host, loopback):
+    """RFC 1122 3.2.1.3 (127.0.0.0/8), RFC 4291 2.5.3 (::1), RFC 6761 6.3 (localhost)."""
+    assert is_loopback(host) is loopback
+
+
+def test_a_server_on_every_interface_answers_to_this_machines_names():
+    access = Access.for_server("0.0.0.0", 8765, "secret")
+    assert access.request_host(f"{socket.gethostname()}:8765") == netloc(socket.gethostname(), 8765)
+    assert access.request_host("127.0.0.1:8765") and access.request_host("localhost:8765")
+    assert access.request_host("rebound.example:8765") is None
+    assert access.origin_allowed("http://localhost:8765") and not access.origin_allowed("http://rebound.example:8765")
+    loopback = Access.for_server("127.0.0.1", 8765, None)  # --no-token on loopback: allowed, and admits anyone
+    assert loopback.token_verdict(None, None) == 200 and loopback.token_verdict("x", "y") == 200
+    if socket.gethostname().lower() != "localhost":  # bound to loopback: the machine's name is foreign
+        assert loopback.request_host(f"{socket.gethostname()}:8765") is None
+
+
+def test_netloc_and_host_headers_are_canonical():
+    assert netloc("::1", 80) == "[::1]:80" and netloc("[0:0::1]", 9) == "[::1]:9" and netloc("Host", 1) == "host:1"
+    assert parse_host_header("[::1]") == "[::1]:80" and parse_host_header("[::1]x") is None
+    assert parse_host_header(" localhost:8765 ") == "localhost:8765" and parse_host_header(":8765") is None
+    assert parse_host_header("localhost:12345") == "localhost:12345"  # ports have up to five digits
+    assert parse_host_header("localhost:", default_port=8765) == "localhost:8765"
+    assert normalise_origin("http://localhost") == "http://localhost:80"
+    assert normalise_origin(" http://localhost:8765/ ") == "http://localhost:8765"
+    for bad in ("http://x?q=1", "http://x#f", "http://:pw@x", "http://"):
+        with pytest.raises(ValueError, match="origin"):
+            normalise_origin(bad)
+
+
+def test_the_cookie_is_hmac_sha256_of_the_token():
+    """RFC 2104 HMAC, keyed by the token, over a fixed label: checked with the hmac module's
+    digest of the same label (the cookie proves the token without being it)."""
+    access = Access.for_server("127.0.0.1", 8765, "secret")
+    assert access.cookie_value == hmac.new(b"secret", b"e3dpsm serve cookie", "sha256").hexdigest()
+    assert access.cookie_name == "e3dpsm-serve-8765"
+    assert len(new_token()) == 43 and new_token() != new_token()  # 32 bytes in URL-safe base64, unpadded
+
+
+def test_the_bucket_refills_at_its_rate_between_takes():
+    now = [0.0]
+    bucket = TokenBucket(rate=2.0, burst=1, clock=lambda: now[0])
+    assert bucket.take() and not bucket.take()
+    now[0] = 0.25  # half a token: not yet
+    assert not bucket.take()
+    now[0] = 0.5  # a whole token since the take at 0.0 (the refused one at 0.25 loses no time)
+    assert bucket.take() and not bucket.take()
 
 
 # ---- the rules on a running server, each alone -----------------------------------------------------------
