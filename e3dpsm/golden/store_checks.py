@@ -71,9 +71,8 @@ def _check_tolerances(tolerances: Any, path: Path) -> None:
             profile = ToleranceProfile.from_dict(entry)
         except InputError as exc:
             raise DataError(f"{path}: tolerance profile {name!r}: {exc}; {FIX}") from exc
-        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.budget_pct, profile.step_factor,
-                   profile.max_growth)
-        required = profile.pose_atol_mm if profile.kind == "exact" else profile.budget_pct
+        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.max_growth)
+        required = profile.pose_atol_mm if profile.kind == "exact" else profile.max_growth
         if profile.kind not in ("exact", "budget") or required is None or \
                 not all(v is None or (_finite_number(v) and v >= 0) for v in numbers):
             raise DataError(f"{path}: tolerance profile {name!r} is broken ({entry}); {FIX}")
