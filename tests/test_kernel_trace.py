@@ -7,9 +7,10 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from _quantize_helpers import full_integer_dir, quant_data, trained_graph  # noqa: F401
 from e3dpsm.golden.kernel_cut import (FEED_SUFFIX, cut_at_quantized, expose_quantized, integer_only,
                                       quantized_activations, segment_ops)
-from e3dpsm.golden.kernel_trace import CodeDiff, compare_codes, first_departures
+from e3dpsm.golden.kernel_trace import CODE, CodeDiff, compare_codes, first_departures
 
 
 def _qdq_chain() -> onnx.ModelProto:
@@ -121,3 +122,42 @@ def test_first_departures_by_step_then_graph_order() -> None:
              CodeDiff("c", 2, 3, 4, 3, 1, -1.0), CodeDiff("d", 2, 1, 4, 1, 1, 1.0)]
     assert [d.name for d in first_departures(diffs)] == ["c", "d", "a"]
     assert [d.name for d in first_departures(diffs, limit=1)] == ["c"]
+
+
+def test_golden_check_names_the_activation_where_a_device_departs(tmp_path, trained_graph, quant_data,
+                                                                  full_integer_dir) -> None:  # noqa: F811
+    """`golden record --kernel-trace` keeps the host's codes; `golden check` whose rollout departs
+    from the host's names the activation that departs on its own. A departing device is made
+    here by moving the host's records: the poses by 20 mm (question (a) fails) and one code of
+    one integer-kernel activation at step 3 by one step (the trace must name exactly it first,
+    at step 3, one code apart)."""
+    import json
+
+    from e3dpsm.cli import main
+    from e3dpsm.golden.kernel_report import HOST_TRACE, ORDER, find_trace
+    from e3dpsm.golden.record import sha256_file
+
+    graph = full_integer_dir / "step_int8.onnx"
+    golden = tmp_path / "golden"
+    assert main(["golden", "record", "--model", str(trained_graph), "--data", str(quant_data), "--steps", "8",
+                 "--also", str(graph), "--kernel-trace", "5", "--out", str(golden), "--threads", "1"]) == 0
+    folder = find_trace(golden, sha256_file(graph))
+    manifest = json.loads((folder / ORDER).read_text())
+    target = next(q for q in manifest["codes"][1:] if integer_only(manifest["segments"][q]))
+    with np.load(folder / HOST_TRACE) as npz:
+        trace = {k: npz[k] for k in npz.files}
+    codes = trace[CODE + target]
+    codes.reshape(len(codes), -1)[3, 0] ^= 1  # one code one step away at step 3 (in place)
+    np.savez_compressed(folder / HOST_TRACE, **trace)
+    rollout = next((golden / "host").glob("*.npz"))
+    with np.load(rollout) as npz:
+        moved = {k: npz[k] + 20.0 for k in npz.files}
+    np.savez_compressed(rollout, **moved)
+    assert main(["golden", "check", "--model", str(graph), "--golden", str(golden), "--out", str(tmp_path / "chk"),
+                 "--exit-zero", "--threads", "1"]) == 0
+    report = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert report["questions"]["same_as_host"] is False
+    found = report["kernel_trace"]
+    assert found["first_departures"][0] == target
+    first = found["isolated"][0]
+    assert (first["name"], first["first_step"], first["apart"], first["max_codes"]) == (target, 3, 1, 1)

@@ -21,6 +21,31 @@ import numpy as np
 from e3dpsm.golden import kernel_trace as kt
 
 EXPOSED, CUT, HOST_TRACE, ORDER = "exposed.onnx", "cut.onnx", "host.npz", "codes.json"
+KERNELS_FOLDER = "kernels"  # a golden folder's traces: kernels/<graph stem>-<sha256[:12]>/
+
+
+def trace_folder(golden_dir: str | os.PathLike, graph: str | os.PathLike, sha256: str) -> Path:
+    return Path(golden_dir) / KERNELS_FOLDER / f"{Path(graph).stem}-{sha256[:12]}"
+
+
+def find_trace(golden_dir: str | os.PathLike, sha256: str | None) -> Path | None:
+    """The golden's kernel trace of the graph with this digest, if `golden record
+    --kernel-trace` kept one."""
+    if not sha256:
+        return None
+    for manifest in sorted((Path(golden_dir) / KERNELS_FOLDER).glob(f"*-{sha256[:12]}/{ORDER}")):
+        if json.loads(manifest.read_text(encoding="utf-8")).get("sha256") == sha256:
+            return manifest.parent
+    return None
+
+
+def responsible_lines(report: dict[str, Any], limit: int = 6) -> list[str]:
+    """The quantised activations that depart on their own, with the ops of their segments."""
+    lines = [f"{d['name']} ({' '.join(d['segment']) or 'data movement'}): {d['apart']} codes apart over "
+             f"{d['steps_apart']} steps from step {d['first_step']}, at most {d['max_codes']}"
+             for d in report["isolated"][:limit]]
+    more = len(report["isolated"]) - limit
+    return lines + ([f"... and {more} more (check.json)"] if more > 0 else [])
 
 
 def record_host(graph: str | os.PathLike, golden_dir: str | os.PathLike, out: str | os.PathLike,
@@ -45,7 +70,10 @@ def record_host(graph: str | os.PathLike, golden_dir: str | os.PathLike, out: st
     trace = kt.rollout(folder / EXPOSED, _golden_inputs(session, golden, steps), codes, threads)
     with atomic_path(folder / HOST_TRACE, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **trace)
-    manifest = {"graph": str(graph), "codes": codes, "segments": segment_ops(model), "steps": steps,
+    from e3dpsm.golden.record import sha256_file
+
+    manifest = {"graph": str(graph), "sha256": sha256_file(graph), "codes": codes, "segments": segment_ops(model),
+                "steps": steps,
                 "state_inputs": [s.input_name for s in session.meta.states]}
     write_json_atomic(folder / ORDER, manifest)
     return manifest
@@ -64,8 +92,9 @@ def _golden_inputs(session: Any, golden: Any, steps: int) -> Iterator[dict[str, 
         yield feeds
 
 
-def run_device(folder: str | os.PathLike, threads: int = 1) -> dict[str, Any]:
-    """The device half: propagated and isolated rollouts against the host's trace."""
+def run_device(folder: str | os.PathLike, threads: int = 1, out: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The device half: propagated and isolated rollouts against the host's trace; the report
+    goes to `out` (default: the trace's folder, device-<isa kind>.json)."""
     from e3dpsm.utils.io import write_json_atomic
     from e3dpsm.utils.isa import detect_isa
 
@@ -85,7 +114,7 @@ def run_device(folder: str | os.PathLike, threads: int = 1) -> dict[str, Any]:
               "first_departures": [d.name for d in kt.first_departures(propagated)],
               "isolated": [{**d.to_dict(), "segment": segments[d.name]} for d in own if d.apart],
               "isolated_identical": sum(1 for d in own if not d.apart), "codes": len(codes)}
-    write_json_atomic(folder / f"device-{isa.kind}.json", report)
+    write_json_atomic(Path(out) if out else folder / f"device-{isa.kind}.json", report)
     return report
 
 
