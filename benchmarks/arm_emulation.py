@@ -23,6 +23,7 @@ auxiliary vector (as e3dpsm.utils.isa does). One core: OMP_NUM_THREADS=1, --thre
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import shutil
@@ -103,7 +104,8 @@ def install_packages(root: Path) -> None:
              "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *pins])
     wheels = root / "tmp" / "e3dpsm-wheel"
     shutil.rmtree(wheels, ignore_errors=True)
-    run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", ROOT, "-w", wheels])
+    build = [] if importlib.util.find_spec("setuptools") is None else ["--no-build-isolation"]  # minutes saved
+    run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", *build, ROOT, "-w", wheels])
     shutil.rmtree(root / PROJECT, ignore_errors=True)
     run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", root / PROJECT, *wheels.glob("*.whl")])
 
@@ -134,18 +136,17 @@ def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
     """Each QDQ graph's portable form (kernel_cut.portable_qdq), written beside the others."""
     import onnx
 
-    from e3dpsm.golden.kernel_cut import portable_qdq, quantized_activations
+    from e3dpsm.golden.kernel_cut import quantized_activations
+    from e3dpsm.golden.kernel_report import write_portable
 
     made = []
     for graph in graphs:
-        model = onnx.load(str(graph))
-        if not quantized_activations(model):
+        if not quantized_activations(onnx.load(str(graph))):
             continue
-        portable, removed = portable_qdq(model)
         path = folder / f"{graph.stem}_portable.onnx"
-        onnx.save(portable, str(path))
-        print(f"{path.name}: {len(removed)} activations back to float, "
-              f"{len(quantized_activations(portable))} kept 8-bit")
+        counts = write_portable(graph, path)
+        print(f"{path.name}: {counts['activations_float']} activations back to float, "
+              f"{counts['activations_int8']} kept 8-bit")
         made.append(path)
     return made
 
@@ -154,7 +155,7 @@ def stage_graphs(graphs: list[Path], work: Path) -> list[Path]:
     """Copies of the graphs under distinct names (two `step_int8.onnx` from two folders)."""
     work.mkdir(parents=True, exist_ok=True)
     staged = []
-    for i, graph in enumerate(graphs):
+    for graph in graphs:
         name = graph.name if sum(g.name == graph.name for g in graphs) == 1 else f"{graph.parent.name}_{graph.name}"
         target = work / name
         if target.resolve() != graph.resolve():
@@ -179,6 +180,11 @@ def emulated_checks(root: Path, graphs: list[Path], work: Path) -> list[dict]:
     shutil.rmtree(out, ignore_errors=True)
     emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *map(inside, graphs), "--golden",
                     inside(work / "golden"), "--out", inside(out), "--threads", "1", "--exit-zero"])
+    return collect_checks(root, graphs, out)
+
+
+def collect_checks(root: Path, graphs: list[Path], out: Path) -> list[dict]:
+    """The verdicts of the checks in `out` (summary.json, or check.json for one graph)."""
     summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else None
     if summary is None:  # a single graph writes check.json only
         return [_single_verdict(graphs[0], json.loads((out / "check.json").read_text()))]

@@ -6,6 +6,8 @@ graph (kernel_trace.py), in two halves.
     device DIR                            runs both rollouts here, writes DIR/device-<isa>.json
                                           (numpy and onnxruntime only: the ARM board, the
                                           emulated aarch64 root of benchmarks/arm_emulation.py)
+    portable GRAPH OUT                    writes the graph's portable form (kernel_cut.portable_qdq:
+                                          the same codes on x86 and ARM), its metadata saying so
 """
 from __future__ import annotations
 
@@ -118,6 +120,24 @@ def run_device(folder: str | os.PathLike, threads: int = 1, out: str | os.PathLi
     return report
 
 
+def write_portable(graph: str | os.PathLike, out: str | os.PathLike) -> dict[str, int]:
+    """`graph`'s portable form at `out`; its quantisation metadata records what stayed 8-bit."""
+    import onnx
+
+    from e3dpsm.golden.kernel_cut import portable_qdq, quantized_activations
+    from e3dpsm.utils.io import atomic_path
+
+    model = onnx.load(str(graph))
+    portable, removed = portable_qdq(model)
+    counts = {"activations_float": len(removed), "activations_int8": len(quantized_activations(portable))}
+    for prop in portable.metadata_props:
+        if prop.key == "e3dpsm.quantization":
+            prop.value = json.dumps({**json.loads(prop.value), "arm_portable": counts})
+    with atomic_path(Path(out), suffix=".onnx") as tmp:
+        onnx.save(portable, str(tmp))
+    return counts
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m e3dpsm.golden.kernel_report", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -129,7 +149,15 @@ def main(argv: list[str] | None = None) -> int:
     host.add_argument("--steps", type=int, default=None)
     device = sub.add_parser("device")
     device.add_argument("folder")
+    portable = sub.add_parser("portable")
+    portable.add_argument("graph")
+    portable.add_argument("out")
     args = parser.parse_args(argv)
+    if args.half == "portable":
+        counts = write_portable(args.graph, args.out)
+        print(f"portable: {counts['activations_int8']} activations kept 8-bit, {counts['activations_float']} back "
+              f"to float, weights 8-bit -> {args.out}")
+        return 0
     if args.half == "host":
         manifest = record_host(args.graph, args.golden, args.out, args.steps)
         print(f"kernel trace: {len(manifest['codes'])} quantised activations over {manifest['steps']} steps -> {args.out}")
