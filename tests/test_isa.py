@@ -13,6 +13,7 @@ EPYC_ZEN4 = "model name\t: AMD EPYC\nflags\t\t: fpu avx2 fma avx512f avx512_vnni
 XEON_AMX = ("model name\t: Intel Xeon\nflags\t\t: avx2 fma avx512f avx512_vnni avx512_bf16 avx_vnni amx_bf16 "
             "amx_tile amx_int8\n")
 NEOVERSE = "processor\t: 0\nFeatures\t: fp asimd crc32 atomics asimddp sve i8mm bf16\nCPU part\t: 0xd40\n"
+CORTEX_A72 = "processor\t: 0\nFeatures\t: fp asimd evtstrm aes pmull sha1 sha2 crc32 cpuid\nCPU part\t: 0xd08\n"
 
 
 @pytest.mark.parametrize("text, kind, int8_dot, bf16, flags", [
@@ -20,7 +21,8 @@ NEOVERSE = "processor\t: 0\nFeatures\t: fp asimd crc32 atomics asimddp sve i8mm 
     (EPYC_ZEN4, "vnni", True, True, ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16")),
     (XEON_AMX, "vnni", True, True,
      ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile", "amx_int8", "amx_bf16")),
-    (NEOVERSE, "dotprod", True, False, ("asimddp", "i8mm", "bf16", "sve")),  # OpenVINO ARM: no bf16
+    (NEOVERSE, "dotprod", True, False, ("asimd", "asimddp", "i8mm", "bf16", "sve")),  # OpenVINO ARM: no bf16
+    (CORTEX_A72, "neon", False, False, ("asimd",)),
     ("flags\t: fpu sse2\n", "other", False, False, ()),
     ("model name\t: nothing else\n", "unknown", False, False, ()),
 ])
@@ -36,6 +38,27 @@ def test_flags_are_whole_words() -> None:
 
 def test_only_the_first_flags_line_counts() -> None:
     assert parse_cpuinfo(EPYC_AVX2 + "\n" + EPYC_ZEN4).kind == "avx2"
+
+
+def test_hwcaps_read_like_the_features_line() -> None:
+    """aarch64's capability words (what qemu-user reports for its `max` CPU, read in the
+    emulated root: AT_HWCAP 0xecfffffb, AT_HWCAP2 0x7f877fff) name the flags the kernel would
+    print as Features; bits outside REPORTED_FLAGS do not leak in."""
+    from e3dpsm.utils.isa import parse_hwcaps
+
+    qemu_max = parse_hwcaps(0xECFFFFFB, 0x7F877FFF)
+    assert qemu_max.flags == ("asimd", "asimddp", "i8mm", "bf16", "sve") and qemu_max.kind == "dotprod"
+    a72 = parse_hwcaps(0b11111011, 0)  # fp asimd aes pmull sha1 sha2 crc32: no asimddp (bit 20)
+    assert a72.flags == ("asimd",) and a72.kind == "neon" and not a72.int8_dot_product
+    assert parse_hwcaps(1 << 20 | 1 << 1, 1 << 13) == parse_cpuinfo("Features\t: fp asimd asimddp i8mm\n")
+
+
+def test_neon_does_not_saturate_like_avx2() -> None:
+    """ARM without dot products sums int8 products in 32 bits: quantize must not narrow its
+    weights to 7 bits as it does for AVX2."""
+    from e3dpsm.quantize.static import saturates_u8s8
+
+    assert saturates_u8s8("avx2") and not saturates_u8s8("neon") and not saturates_u8s8("dotprod")
 
 
 def test_unreadable_cpuinfo_gives_unknown(tmp_path) -> None:
@@ -63,7 +86,7 @@ def test_every_kind_is_a_target_quantize_accepts() -> None:
     from e3dpsm.cli import build_parser
     from e3dpsm.utils.isa import ISA_KINDS
 
-    kinds = {parse_cpuinfo(t).kind for t in (EPYC_AVX2, EPYC_ZEN4, XEON_AMX, NEOVERSE, "flags\t: fpu\n", "")}
+    kinds = {parse_cpuinfo(t).kind for t in (EPYC_AVX2, EPYC_ZEN4, XEON_AMX, NEOVERSE, CORTEX_A72, "flags\t: fpu\n", "")}
     assert kinds == set(ISA_KINDS)
     for kind in ISA_KINDS:
         assert build_parser().parse_args(["quantize", "--model", "m", "--data", "d", "--out", "o",

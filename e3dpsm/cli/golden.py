@@ -36,6 +36,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                           "can tell whether it computes what this host computed for them")
     rec.add_argument("--also-runtime", nargs="+", choices=("onnxruntime", "openvino"), default=["onnxruntime"],
                      help="runtimes the --also graphs are rolled out on (default onnxruntime)")
+    rec.add_argument("--kernel-trace", type=positive_int, default=None, metavar="STEPS",
+                     help="also keep this host's codes of every quantised activation of the --also QDQ graphs over "
+                          "the first STEPS steps (about 1 MB per step of `small`), so that `golden check` on a "
+                          "device that departs from the host's rollout names the nodes where it departs")
     add_threads(rec)
     rec.add_argument("--out", required=True, help="golden folder to write")
     add_force(rec)
@@ -97,10 +101,29 @@ def run_record(args: argparse.Namespace) -> int:
 
         for entry in record_host_rollouts(args.out, args.also, args.also_runtime, threads=args.threads):
             print(f"golden record: host rollout of {entry['graph']} on {entry['runtime']} -> {entry['file']}")
+    if args.kernel_trace:
+        _record_kernel_traces(args.out, args.also, args.kernel_trace)
     size = sum(f.stat().st_size for f in Path(args.out).rglob("*") if f.is_file())
     print(f"golden record: {manifest['steps']} steps of {reference.variant} ({reference.kind}) at {window_ms:g} ms, "
           f"{size / 1e6:.2f} MB in {args.out} ({manifest['record_seconds']:.1f} s)")
     return 0
+
+
+def _record_kernel_traces(golden_dir: str, graphs: list[str], steps: int) -> None:
+    import onnx
+
+    from e3dpsm.golden.kernel_cut import quantized_activations
+    from e3dpsm.golden.kernel_report import record_host, trace_folder
+    from e3dpsm.golden.record import sha256_file
+
+    for graph in graphs:
+        if not quantized_activations(onnx.load(graph)):
+            print(f"golden record: {graph} has no quantised activations; no kernel trace")
+            continue
+        folder = trace_folder(golden_dir, graph, sha256_file(graph))
+        manifest = record_host(graph, golden_dir, folder, steps)
+        print(f"golden record: kernel trace of {Path(graph).name} ({len(manifest['codes'])} quantised activations, "
+              f"{manifest['steps']} steps) -> {folder}")
 
 
 def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> None:
@@ -124,6 +147,15 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
     note = budget_runtime_note(report["budget_runtimes"])
     if note:
         print("  " + note)
+    trace = report.get("kernel_trace")
+    if trace:
+        from e3dpsm.golden.kernel_report import responsible_lines
+
+        print(f"  where this machine departs from the host (kernel trace, {trace['steps']} steps): first "
+              f"{', '.join(trace['first_departures'][:3]) or 'nowhere'}; {len(trace['isolated'])} of {trace['codes']} "
+              "quantised activations depart on their own, fed the host's codes:")
+        for line in responsible_lines(trace):
+            print("    " + line)
 
 
 def _question_lines(result) -> list[str]:

@@ -11,7 +11,8 @@ graph on that runtime, recorded here (`golden record --also GRAPH --runtime ...`
 tolerance that knows the kernels: tight on the ISA kind the host had, the kernel-parity
 tolerance on another (another x86 kind, an ARM board).
 
-    DIR/host/<graph stem>-<runtime>.npz   out.<name> float32 [N, J, 3] at every step
+    DIR/host/<graph stem>-<sha256[:12]>-<runtime>.npz   out.<name> float32 [N, J, 3] at every step
+    (the digest in the name: two graphs of one file name, e.g. two `step_int8.onnx`, keep one each)
     golden.json "host_rollouts": [{file, graph, sha256, runtime, isa, threads}]
 """
 from __future__ import annotations
@@ -74,7 +75,7 @@ def record_host_rollouts(golden_dir: str | os.PathLike, models: Sequence[str | o
         for runtime in runtimes:
             runner = open_runner(model, runtime, threads=threads)
             outputs = _rollout(runner, golden)
-            name = f"{Path(model).stem}-{runtime}.npz"
+            name = f"{Path(model).stem}-{digest[:12]}-{runtime}.npz"
             with atomic_path(folder / name, suffix=".npz") as tmp:
                 np.savez_compressed(tmp, **{f"out.{k}": v for k, v in outputs.items()})
             entries.append({"file": f"{HOST_FOLDER}/{name}", "graph": Path(model).name, "sha256": digest,

@@ -2,6 +2,7 @@
 `e3dpsm golden check`, `e3dpsm.testing.assert_golden` and the pipeline share."""
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 from typing import Any, Sequence
@@ -140,11 +141,31 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
         "budget_runtimes": runtime_comparison(runner.meta.quantization, runtime),
         **result.to_dict(),
     }
+    if result.questions["same_as_host"] is False and golden.folder is not None:
+        report["kernel_trace"] = _kernel_trace(golden.folder, digest, threads)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(out / PLOT_FILE) as tmp:
-            plot_check(result, tmp, f"{Path(model).name} on {runtime} vs golden ({chosen.name}): "
-                                    f"{'PASSED' if result.passed else 'FAILED'}")
+        # A device with numpy and onnxruntime only (an ARM board, the emulated aarch64 root)
+        # checks all the same; the plot is a convenience there.
+        report["plot"] = PLOT_FILE if importlib.util.find_spec("matplotlib") else None
+        if report["plot"]:
+            with atomic_path(out / PLOT_FILE) as tmp:
+                plot_check(result, tmp, f"{Path(model).name} on {runtime} vs golden ({chosen.name}): "
+                                        f"{'PASSED' if result.passed else 'FAILED'}")
         write_json_atomic(out / CHECK_FILE, report)
     return result, report
+
+
+def _kernel_trace(golden_folder: Path, digest: str | None, threads: int | None) -> dict[str, Any] | None:
+    """Where this machine departs from the host for this graph, when the golden keeps the
+    host's kernel trace of it (`golden record --kernel-trace`); None otherwise."""
+    import tempfile
+
+    from e3dpsm.golden.kernel_report import find_trace, run_device
+
+    folder = find_trace(golden_folder, digest)
+    if folder is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:  # the golden folder may be read-only on a device
+        return run_device(folder, threads or 1, out=Path(tmp) / "trace.json")

@@ -1,0 +1,70 @@
+"""`golden check` under emulated aarch64 (benchmarks/arm_emulation.py): the trained tiny's fp32
+and INT8 graphs, host against emulated ARM. Slow, and only where an arm64 root set up by that
+script is named by E3DPSM_ARM_ROOT (it needs root and qemu-user-static, and takes minutes)."""
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from _quantize_helpers import int8_dir, int8_test_budget, quant_data, trained_graph  # noqa: F401
+
+ROOT = Path(__file__).resolve().parents[1]
+ARM_ROOT = os.environ.get("E3DPSM_ARM_ROOT")
+STEPS = 20
+
+pytestmark = pytest.mark.slow
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("arm_emulation", ROOT / "benchmarks" / "arm_emulation.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def arm_root() -> Path:
+    if not ARM_ROOT:
+        pytest.skip("E3DPSM_ARM_ROOT is not set: set up an arm64 root with benchmarks/arm_emulation.py "
+                    "(root, qemu-user-static, debootstrap) and name it there")
+    root = Path(ARM_ROOT)
+    script = _script()
+    if not (root / script.STAMP).is_file():
+        pytest.skip(f"{root} is not an arm64 root finished by benchmarks/arm_emulation.py (no {script.STAMP})")
+    if os.geteuid() != 0:
+        pytest.skip("chroot into the arm64 root needs root")
+    script.enable_binfmt()
+    script.install_packages(root)
+    return root
+
+
+def test_tiny_checks_under_emulation(arm_root, trained_graph, int8_dir, quant_data) -> None:  # noqa: F811
+    """The fp32 graph computes on emulated aarch64 what it computes here (within fp32 parity,
+    0.01 mm); the INT8 graph's check runs there against this host's rollout of it; and where
+    its codes depart, no segment that is one integer kernel departs on its own (ONNX Runtime's
+    integer GEMMs accumulate exactly and requantise alike on both ISAs)."""
+    script = _script()
+    work = arm_root / script.WORK / f"pytest-{os.getpid()}"
+    try:
+        graphs = script.stage_graphs([trained_graph, int8_dir / "step_int8.onnx"], work)
+        script.host_golden(graphs[0], graphs[1:], str(quant_data), STEPS, work)
+        checks = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}
+        machine = script.emulated_machine(arm_root)
+        assert machine["machine"] == "aarch64" and machine["isa"]["kind"] in ("dotprod", "neon")
+        fp32 = checks[graphs[0].name]
+        assert fp32["status"] == "passed" and fp32["profile"] == "fp32"
+        assert all(f["max"] <= 0.01 for f in fp32["host_rollout"].values())
+        int8 = checks[graphs[1].name]
+        assert int8["profile"] == "int8" and isinstance(int8["same_as_host"], bool)
+        assert {"pose"} <= set(int8["host_rollout"])
+        trace = script.kernel_traces(arm_root, graphs[1:], work, STEPS)[graphs[1].name]
+        assert trace["codes"] > 0 and trace["isa"]["kind"] == machine["isa"]["kind"]
+        from e3dpsm.golden.kernel_cut import integer_only
+
+        assert not [d["name"] for d in trace["isolated"] if integer_only(d["segment"])]
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
