@@ -152,3 +152,35 @@ def test_data_at_another_frame_size(capsys, tmp_path, quant_data) -> None:
     _fails(capsys, ["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize",
                     "int8", "--data", str(small)], "re-run prepare with --height 192 --width 256")
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["prep96"]
+
+
+class _ToyLinear(torch.nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = torch.nn.Linear(16, 8)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.linear(x)
+
+
+@pytest.mark.parametrize("quantized, int8_weights", [(True, 1), (False, 0)])
+def test_constant_folding_keeps_8bit_weights(quantized, int8_weights) -> None:
+    """PT2E's int8 weight and its dequantize survive ExecuTorch's constant folding only with
+    the ATen quantize ops among the targets skipped; with the default targets they fold into
+    one float weight (what made the first INT8 program float)."""
+    skip_without("executorch")
+    from executorch.backends.xnnpack.quantizer.xnnpack_quantizer import (
+        XNNPACKQuantizer, get_symmetric_quantization_config)
+    from executorch.exir.passes.constant_prop_pass import constant_prop_pass
+    from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
+
+    from e3dpsm.export.executorch_export import fold_skip_targets
+
+    toy, x = _ToyLinear().eval(), (torch.randn(4, 16),)
+    quantizer = XNNPACKQuantizer().set_global(get_symmetric_quantization_config(is_per_channel=True))
+    prepared = prepare_pt2e(torch.export.export(toy, x, strict=False).module(), quantizer)
+    prepared(*x)
+    program = torch.export.export(convert_pt2e(prepared), x, strict=False)
+    folded = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized))
+    tensors = [*folded.constants.values(), *folded.state_dict.values()]
+    assert sum(t.dtype == torch.int8 and t.shape == (8, 16) for t in tensors) == int8_weights
