@@ -52,14 +52,18 @@ def xnnpack_int8_quantizer() -> Any:
     recurrent module types."""
     from executorch.backends.xnnpack.quantizer.xnnpack_quantizer import (
         XNNPACKQuantizer, get_symmetric_quantization_config)
-    from torchao.quantization.pt2e.quantizer import get_module_name_filter
-
     quantizer = XNNPACKQuantizer().set_global(get_symmetric_quantization_config(is_per_channel=True))
     for module_type in KEEP_FLOAT_TYPES:
         quantizer.set_module_type(module_type, None)
-    # set_module_name refuses None in ExecuTorch 1.5: an allow-list filter instead.
-    inside = [get_module_name_filter(scope) for scope in QUANTISED_SCOPES]
-    return quantizer.set_filter_function(lambda node: any(within(node) for within in inside))
+    # set_module_name refuses None in ExecuTorch 1.5, and its name filter matches whole module
+    # paths of called modules (a ModuleList such as `stages` is never called): an allow-list
+    # of path prefixes on the innermost module instead.
+    return quantizer.set_filter_function(in_quantised_scope)
+
+
+def in_quantised_scope(node: torch.fx.Node) -> bool:
+    path = _scope(node)
+    return any(path == scope or path.startswith(scope + ".") for scope in QUANTISED_SCOPES)
 
 
 def step_inputs(calibration: CalibrationSet, input_names: Sequence[str]) -> list[tuple[torch.Tensor, ...]]:
