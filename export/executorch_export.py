@@ -56,8 +56,7 @@ class ExecuTorchResult:
 def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: Any = None,
                         calibrate: Any = None) -> torch.export.ExportedProgram:
     """The step wrapper as an ExportedProgram ready to lower; with a PT2E `quantizer`,
-    `calibrate(prepared_module)` feeds it before conversion (the hook the INT8 programs
-    will use; no INT8 conversion is shipped yet, docs/edge.md)."""
+    `calibrate(prepared_module)` feeds it before conversion (export/executorch_int8.py)."""
     from executorch.exir.passes.constant_prop_pass import constant_prop_pass
 
     wrapper = StepGraph(model)
@@ -72,8 +71,24 @@ def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: An
     if options.decompose_norms:
         program = program.run_decompositions(norm_decompositions())
     if options.fold_constants:
-        program = constant_prop_pass(program)
+        program = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized=quantizer is not None))
     return program
+
+
+def fold_skip_targets(quantized: bool) -> set[Any] | None:
+    """What constant folding leaves alone: ExecuTorch's default; in a quantised program also
+    the ATen-dialect quantize / dequantize ops (the pass's own list holds their edge-dialect
+    forms only, and folded, an 8-bit weight and its dequantize become one float weight)."""
+    if not quantized:
+        return None
+    from executorch.exir.passes.constant_prop_pass import get_default_skip_targets_no_quant
+
+    ops = torch.ops.quantized_decomposed
+    primitives = {getattr(getattr(ops, name), overload)
+                  for name in ("quantize_per_tensor", "dequantize_per_tensor", "quantize_per_channel",
+                               "dequantize_per_channel")
+                  for overload in getattr(ops, name).overloads()}
+    return set(get_default_skip_targets_no_quant()) | primitives
 
 
 def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTorchOptions = ExecuTorchOptions(),
@@ -95,6 +110,10 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
         edge = to_edge_transform_and_lower(program, partitioner=[XnnpackPartitioner()],
                                            constant_methods={PTE_METHOD: encode(meta, record)})
         delegation = delegation_summary(edge)
+        if quantizer is not None:
+            from e3dpsm.export.executorch_int8 import int8_coverage
+
+            delegation["int8"] = int8_coverage(edge)
         lowered = time.perf_counter()
         buffer = edge.to_executorch().buffer
     with atomic_path(path, suffix=".pte") as tmp:

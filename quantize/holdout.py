@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -48,9 +48,19 @@ class HeldOut:
                        tuple({k: v[:frames] for k, v in o.items()} for o in self.fp32), self.window_ms)
 
 
+EDGE_RUNTIMES = ("executorch", "litert")  # .pte, .tflite: opened by extension (runtime/stepping.py)
+
+
 def open_stepper(model: str | os.PathLike, runtime: str, threads: int | None) -> Stepper:
-    """A session of `model` on `runtime`: ONNX Runtime, or OpenVINO's CPU device in f32 (its
-    run-time 8-bit quantisation of activations off: runtime/openvino_session.compile_config)."""
+    """A session of `model` on `runtime`: ONNX Runtime, OpenVINO's CPU device in f32 (its
+    run-time 8-bit quantisation of activations off: runtime/openvino_session.compile_config),
+    or an edge artifact's own runtime (ExecuTorch for .pte, LiteRT for .tflite)."""
+    if runtime in EDGE_RUNTIMES:
+        from e3dpsm.runtime.stepping import artifact_runtime, open_stepper as open_artifact
+
+        if artifact_runtime(model) != runtime:
+            raise ValueError(f"{model} is not run by {runtime}; it is a {artifact_runtime(model)} artifact")
+        return open_artifact(model, threads=threads)
     if runtime == "openvino":
         from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 
@@ -59,7 +69,7 @@ def open_stepper(model: str | os.PathLike, runtime: str, threads: int | None) ->
         from e3dpsm.runtime import StepSession
 
         return StepSession(model, threads=threads)
-    raise ValueError(f"unknown runtime {runtime!r}; choose onnxruntime or openvino")
+    raise ValueError(f"unknown runtime {runtime!r}; choose onnxruntime, openvino or one of {EDGE_RUNTIMES}")
 
 
 def held_out(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequence], window_ms: float,
@@ -72,10 +82,19 @@ def held_out(fp32_model: str | os.PathLike, sequences: Sequence[PreparedSequence
     return HeldOut(name, lnes, gt, tuple(onnx_stream_outputs(session, x, window_ms) for x in lnes), window_ms)
 
 
-def graph_outputs(model: str | os.PathLike, held: HeldOut, runtime: str = "onnxruntime",
-                  threads: int | None = None) -> list[dict[str, np.ndarray]]:
-    session = open_stepper(model, runtime, threads)
-    return [onnx_stream_outputs(session, x, held.window_ms) for x in held.lnes]
+def graph_outputs(model: Any, held: HeldOut, runtime: str = "onnxruntime", threads: int | None = None) -> list[dict]:
+    return stepper_outputs(open_stepper(model, runtime, threads), held)
+
+
+def stepper_outputs(stepper: Stepper, held: HeldOut) -> list[dict[str, np.ndarray]]:
+    """Every output of `stepper` streamed over each held-out sequence, states carried."""
+    return [onnx_stream_outputs(stepper, x, held.window_ms) for x in held.lnes]
+
+
+def check_stepper(stepper: Stepper, held: HeldOut, budget: TaskBudget) -> BudgetCheck:
+    """The task budget of an opened stepper on `held`, against fp32 on ONNX Runtime."""
+    return check_budget([o["pose"] for o in stepper_outputs(stepper, held)], [o["pose"] for o in held.fp32],
+                        list(held.gt), budget)
 
 
 def distance_pct(outputs: Sequence[Mapping[str, np.ndarray]], held: HeldOut) -> float:
@@ -115,6 +134,5 @@ def judge(model: str | os.PathLike, held: HeldOut, budget: TaskBudget, runtimes:
           threads: int | None = None) -> Judgement:
     """The task budget of `model` on `held` on each of `runtimes`, against fp32 on ONNX Runtime
     (the reference every runtime's graph is held to)."""
-    fp32 = [o["pose"] for o in held.fp32]
-    return Judgement({runtime: check_budget([o["pose"] for o in graph_outputs(model, held, runtime, threads)],
-                                            fp32, list(held.gt), budget) for runtime in runtimes})
+    return Judgement({runtime: check_stepper(open_stepper(model, runtime, threads), held, budget)
+                      for runtime in runtimes})

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from e3dpsm.cli._common import add_force, add_model_source
+from e3dpsm.cli._convert_int8 import add_int8_options, check_int8_args
 
 REPORT_NAME = "convert.json"
 # format -> (artifact name, module needed to convert)
@@ -29,6 +30,7 @@ def register(formats: argparse._SubParsersAction) -> None:
     _common(et, "grid_sample")
     et.add_argument("--native-norms", action="store_true",
                     help="keep LayerNorm / GroupNorm as they are (portable kernels) instead of as matmuls XNNPACK runs")
+    add_int8_options(et)
     et.set_defaults(func=run_executorch)
 
     lt = formats.add_parser("litert", help="LiteRT model (.tflite, XNNPACK delegate)",
@@ -81,6 +83,11 @@ def summary_line(fmt: str, path: Path, report: dict) -> str:
 def run_executorch(args: argparse.Namespace) -> int:
     from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
 
+    check_int8_args(args)
+    if args.quantize:
+        from e3dpsm.cli._convert_int8 import run_executorch_int8
+
+        return run_executorch_int8(args)
     options = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
     return _convert(args, "executorch", lambda model, path: convert_executorch(model, path, options))
 

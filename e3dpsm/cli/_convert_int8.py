@@ -1,0 +1,83 @@
+"""`e3dpsm convert executorch --quantize int8 --data PREP`: the INT8 program (PT2E, XNNPACK's
+quantizer), calibrated on PREP's train split and judged on its test split against the fp32
+ONNX graph with the task budget `e3dpsm quantize` uses (docs/edge.md#int8). Exit 1 when the
+program is over budget (written, with convert.json saying so), as a failed `golden check`."""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.cli._common import add_threads, positive_float, positive_int
+
+REPORT_NAME = "convert.json"
+
+
+def add_int8_options(p: argparse.ArgumentParser) -> None:
+    group = p.add_argument_group("INT8", "static 8-bit quantisation, checked on held-out data")
+    group.add_argument("--quantize", choices=("int8",), default=None,
+                       help="write an INT8 program (needs --data); the S5 layers and the Kalman fusion stay float")
+    group.add_argument("--data", default=None, metavar="PREP",
+                       help="prepared folder at the model's window and frame size: calibration on its train split, "
+                            "the budget on its test split")
+    group.add_argument("--frames", type=positive_int, default=200, help="calibration frames (default 200, minimum 16)")
+    group.add_argument("--holdout-frames", type=int, default=0,
+                       help="frames per held-out sequence of the budget check (default 0: all)")
+    group.add_argument("--budget-pct", type=positive_float, default=1.0,
+                       help="allowed rise of MPJPE and PA-MPJPE over fp32, %% (default 1)")
+    add_threads(group)
+
+
+def check_int8_args(args: argparse.Namespace) -> None:
+    """Before anything loads: --data goes with --quantize, both ways (ConfigError: exit 2)."""
+    from e3dpsm.errors import ConfigError
+
+    if args.quantize and not args.data:
+        raise ConfigError("--quantize int8 needs --data PREP (a prepared folder at the model's frame size: "
+                          "calibration on its train split, the budget check on its test split)")
+    if args.data and not args.quantize:
+        raise ConfigError("--data is read only with --quantize int8; drop it for an fp32 program")
+
+
+def options_from_args(args: argparse.Namespace) -> Any:
+    from e3dpsm.budget import TaskBudget
+    from e3dpsm.export.edge_int8 import EdgeInt8Options
+
+    return EdgeInt8Options(frames=args.frames, holdout_frames=args.holdout_frames, threads=args.threads,
+                           budget=TaskBudget(mpjpe_pct=args.budget_pct, pa_mpjpe_pct=args.budget_pct))
+
+
+def run_executorch_int8(args: argparse.Namespace) -> int:
+    from e3dpsm.cli._common import load_model_from_args
+    from e3dpsm.export.edge_int8 import budget_line, budget_record, open_data
+    from e3dpsm.export.executorch_export import ExecuTorchOptions
+    from e3dpsm.export.executorch_int8 import convert_executorch_int8
+    from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.extras import require
+    from e3dpsm.utils.io import atomic_dir, refuse_existing_output, write_json_atomic
+
+    require("executorch", "to convert for executorch")
+    refuse_existing_output(args.out, args.force)
+    options = options_from_args(args)
+    model = load_model_from_args(args)
+    data = open_data(args.data, model, options)  # a folder at another size fails here, nothing written
+    name = "step.pte"
+    program = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
+    with atomic_dir(args.out, force=args.force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-int8-") as work:
+        result, check, held = convert_executorch_int8(model, data, tmp / name, options, Path(work),
+                                                      program)
+        fp32_bytes = (Path(work) / "fp32.onnx").stat().st_size
+        report = report_header("convert", {k: v for k, v in vars(args).items() if k != "func"})
+        report.update(format="executorch", file=name, variant=model.config.variant, **result.to_dict(),
+                      int8=options.to_dict(), budget=budget_record(check, held, "executorch"),
+                      size={"int8_bytes": result.bytes, "fp32_onnx_bytes": fp32_bytes,
+                            "ratio_vs_fp32_onnx": result.bytes / fp32_bytes})
+        report["path"] = str(Path(args.out) / name)
+        write_json_atomic(tmp / REPORT_NAME, report)
+    coverage = result.delegation["int8"]["xnnpack_int8"]
+    print(f"wrote {report['path']} ({result.bytes / 1e6:.2f} MB, {result.bytes / fp32_bytes:.2f}x the fp32 graph, "
+          f"{result.seconds['total']:.0f} s); XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in coverage.items())
+                                                               or "none"))
+    print(budget_line(check))
+    return 0 if check.within else 1

@@ -1,0 +1,94 @@
+"""INT8 edge artifacts checked like `e3dpsm quantize`'s graphs: the pieces around a converter.
+
+An fp32 ONNX graph of the same checkpoint is the reference: its continuous rollout over the
+calibration split gives every calibration frame the states a running stream carries into it
+(quantize/calibration.py), and its poses on the held-out split are what the INT8 artifact is
+budgeted against (budget.py through quantize/holdout.py: MPJPE and PA-MPJPE within +1%,
+jitter within +5%, the bootstrap's upper bound counting), on frames calibration never saw.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from e3dpsm.budget import BudgetCheck, TaskBudget
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.errors import ConfigError
+from e3dpsm.models import E3DPSM
+from e3dpsm.quantize.calibration import CalibrationSet, record_calibration_set
+from e3dpsm.quantize.holdout import HeldOut, check_stepper, held_out, open_stepper
+
+
+@dataclass(frozen=True)
+class EdgeInt8Options:
+    frames: int = 200                 # calibration frames (quantize's default)
+    split: str = "train"              # where they come from
+    holdout_split: str = "test"       # the budget's frames, never calibrated on
+    holdout_frames: int = 0           # per held-out sequence (0: all)
+    threads: int | None = None
+    budget: TaskBudget = field(default_factory=TaskBudget)
+
+    def __post_init__(self) -> None:
+        if self.split == self.holdout_split:
+            raise ConfigError(f"the held-out split must differ from the calibration split ({self.split!r})")
+        if self.holdout_frames < 0:
+            raise ConfigError(f"--holdout-frames must be 0 (all) or positive, got {self.holdout_frames}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**{k: v for k, v in vars(self).items() if k != "budget"}, "budget": self.budget.to_dict()}
+
+
+def open_data(path: str | os.PathLike, model: E3DPSM, options: EdgeInt8Options) -> PreparedData:
+    """The prepared folder, checked against the model's window and frame size and for both
+    splits, before anything is converted (DataError / ConfigError: one line, exit 2)."""
+    data = PreparedData.open(path)
+    cfg = model.config
+    data.check_compatible(window_ms=cfg.train_window_ms, height=cfg.height, width=cfg.width)
+    for split in (options.split, options.holdout_split):
+        data.split(split)
+    return data
+
+
+def fp32_reference(model: E3DPSM, work: Path) -> Path:
+    """The checkpoint's fp32 ONNX step graph: the calibration's rollout and the budget's reference."""
+    from e3dpsm.export import export_step
+
+    return export_step(model, work / "fp32.onnx")
+
+
+def calibration_set(fp32_onnx: Path, data: PreparedData, options: EdgeInt8Options) -> CalibrationSet:
+    return record_calibration_set(fp32_onnx, data.split(options.split), options.frames, data.window_ms,
+                                  threads=options.threads)
+
+
+def held_out_set(fp32_onnx: Path, data: PreparedData, options: EdgeInt8Options) -> HeldOut:
+    return held_out(fp32_onnx, data.split(options.holdout_split), data.window_ms, options.holdout_frames,
+                    f"{Path(data.root).name}/{options.holdout_split}", options.threads)
+
+
+def check_artifact(path: str | os.PathLike, runtime: str, held: HeldOut, options: EdgeInt8Options) -> BudgetCheck:
+    """The task budget of the artifact on its own runtime, states carried by that runtime."""
+    return check_stepper(open_stepper(path, runtime, options.threads), held, options.budget)
+
+
+def budget_record(check: BudgetCheck, held: HeldOut, runtime: str) -> dict[str, Any]:
+    """convert.json's `budget`: within or not, each metric's change and upper bound, the frames,
+    and the distance to the fp32 poses (fidelity, not budgeted)."""
+    return {"within": check.within, "runtime": runtime, "data": held.name, "frames": check.frames,
+            "sequences": check.sequences, "reference": "fp32 ONNX graph on ONNX Runtime",
+            "distance_to_fp32_mm": check.fidelity_mm, "distance_to_fp32_pct_of_mpjpe": check.fidelity_pct,
+            "metrics": {m.name: {"fp32_mm": m.fp32_mm, "int8_mm": m.value_mm, "change_pct": m.change_pct,
+                                 "upper_pct": m.upper_pct, "limit_pct": m.limit_pct, "within": m.within,
+                                 "precise": m.precise} for m in check.metrics},
+            "budget": check.budget.to_dict()}
+
+
+def budget_line(check: BudgetCheck) -> str:
+    """One line for the terminal: each metric's change, its upper bound and the limit."""
+    parts = [f"{m.name} {m.change_pct:+.2f}% (upper {m.upper_pct:+.2f}%, limit +{m.limit_pct:g}%)"
+             for m in check.metrics]
+    verdict = "within budget" if check.within else "OVER BUDGET"
+    return f"{verdict} on {check.frames} held-out frames: " + ", ".join(parts) + \
+        f"; {check.fidelity_mm:.3f} mm from the fp32 poses"

@@ -1,0 +1,194 @@
+"""INT8 ExecuTorch programs (`convert executorch --quantize int8 --data PREP`) of the trained
+tiny: the calibration feeds mapped onto the traced step's arguments, the recurrent modules
+float in the lowered program, the task budget on held-out frames (and that it bites on a
+broken artifact), and the bad inputs of docs/edge.md#int8.
+
+The tests on a converted program share one conversion (export, PT2E calibration, XNNPACK
+lowering): about 4 minutes alone on 2 cores and 12 on a loaded host, so they are `slow`."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from _edge_helpers import skip_without
+from _quantize_helpers import TRAINED_TINY
+from e3dpsm.cli import main
+
+CALIBRATION_FRAMES = 16
+
+
+@pytest.fixture(scope="module")
+def int8_run(tmp_path_factory, quant_data) -> dict:
+    """One CLI conversion: {"code", "out", "report"} (the whole test split is the held-out check)."""
+    skip_without("executorch")
+    out = tmp_path_factory.mktemp("int8") / "et"
+    code = main(["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize", "int8",
+                 "--data", str(quant_data), "--frames", str(CALIBRATION_FRAMES), "--threads", "1"])
+    return {"code": code, "out": out, "report": json.loads((out / "convert.json").read_text())}
+
+
+def test_feeds_map_onto_the_traced_step(edge_model, trained_graph, quant_data) -> None:
+    """Each recorded feed, given to the step wrapper torch.export traces, computes the ONNX
+    graph's poses and states on it: names mapped to the right arguments (a swapped pair of
+    states would not)."""
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.export.edge_export import step_spec
+    from e3dpsm.export.executorch_int8 import step_inputs
+    from e3dpsm.export.wrapper import StepGraph
+    from e3dpsm.quantize.calibration import record_calibration_set
+    from e3dpsm.runtime import StepSession
+
+    calibration = record_calibration_set(trained_graph, PreparedData.open(quant_data).split("train"),
+                                         CALIBRATION_FRAMES, 20.0, threads=1)
+    spec = step_spec(edge_model)
+    inputs = step_inputs(calibration, spec.input_names)
+    session = StepSession(trained_graph, threads=1)
+    wrapper = StepGraph(edge_model).eval()
+    late = len(inputs) - 1  # a frame deep in a rollout: its states are not the initial ones
+    assert np.abs(inputs[late][spec.input_names.index("fusion_pose_in")].numpy()).max() > 10.0
+    with torch.no_grad():
+        got = dict(zip(spec.output_names, (t.numpy() for t in wrapper(*inputs[late]))))
+    want, new_state = session.run_feeds(calibration.feeds[late])
+    np.testing.assert_allclose(got["pose"], want["pose"], atol=1e-3)
+    np.testing.assert_allclose(got["s5_stage4_re_out"], new_state["s5_stage4_re"], atol=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known: the tiny's INT8 program is over budget (PA-MPJPE +6.6%, "
+                   "docs/edge.md#int8); kept as the target")
+def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
+    """Calibrated on 16 train frames, judged on the whole test split (a sequence neither saw)."""
+    report = int8_run["report"]
+    budget = report["budget"]
+    assert int8_run["code"] == 0 and budget["within"], budget["metrics"]
+    assert budget["frames"] == 50 and budget["data"].endswith("/test")
+    assert report["artifact"]["calibration"] == {**report["artifact"]["calibration"], "split": "train",
+                                                  "frames": CALIBRATION_FRAMES, "state_source": "rollout"}
+    for name in ("mpjpe", "pa_mpjpe", "jitter"):
+        metric = budget["metrics"][name]
+        assert metric["upper_pct"] <= metric["limit_pct"] and metric["upper_pct"] >= metric["change_pct"]
+    assert budget["distance_to_fp32_mm"] > 0.01  # quantised: not the fp32 program under another name
+    assert report["artifact"]["precision"] == "int8" and (int8_run["out"] / "step.pte").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known: delta_head's linear reads an 8-bit operand although outside the "
+                   "quantised scopes (docs/edge.md#int8)")
+def test_recurrent_modules_stay_float_in_the_lowered_program(int8_run) -> None:
+    """Every multiply-accumulate of the S5 layers, the Kalman fusion and the fused-pose
+    embedding reads float operands; the convolutions and linears elsewhere read 8-bit ones."""
+    coverage = int8_run["report"]["delegation"]["int8"]
+    kept_float = (".s5", "fusion", "pose_embed", "direct_head", "delta_head")
+    assert not [path for path in coverage["int8_modules"] if any(k in path for k in kept_float)]
+    assert any(path.endswith(".s5") or ".s5." in path for path in coverage["float_modules"])
+    assert any(".stages." in path for path in coverage["int8_modules"])
+    assert coverage["xnnpack_int8"].get("aten.convolution.default", 0) >= 4
+    assert coverage["xnnpack_int8"].get("aten.linear.default", 0) >= 1
+    assert int8_run["report"]["artifact"]["keep_float"]["module_types"] == ["S5", "PoseFusion"]
+
+
+class _Noisy:
+    """A runner whose fused pose gets seeded per-joint noise of `sigma_mm`: a broken artifact
+    (a constant offset would not do: MPJPE is root-relative and PA-MPJPE removes it)."""
+
+    def __init__(self, runner, sigma_mm: float) -> None:
+        self.runner, self.sigma_mm, self.meta = runner, sigma_mm, runner.meta
+        self.rng = np.random.default_rng(0)
+
+    def init_state(self, batch: int = 1):
+        return self.runner.init_state(batch)
+
+    def step(self, lnes, state, window_ms):
+        out, state = self.runner.step(lnes, state, window_ms)
+        noise = self.rng.normal(0.0, self.sigma_mm, out["pose"].shape).astype(np.float32)
+        return {**out, "pose": out["pose"] + noise}, state
+
+
+@pytest.mark.slow
+def test_the_budget_fails_a_broken_artifact(int8_run, trained_graph, quant_data) -> None:
+    """The same INT8 program with 30 mm of noise on every joint is over budget on MPJPE and
+    jitter, and the CLI's exit code follows the recorded verdict."""
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.export.edge_int8 import EdgeInt8Options, held_out_set
+    from e3dpsm.quantize.holdout import check_stepper
+    from e3dpsm.runtime.stepping import open_stepper
+
+    options = EdgeInt8Options(threads=1)
+    held = held_out_set(trained_graph, PreparedData.open(quant_data), options)
+    broken = check_stepper(_Noisy(open_stepper(int8_run["out"] / "step.pte", threads=1), 30.0), held, options.budget)
+    assert not broken.within and not broken.metric("mpjpe").within and not broken.metric("jitter").within
+    assert int8_run["code"] == (0 if int8_run["report"]["budget"]["within"] else 1)
+
+
+@pytest.mark.slow
+def test_holdout_opens_edge_artifacts_on_their_own_runtime(int8_run) -> None:
+    from e3dpsm.quantize.holdout import open_stepper
+
+    assert open_stepper(int8_run["out"] / "step.pte", "executorch", 1).runtime == "executorch"
+    with pytest.raises(ValueError, match="executorch artifact"):
+        open_stepper(int8_run["out"] / "step.pte", "litert", 1)
+
+
+# -- bad input: one line, exit 2, nothing written ------------------------------------------
+
+def _fails(capsys, argv: list[str], needle: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("e3dpsm convert: error:") and needle in err, err
+
+
+def test_quantize_without_data(capsys, tmp_path) -> None:
+    out = tmp_path / "et"
+    _fails(capsys, ["convert", "executorch", "--variant", "tiny", "--out", str(out), "--quantize", "int8"],
+           "--quantize int8 needs --data PREP")
+    _fails(capsys, ["convert", "executorch", "--variant", "tiny", "--out", str(out), "--data", str(tmp_path)],
+           "--data is read only with --quantize int8")
+    assert not out.exists()
+
+
+def test_data_at_another_frame_size(capsys, tmp_path, quant_data) -> None:
+    skip_without("executorch")
+    from e3dpsm.data.prepare import prepare_dataset
+
+    small = tmp_path / "prep96"
+    prepare_dataset(Path(quant_data).parent / "raw", small, window_ms=20.0, height=96, width=128, progress=False)
+    out = tmp_path / "et"
+    _fails(capsys, ["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize",
+                    "int8", "--data", str(small)], "re-run prepare with --height 192 --width 256")
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["prep96"]
+
+
+class _ToyLinear(torch.nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = torch.nn.Linear(16, 8)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.linear(x)
+
+
+@pytest.mark.parametrize("quantized, int8_weights", [(True, 1), (False, 0)])
+def test_constant_folding_keeps_8bit_weights(quantized, int8_weights) -> None:
+    """PT2E's int8 weight and its dequantize survive ExecuTorch's constant folding only with
+    the ATen quantize ops among the targets skipped; with the default targets they fold into
+    one float weight (what made the first INT8 program float)."""
+    skip_without("executorch")
+    from executorch.backends.xnnpack.quantizer.xnnpack_quantizer import (
+        XNNPACKQuantizer, get_symmetric_quantization_config)
+    from executorch.exir.passes.constant_prop_pass import constant_prop_pass
+    from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
+
+    from e3dpsm.export.executorch_export import fold_skip_targets
+
+    toy, x = _ToyLinear().eval(), (torch.randn(4, 16),)
+    quantizer = XNNPACKQuantizer().set_global(get_symmetric_quantization_config(is_per_channel=True))
+    prepared = prepare_pt2e(torch.export.export(toy, x, strict=False).module(), quantizer)
+    prepared(*x)
+    program = torch.export.export(convert_pt2e(prepared), x, strict=False)
+    folded = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized))
+    tensors = [*folded.constants.values(), *folded.state_dict.values()]
+    assert sum(t.dtype == torch.int8 and t.shape == (8, 16) for t in tensors) == int8_weights
