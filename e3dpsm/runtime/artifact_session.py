@@ -14,12 +14,11 @@ import numpy as np
 
 from e3dpsm.errors import InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.session import build_feeds
+from e3dpsm.runtime.session import MetadataStepper
 from e3dpsm.runtime.stepping import StateArrays
-from e3dpsm.state import initial_states
 
 
-class ArtifactSession:
+class ArtifactSession(MetadataStepper):
     """`step(lnes, state, window_ms) -> (outputs, state)` over a converted artifact.
 
     Subclasses set `runtime` (a name for reports) and call `_bind(path, meta, inputs,
@@ -38,22 +37,6 @@ class ArtifactSession:
             raise InputError(f"{path}: inputs {sorted(inputs)} / outputs {sorted(outputs)} do not match its "
                              f"metadata ({sorted(expected_in)} / {sorted(expected_out)}); convert it again")
 
-    @property
-    def states(self):
-        return self.meta.states
-
-    def input_names(self) -> list[str]:
-        return list(self._inputs)
-
-    def output_names_all(self) -> list[str]:
-        return list(self._outputs)
-
-    def init_state(self, batch: int = 1) -> StateArrays:
-        return initial_states(self.meta.states, batch)
-
-    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
-        return build_feeds(self.meta, lnes, state, window_ms)
-
     def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
         batch = int(feeds[self.meta.frame_input["name"]].shape[0])
         rows = [self._run_one({name: value[i: i + 1] for name, value in feeds.items()}) for i in range(batch)]
@@ -61,10 +44,6 @@ class ArtifactSession:
                  for name in rows[0]}
         outputs = {name: named[name] for name in self.meta.output_names}
         return outputs, {s.name: named[s.output_name] for s in self.meta.states}
-
-    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray],
-             window_ms: float | np.ndarray) -> tuple[dict[str, np.ndarray], StateArrays]:
-        return self.run_feeds(self.feeds(lnes, state, window_ms))
 
     def _run_one(self, feeds: Mapping[str, np.ndarray]) -> dict[str, Any]:
         raise NotImplementedError

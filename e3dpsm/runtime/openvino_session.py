@@ -14,8 +14,7 @@ import numpy as np
 
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.session import StateArrays, build_feeds
-from e3dpsm.state import initial_states
+from e3dpsm.runtime.session import MetadataStepper, StateArrays
 
 
 def openvino_available() -> tuple[bool, str]:
@@ -120,7 +119,7 @@ def _contract_name(port, contract: set[str]) -> str:
     return names[0] if names else port.get_any_name()
 
 
-class OpenVINOStepSession:
+class OpenVINOStepSession(MetadataStepper):
     """The explicit-state step graph on OpenVINO: `step(lnes, state, window_ms) -> (outputs,
     state)`, or its parts `feeds` -> `run_raw` (the runtime's own call) -> `collect`, as
     `StepSession` has them.
@@ -152,19 +151,6 @@ class OpenVINOStepSession:
         """The openvino.CompiledModel (its properties say how it runs)."""
         return self._compiled
 
-    def input_names(self) -> list[str]:
-        return list(self._inputs)
-
-    def output_names_all(self) -> list[str]:
-        return list(self._outputs)
-
-    def init_state(self, batch: int = 1) -> StateArrays:
-        return initial_states(self.meta.states, batch)
-
-    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
-        """The input dict of one step, checked against the metadata."""
-        return build_feeds(self.meta, lnes, state, window_ms)
-
     def run_raw(self, feeds: Mapping[str, np.ndarray]) -> None:
         """Bind the feeds (shared memory) and infer; the results stay in the request."""
         import openvino as ov
@@ -183,6 +169,3 @@ class OpenVINOStepSession:
 
     def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
         return self.collect(self.run_raw(feeds))
-
-    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray):
-        return self.run_feeds(self.feeds(lnes, state, window_ms))

@@ -86,7 +86,42 @@ def build_feeds(
     return feeds
 
 
-class StepSession:
+class MetadataStepper:
+    """What every runtime's step session derives from its metadata alone: the states, their
+    initial values, the checked feeds of a step, and `step` = `run_feeds(feeds(...))`. A
+    session sets `meta` and implements `run_feeds`; `_inputs` / `_outputs` name what its
+    runtime exposes."""
+
+    meta: GraphMetadata
+    _inputs: list[str]
+    _outputs: list[str]
+
+    @property
+    def states(self):
+        return self.meta.states
+
+    def input_names(self) -> list[str]:
+        return list(self._inputs)
+
+    def output_names_all(self) -> list[str]:
+        return list(self._outputs)
+
+    def init_state(self, batch: int = 1) -> StateArrays:
+        return initial_states(self.meta.states, batch)
+
+    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
+        """The input dict of one step, checked against the metadata."""
+        return build_feeds(self.meta, lnes, state, window_ms)
+
+    def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
+        raise NotImplementedError
+
+    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray],
+             window_ms: float | np.ndarray) -> tuple[dict[str, np.ndarray], StateArrays]:
+        return self.run_feeds(self.feeds(lnes, state, window_ms))
+
+
+class StepSession(MetadataStepper):
     """One exported E-3DPSM step graph: `step(lnes, state, window_ms) -> (outputs, state)`
     (a `GraphStepper`).
 
@@ -112,22 +147,11 @@ class StepSession:
                 f"{path}: graph inputs {sorted(graph_inputs)} do not match its metadata {sorted(expected)}"
             )
 
-    @property
-    def states(self):
-        return self.meta.states
-
     def input_names(self) -> list[str]:
         return [i.name for i in self.session.get_inputs()]
 
     def output_names_all(self) -> list[str]:
         return list(self.output_names)
-
-    def init_state(self, batch: int = 1) -> StateArrays:
-        return initial_states(self.meta.states, batch)
-
-    def feeds(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> dict[str, np.ndarray]:
-        """The input dict of one step, checked against the metadata."""
-        return build_feeds(self.meta, lnes, state, window_ms)
 
     def run_feeds(self, feeds: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], StateArrays]:
         return self.collect(self.run_raw(feeds))
@@ -143,9 +167,6 @@ class StepSession:
         outputs = named if self.all_outputs else {name: named[name] for name in self.meta.output_names}
         new_state = {s.name: named[s.output_name] for s in self.meta.states}
         return outputs, new_state
-
-    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray], window_ms: float | np.ndarray) -> tuple[dict[str, np.ndarray], StateArrays]:
-        return self.run_feeds(self.feeds(lnes, state, window_ms))
 
 
 class CarriedStateRunner:
