@@ -88,19 +88,20 @@ def test_an_hdf5_file_that_segfaulted_h5py_is_one_error_line():
     assert outcome.detail.startswith(f"DataError: {path}: ") and "\n" not in outcome.detail
 
 
-def test_no_arrays_file_is_left_behind_after_a_value_a_crash_or_a_deadline(tmp_path):
+def test_no_arrays_file_is_left_behind_after_a_value_a_crash_or_a_deadline(tmp_path, monkeypatch):
     import glob
-    import tempfile
 
-    from e3dpsm.utils.isolate import SHARED_MEMORY
-
-    folder = SHARED_MEMORY if os.path.isdir(SHARED_MEMORY) else tempfile.gettempdir()
+    # A folder of this test's own: /dev/shm is shared with the other pytest-xdist worker,
+    # whose calls create and remove their own arrays files meanwhile.
+    folder = tmp_path / "shm"
+    folder.mkdir()
+    monkeypatch.setattr("e3dpsm.utils.isolate.SHARED_MEMORY", str(folder))
     before = set(glob.glob(os.path.join(folder, "e3dpsm-isolate-*")))
     call("typed_arrays", "10")
     for target, deadline in (("segfault", 30.0), ("spin", 1.0)):
         with pytest.raises(DataError):
             call(target, deadline_s=deadline)
-    assert set(glob.glob(os.path.join(folder, "e3dpsm-isolate-*"))) == before
+    assert set(glob.glob(os.path.join(folder, "e3dpsm-isolate-*"))) == before == set()
 
 
 def _group(pgid: int) -> list[int]:
