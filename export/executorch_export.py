@@ -62,14 +62,18 @@ def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: An
     wrapper = StepGraph(model)
     example = wrapper.example_inputs(1)
     program = torch.export.export(wrapper, example, strict=False)
+    if options.decompose_norms:
+        program = program.run_decompositions(norm_decompositions())
     if quantizer is not None:
         from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
 
-        prepared = prepare_pt2e(program.module(), quantizer)
+        from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+        module = program.module()
+        explicit_shared_batch_norms(module)  # else prepare_pt2e's conv-BN fold feeds shortcuts normalised tensors
+        prepared = prepare_pt2e(module, quantizer)
         calibrate(prepared)
         program = torch.export.export(convert_pt2e(prepared), example, strict=False)
-    if options.decompose_norms:
-        program = program.run_decompositions(norm_decompositions())
     if options.fold_constants:
         program = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized=quantizer is not None))
     return program
@@ -115,6 +119,10 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
 
             delegation["int8"] = int8_coverage(edge)
         lowered = time.perf_counter()
+        if quantizer is not None:
+            # the quantize / dequantize ops a partition leaves outside XNNPACK (the gather form's
+            # computed weights) need their out-variant kernels registered to serialise
+            import executorch.kernels.quantized  # noqa: F401
         buffer = edge.to_executorch().buffer
     with atomic_path(path, suffix=".pte") as tmp:
         tmp.write_bytes(buffer)

@@ -58,8 +58,9 @@ def test_feeds_map_onto_the_traced_step(edge_model, trained_graph, quant_data) -
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known: the tiny's INT8 program is over budget (PA-MPJPE +6.6%, "
-                   "docs/edge.md#int8); kept as the target")
+@pytest.mark.xfail(strict=True, reason="known: the trained tiny's INT8 program is over budget on its 50 held-out "
+                   "frames (PA-MPJPE +2.5%, jitter +14%; the trained small's is within: docs/edge.md#int8); "
+                   "no search returns layers to float yet")
 def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
     """Calibrated on 16 train frames, judged on the whole test split (a sequence neither saw)."""
     report = int8_run["report"]
@@ -76,8 +77,6 @@ def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known: delta_head's linear reads an 8-bit operand although outside the "
-                   "quantised scopes (docs/edge.md#int8)")
 def test_recurrent_modules_stay_float_in_the_lowered_program(int8_run) -> None:
     """Every multiply-accumulate of the S5 layers, the Kalman fusion and the fused-pose
     embedding reads float operands; the convolutions and linears elsewhere read 8-bit ones."""

@@ -89,6 +89,8 @@ class ExecuTorchStepSession(ArtifactSession):
         program = load_program(path)
         meta, self.artifact = program_metadata(path, program)
         with native_log_silenced():  # XNNPACK probes the CPU (cpuinfo) when it first starts
+            if self.artifact.get("precision") == "int8":
+                import executorch.kernels.quantized  # noqa: F401  (kernels of Q/DQ left outside XNNPACK)
             if threads:
                 from executorch.extension.pybindings import portable_lib
 

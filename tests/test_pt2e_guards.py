@@ -1,0 +1,121 @@
+"""What PT2E preparation must leave alone, and what XNNPACK's quantizer may annotate.
+
+- export/pt2e_guards.py: a BatchNorm reading a convolution that also feeds a shortcut is made
+  an explicit scale and shift, so torchao's conv-BN fold cannot hand the shortcut the
+  normalised tensor (checked against eager PyTorch, and the unguarded fold shown to break it).
+- export/executorch_int8.py's quantizer: convolutions and linears inside the quantised scopes
+  take 8 bits; no `cat`, no head, no recurrent module does (checked on the trained tiny's step).
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from _edge_helpers import skip_without
+
+
+class PreActivationBlock(nn.Module):
+    """A stage's `down` convolution feeding a block's BatchNorm and its shortcut, as in the
+    model's residual stages; `tail` is a convolution whose BatchNorm is its only reader."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        torch.manual_seed(0)
+        self.down, self.norm, self.conv = nn.Conv2d(3, 4, 3, padding=1), nn.BatchNorm2d(4), nn.Conv2d(4, 4, 1)
+        self.tail, self.tail_norm = nn.Conv2d(4, 4, 1), nn.BatchNorm2d(4)
+        for norm in (self.norm, self.tail_norm):  # statistics far from the identity
+            norm.running_mean.uniform_(-2.0, 2.0)
+            norm.running_var.uniform_(0.2, 4.0)
+            norm.weight.data.uniform_(0.5, 2.0)
+            norm.bias.data.uniform_(-1.0, 1.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.down(x)
+        y = y + self.conv(torch.relu(self.norm(y)))
+        return self.tail_norm(self.tail(y))
+
+
+def _prepared(guard: bool) -> tuple[nn.Module, torch.nn.Module, int]:
+    skip_without("executorch")
+    from executorch.backends.xnnpack.quantizer.xnnpack_quantizer import XNNPACKQuantizer
+    from torchao.quantization.pt2e.quantize_pt2e import prepare_pt2e
+
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+    block = PreActivationBlock().eval()
+    module = torch.export.export(block, (torch.randn(1, 3, 8, 8),), strict=False).module()
+    rewritten = explicit_shared_batch_norms(module) if guard else 0
+    return block, prepare_pt2e(module, XNNPACKQuantizer()), rewritten  # annotates nothing: float
+
+
+def test_guarded_preparation_computes_the_float_block() -> None:
+    block, prepared, rewritten = _prepared(guard=True)
+    assert rewritten == 1  # the shared one; the tail's BatchNorm is left to the (exact) fold
+    x = torch.randn(1, 3, 8, 8, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        torch.testing.assert_close(prepared(x), block(x), atol=1e-5, rtol=1e-5)
+
+
+def test_unguarded_fold_changes_the_block() -> None:
+    """Why the guard exists: torchao's fold alone moves the output by far more than the
+    tolerance above (if torchao starts checking the convolution's other readers, this fails
+    and the guard can go)."""
+    block, prepared, _ = _prepared(guard=False)
+    x = torch.randn(1, 3, 8, 8, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert (prepared(x) - block(x)).abs().max() > 0.1
+
+
+def test_guard_finds_only_shared_convolutions() -> None:
+    from e3dpsm.export.pt2e_guards import unfoldable_batch_norms
+
+    module = torch.export.export(PreActivationBlock().eval(), (torch.randn(1, 3, 8, 8),), strict=False).module()
+    found = unfoldable_batch_norms(module)
+    assert len(found) == 1 and found[0].args[0].target == torch.ops.aten.conv2d.default
+    assert len(found[0].args[0].users) == 2
+
+
+@pytest.fixture(scope="module")
+def annotated_step(edge_model):
+    """The trained tiny's step, exported as for the INT8 program and annotated by the quantizer."""
+    skip_without("executorch")
+    from e3dpsm.export.edge_export import export_ready
+    from e3dpsm.export.executorch_int8 import xnnpack_int8_quantizer
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+    from e3dpsm.export.wrapper import StepGraph
+
+    with export_ready(edge_model, "grid_sample"):
+        wrapper = StepGraph(edge_model)
+        module = torch.export.export(wrapper, wrapper.example_inputs(1), strict=False).module()
+    explicit_shared_batch_norms(module)
+    quantizer = xnnpack_int8_quantizer()
+    return quantizer.annotate(quantizer.transform_for_annotation(module))
+
+
+def _annotated(node: torch.fx.Node) -> bool:
+    annotation = node.meta.get("quantization_annotation")
+    return bool(annotation is not None and annotation._annotated)
+
+
+def test_quantizer_annotates_the_feature_extractor(annotated_step) -> None:
+    from e3dpsm.export.executorch_int8 import _scope, in_quantised_scope
+
+    convolutions = [n for n in annotated_step.graph.nodes if n.target == torch.ops.aten.conv2d.default]
+    assert convolutions and all(_annotated(n) for n in convolutions if in_quantised_scope(n))
+    assert any(_annotated(n) and ".stages." in "." + _scope(n) + "." for n in convolutions)
+
+
+def test_quantizer_leaves_heads_cats_and_recurrence_float(annotated_step) -> None:
+    from e3dpsm.export.executorch_int8 import _scope
+
+    for node in annotated_step.graph.nodes:
+        scope = _scope(node)
+        if node.target == torch.ops.aten.cat.default:
+            assert not _annotated(node), scope
+        if any(part in scope for part in (".s5", "fusion", "pose_embed", "direct_head", "delta_head")):
+            assert not _annotated(node), (node.target, scope)
+        if node.target in (torch.ops.aten.add.Tensor, torch.ops.aten.mul.Tensor) and _annotated(node):
+            # only as a computed weight or bias (the offset projection's rescaled ones), never as an activation
+            assert all(user.target == torch.ops.aten.linear.default and node in user.args[1:3]
+                       for user in node.users), (node.target, scope)
