@@ -2,7 +2,7 @@
 the float step computes, applied to the exported step before it is prepared.
 
 `prepare_pt2e` folds every BatchNorm that reads a convolution into that convolution
-(`torchao.quantization.pt2e.utils._fuse_conv_bn_`, torchao 0.15) without looking at the
+(`torchao.quantization.pt2e.utils._fuse_conv_bn_`, torchao 0.18) without looking at the
 convolution's other users. In this model's pre-activation residual blocks a stage's `down`
 convolution feeds both the next block's first BatchNorm and that block's shortcut, so the
 fold hands the shortcut the normalised tensor: on the trained `small` it moved the float
