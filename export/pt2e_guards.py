@@ -68,8 +68,8 @@ def explicit_shared_batch_norms(gm: torch.fx.GraphModule) -> int:
             shift_node = gm.graph.get_attr(names[1])
             scaled = gm.graph.call_function(torch.ops.aten.mul.Tensor, (source, scale_node))
             affine = gm.graph.call_function(torch.ops.aten.add.Tensor, (scaled, shift_node))
-        affine.meta.update({k: v for k, v in node.meta.items() if k in ("nn_module_stack", "stack_trace")})
-        scaled.meta.update({k: v for k, v in node.meta.items() if k in ("nn_module_stack", "stack_trace")})
+        for new_node in (scaled, affine):  # the module path the quantizer's scope filter reads
+            new_node.meta.update({k: v for k, v in node.meta.items() if k in ("nn_module_stack", "stack_trace")})
         if node.target == torch.ops.aten.batch_norm.default:
             node.replace_all_uses_with(affine)
         else:  # returns (out, mean, invstd): only getitem 0 is read in eval mode
@@ -77,8 +77,6 @@ def explicit_shared_batch_norms(gm: torch.fx.GraphModule) -> int:
                 if user.target is not operator.getitem or user.args[1] != 0:
                     raise ValueError(f"{node} has a reader of its saved statistics; cannot rewrite it")
                 user.replace_all_uses_with(affine)
-        if not node.users:
-            gm.graph.erase_node(node)
-    gm.graph.eliminate_dead_code()
+    gm.graph.eliminate_dead_code()  # the BatchNorms (and getitems) nothing reads now
     gm.recompile()
     return len(rewritten)
