@@ -123,15 +123,24 @@ def test_a_read_does_not_outlive_its_helper():
     import signal
     import threading
 
-    helper = call("pid")["parent"]
+    from e3dpsm.utils import isolate
+
     errors = []
     reader = threading.Thread(target=lambda: errors.append(pytest.raises(DataError, call, "spin", deadline_s=120)))
     reader.start()
-    deadline = time.monotonic() + 30
-    while len(_group(helper)) < 2 and time.monotonic() < deadline:  # the helper and its spinning child
+    # The helper is the one the spinning call went to (a helper that died since an earlier
+    # call is replaced by then), found once that call holds the lock and has a live helper.
+    # The bound is generous: on a loaded CI host a fork and an import took seconds.
+    deadline = time.monotonic() + 90
+    helper, child = None, []
+    while not child and reader.is_alive() and time.monotonic() < deadline:
+        running = isolate._helper
+        if running is not None and isolate._lock.locked() and running.process.poll() is None:
+            helper = running.process.pid
+            child = [pid for pid in _group(helper) if pid != helper]
         time.sleep(0.05)
-    child = [pid for pid in _group(helper) if pid != helper]
-    assert child, "the spinning child did not start"
+    assert child, (f"the spinning child did not start within 90 s (helper {helper}, "
+                   f"reader {'running' if reader.is_alive() else 'ended: ' + repr(errors)})")
     try:
         os.kill(helper, signal.SIGKILL)
         reader.join(60)

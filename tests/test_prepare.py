@@ -14,7 +14,7 @@ from e3dpsm.data.layout import (
 from e3dpsm.data.prepare import prepare_dataset
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.data.sequence import EventStream, Sequence
-from e3dpsm.errors import DataError, OutputExistsError
+from e3dpsm.errors import ConfigError, DataError, OutputExistsError
 from e3dpsm.events import events_to_lnes
 from e3dpsm.joints import ACTIONS
 
@@ -159,6 +159,35 @@ def test_failure_leaves_no_partial_output(dataset, tmp_path):
     with pytest.raises(DataError, match="jump_04"):
         prepare_dataset(root, out, 20, progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no out, no temporary folder
+
+
+def test_workers_prepare_the_same_frames_and_poses(prepared_20ms, dataset, tmp_path):
+    """--workers prepares one sequence per process; each file is what one process writes."""
+    serial, serial_report = prepared_20ms
+    out = tmp_path / "parallel"
+    report = prepare_dataset(dataset[0], out, 20, progress=False, workers=3)
+    assert report["workers"] == 3 and report["sequences"] == serial_report["sequences"]
+    names = sorted(p.name for p in serial.iterdir() if p.is_dir())
+    assert names == sorted(p.name for p in out.iterdir() if p.is_dir()) and len(names) >= 3
+    for name in names:
+        for file in sorted((serial / name).iterdir()):
+            assert (out / name / file.name).read_bytes() == file.read_bytes(), f"{name}/{file.name}"
+    assert json.loads((out / "meta.json").read_text())["sequences"] == \
+        json.loads((serial / "meta.json").read_text())["sequences"]
+
+
+def test_a_worker_that_fails_leaves_no_partial_output(dataset, tmp_path):
+    root = tmp_path / "data"
+    for name, seq in dataset[1].items():
+        write_synthetic_sequence(root / name, seq, {})
+    write_dataset_index(root, SPLITS, {"seed": 0})
+    events = root / "jump_04" / "events.h5"
+    events.write_bytes(events.read_bytes()[:2000])
+    with pytest.raises(DataError, match="jump_04"):
+        prepare_dataset(root, tmp_path / "out", 20, progress=False, workers=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    with pytest.raises(ConfigError, match="--workers must be at least 1"):
+        prepare_dataset(root, tmp_path / "out", 20, progress=False, workers=0)
 
 
 def test_opening_a_folder_that_is_not_prepared(tmp_path, prepared_20ms):

@@ -20,6 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     parser.add_argument("--window-ms", type=float, default=20.0, help="window length T in ms (default 20)")
     parser.add_argument("--height", type=int, default=192, help="LNES frame height (default 192)")
     parser.add_argument("--width", type=int, default=256, help="LNES frame width (default 256)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="sequences prepared at once, one per process (default 1; the same frames and poses either way)")
     add_force(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
@@ -31,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
     report = prepare_dataset(
         args.data, args.out, args.window_ms, args.height, args.width,
-        force=args.force, progress=not args.no_progress and sys.stderr.isatty(),
+        force=args.force, progress=not args.no_progress and sys.stderr.isatty(), workers=args.workers,
     )
     per_window = report["events_per_window"]
     print(

@@ -105,6 +105,39 @@ def prepare_sequence(
     }
 
 
+_PrepareJob = tuple[Path, str, Path, int, int, int]  # sequence folder, layout, output folder, T, H, W
+
+
+def _prepare_one(job: _PrepareJob, progress: bool) -> tuple[dict[str, Any], tuple[str, ...]]:
+    folder, source, target, window_us, height, width = job
+    seq = read_sequence(folder, source)
+    return prepare_sequence(seq, target, window_us, height, width, progress), tuple(seq.action_names)
+
+
+def _prepare_all(jobs: list[_PrepareJob], workers: int, progress: bool):
+    """Each job's (stats, action names), in the jobs' order: in this process, or one
+    sequence per worker process (the first failure is raised once the pool has stopped)."""
+    if workers == 1 or len(jobs) < 2:
+        for job in jobs:
+            yield _prepare_one(job, progress)
+        return
+    import concurrent.futures as cf
+
+    from threadpoolctl import threadpool_limits
+
+    # One BLAS thread per worker: the workers already fill the cores (as `synth` does).
+    with threadpool_limits(limits=1, user_api="blas"), \
+            cf.ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
+        futures = [pool.submit(_prepare_one, job, False) for job in jobs]
+        try:
+            results = [future.result() for future in futures]
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+    yield from results
+
+
 def prepare_dataset(
     data: str | os.PathLike,
     out: str | os.PathLike,
@@ -114,15 +147,20 @@ def prepare_dataset(
     *,
     force: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """Prepare every sequence of the data set at `data` into `out`; return the report dict.
 
     The whole output is built under a temporary name and renamed at the end, so a failure
     (e.g. a corrupt sequence) leaves no partial folder; an existing `out` needs `force`.
+    `workers` > 1 prepares that many sequences at once, one per process; the output is the
+    same frames and poses (each sequence's files depend on that sequence alone).
     """
     window_us = window_us_from_ms(window_ms)
     if height < 1 or width < 1:
         raise ConfigError(f"--height and --width must be positive, got {height} x {width}")
+    if workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {workers}")
     started = time.perf_counter()
     source = detect_layout(data)
     listed = list_sequences(data)
@@ -132,13 +170,12 @@ def prepare_dataset(
     sensor_hw: list[int] | None = None
     action_names: tuple[str, ...] | None = None
     with atomic_dir(out, force=force) as tmp:
-        for i, (name, split) in enumerate(listed, 1):
-            seq = read_sequence(Path(data) / name, source)
-            stats = prepare_sequence(seq, tmp / name, window_us, height, width, progress)
+        jobs = [(Path(data) / name, source, tmp / name, window_us, height, width) for name, _ in listed]
+        for i, ((name, split), (stats, seq_actions)) in enumerate(zip(listed, _prepare_all(jobs, workers, progress)), 1):
             all_counts.append(stats.pop("_counts"))
             sensor_hw = sensor_hw or stats["sensor_hw"]
-            action_names = action_names if action_names is not None else tuple(seq.action_names)
-            if stats["sensor_hw"] != sensor_hw or tuple(seq.action_names) != action_names:
+            action_names = action_names if action_names is not None else seq_actions
+            if stats["sensor_hw"] != sensor_hw or seq_actions != action_names:
                 raise DataError(f"{Path(data) / name}: sensor size or action names differ from the first sequence's")
             entries.append({"name": name, "split": split, **stats})
             log.info("[%d/%d] %s (%s): %d windows, %d empty", i, len(listed), name, split,
@@ -154,6 +191,7 @@ def prepare_dataset(
             },
             "empty_windows": int(np.count_nonzero(counts == 0)),
             "seconds": round(time.perf_counter() - started, 3),
+            "workers": workers,
             "sequences": entries,
         }
         meta = {
