@@ -197,6 +197,48 @@ def test_the_bucket_refills_at_its_rate_between_takes():
     assert bucket.take() and not bucket.take()
 
 
+@pytest.mark.parametrize("bind", ["0.0.0.0", "::", ""])
+def test_every_wildcard_bind_answers_to_each_interface_address_without_its_zone(monkeypatch, bind):
+    """docs/serve.md: bound to every interface (0.0.0.0, ::, or the empty host, which binds all
+    of them too), the machine's own addresses count as bound. An IPv6 address's zone
+    (`%eth0`) is not part of a Host header (RFC 6874 leaves it out of URIs a browser sends);
+    an interface's link-layer (MAC) address is no host name."""
+    import psutil
+
+    from types import SimpleNamespace as Addr
+
+    monkeypatch.setattr(psutil, "net_if_addrs", lambda: {"eth0": [
+        Addr(family=socket.AF_INET, address="192.0.2.7"), Addr(family=socket.AF_INET6, address="fe80::1%eth0"),
+        Addr(family=psutil.AF_LINK, address="00:11:22:33:44:55")]})
+    access = Access.for_server(bind, 8765, "secret")
+    assert access.request_host("192.0.2.7:8765") == "192.0.2.7:8765"
+    assert access.request_host("[fe80::1]:8765") == "[fe80::1]:8765"
+    assert not any("00:11:22:33:44:55" in host for host in access.hosts)
+    assert Access.for_server("127.0.0.1", 8765, "secret").request_host("192.0.2.7:8765") is None  # not bound there
+
+
+@pytest.mark.parametrize("origin, why", [("ftp://x", "is not an origin like http://host:port"),
+                                         ("http://u@x", "is not an origin like http://host:port"),
+                                         ("http://x/page", "is not an origin: no path, query or wildcard"),
+                                         ("http://x:99999", "has a bad port")])
+def test_a_bad_allow_origin_says_what_is_wrong_with_it(origin, why):
+    """`--allow-origin` is refused with the origin quoted and the reason (cli/serve.py shows it)."""
+    with pytest.raises(ValueError) as refused:
+        normalise_origin(origin)
+    assert str(refused.value) == f"{origin!r} {why}"
+
+
+def test_the_report_counts_no_refusal_before_the_first():
+    """A new session's `refused` (docs/serve.md's report table: host, origin, token_missing,
+    token_wrong, rate_limited) is all zeros, as the report writes it (dataclasses.asdict)."""
+    import dataclasses
+
+    from e3dpsm.serve.security import Refusals
+
+    assert dataclasses.asdict(Refusals()) == {"host": 0, "origin": 0, "token_missing": 0, "token_wrong": 0,
+                                              "rate_limited": 0}
+
+
 # ---- the rules on a running server, each alone -----------------------------------------------------------
 def test_the_page_without_a_token_is_401(server):
     status, _, text = http_get(f"{server.base}/")
