@@ -27,14 +27,21 @@ class EdgeInt8Options:
     split: str = "train"              # where they come from
     holdout_split: str = "test"       # the budget's frames, never calibrated on
     holdout_frames: int = 0           # per held-out sequence (0: all)
+    search_split: str = "val"         # where the return-to-float search judges its trials
+    search_frames: int = 0            # per search sequence (0: all)
+    search_rounds: int = 4            # blocks the search may return to float (0: no search)
     threads: int | None = None
     budget: TaskBudget = field(default_factory=TaskBudget)
 
     def __post_init__(self) -> None:
         if self.split == self.holdout_split:
             raise ConfigError(f"the held-out split must differ from the calibration split ({self.split!r})")
-        if self.holdout_frames < 0:
-            raise ConfigError(f"--holdout-frames must be 0 (all) or positive, got {self.holdout_frames}")
+        if self.search_rounds and self.search_split in (self.split, self.holdout_split):
+            raise ConfigError(f"the search split ({self.search_split!r}) must differ from the calibration and "
+                              "held-out splits: the budget must hold on frames the search never saw")
+        for name in ("holdout_frames", "search_frames", "search_rounds"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"--{name.replace('_', '-')} must be 0 or positive, got {getattr(self, name)}")
 
     def to_dict(self) -> dict[str, Any]:
         return {**{k: v for k, v in vars(self).items() if k != "budget"}, "budget": self.budget.to_dict()}
@@ -46,7 +53,7 @@ def open_data(path: str | os.PathLike, model: E3DPSM, options: EdgeInt8Options) 
     data = PreparedData.open(path)
     cfg = model.config
     data.check_compatible(window_ms=cfg.train_window_ms, height=cfg.height, width=cfg.width)
-    for split in (options.split, options.holdout_split):
+    for split in (options.split, options.holdout_split, *((options.search_split,) if options.search_rounds else ())):
         data.split(split)
     return data
 

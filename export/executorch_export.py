@@ -59,24 +59,36 @@ def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: An
     `calibrate(prepared_module)` feeds it before conversion (export/executorch_int8.py)."""
     from executorch.exir.passes.constant_prop_pass import constant_prop_pass
 
-    wrapper = StepGraph(model)
-    example = wrapper.example_inputs(1)
-    program = torch.export.export(wrapper, example, strict=False)
-    if options.decompose_norms:
-        program = program.run_decompositions(norm_decompositions())
+    example = StepGraph(model).example_inputs(1)
+    program = step_program(model, options)
     if quantizer is not None:
-        from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
-
-        from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
-
-        module = program.module()
-        explicit_shared_batch_norms(module)  # else prepare_pt2e's conv-BN fold feeds shortcuts normalised tensors
-        prepared = prepare_pt2e(module, quantizer)
-        calibrate(prepared)
-        program = torch.export.export(convert_pt2e(prepared), example, strict=False)
+        program = torch.export.export(quantized_module(program, quantizer, calibrate), example, strict=False)
     if options.fold_constants:
         program = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized=quantizer is not None))
     return program
+
+
+def step_program(model: E3DPSM, options: ExecuTorchOptions) -> torch.export.ExportedProgram:
+    """The step wrapper exported, norms decomposed as `options` say: what PT2E quantises."""
+    wrapper = StepGraph(model)
+    program = torch.export.export(wrapper, wrapper.example_inputs(1), strict=False)
+    return program.run_decompositions(norm_decompositions()) if options.decompose_norms else program
+
+
+def quantized_module(program: torch.export.ExportedProgram, quantizer: Any,
+                     calibrate: Any) -> torch.fx.GraphModule:
+    """PT2E on a copy of `program`'s module: prepared, calibrated, converted. The result runs in
+    PyTorch, quantize / dequantize pairs and all, which is what the INT8 search judges
+    (export/executorch_int8.py) before anything is lowered."""
+    from torchao.quantization.pt2e.quantize_pt2e import convert_pt2e, prepare_pt2e
+
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+    module = program.module()  # a fresh GraphModule each call: trials never share observers
+    explicit_shared_batch_norms(module)  # else prepare_pt2e's conv-BN fold feeds shortcuts normalised tensors
+    prepared = prepare_pt2e(module, quantizer)
+    calibrate(prepared)
+    return convert_pt2e(prepared)
 
 
 def fold_skip_targets(quantized: bool) -> set[Any] | None:

@@ -7,11 +7,19 @@ PT2E (torchao's `prepare_pt2e` / `convert_pt2e` with ExecuTorch's `XNNPACKQuanti
 - The recurrent groups stay float, as in `e3dpsm quantize`: the S5 layers (input drive,
   transition, readouts), the Kalman fusion and the embedding that reads the fused-pose
   state. Everything else takes the quantizer's symmetric per-channel 8-bit config.
+- Return to float where the budget needs it, as `e3dpsm quantize`'s FP16 search does
+  (quantize/place.greedy_groups): the full 8-bit program first, run in PyTorch after PT2E's
+  conversion (quantize / dequantize pairs, no lowering) on the `val` split; while it is over
+  budget there, the block (stem, each stage, each attention layer, the SSM's projections,
+  the decoder) whose return to float lowers the worst upper bound most stays float.
 - The program is judged like an INT8 ONNX graph (quantize/holdout.py, budget.py): on the
-  `test` split, which calibration never saw, against the fp32 ONNX graph's poses.
+  `test` split, which neither calibration nor the search saw, against the fp32 ONNX
+  graph's poses.
 """
 from __future__ import annotations
 
+import functools
+import logging
 import os
 from collections import Counter
 from pathlib import Path
@@ -24,11 +32,16 @@ from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.export.delegation import DELEGATE_CALL, node_macs, op_name
 from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
+from e3dpsm.export.executorch_export import quantized_module
 from e3dpsm.layers.fusion import PoseFusion
 from e3dpsm.layers.s5 import S5
-from e3dpsm.models import E3DPSM
+from e3dpsm.models import E3DPSM, OUTPUT_NAMES
 from e3dpsm.quantize.calibration import CalibrationSet
-from e3dpsm.quantize.holdout import HeldOut
+from e3dpsm.quantize.holdout import HeldOut, Judgement, check_stepper, held_out
+from e3dpsm.quantize.place import Placement, greedy_groups
+from e3dpsm.runtime.stepping import StateArrays
+
+log = logging.getLogger(__name__)
 
 # What is quantised: the feature extractor, by module path in the traced wrapper (`model.` is
 # StepGraph's attribute), less the recurrent module types inside it. Left float besides: the
@@ -54,10 +67,11 @@ def keep_float_record() -> dict[str, list[str]]:
 QUANTISED_OPERATORS: tuple[Any, ...] = (torch.ops.aten.conv2d.default, torch.ops.aten.linear.default)
 
 
-def xnnpack_int8_quantizer() -> Any:
+def xnnpack_int8_quantizer(keep_float: Sequence[str] = ()) -> Any:
     """XNNPACK's quantizer: symmetric 8-bit, weights per output channel, activations per
-    tensor (static ranges from calibration), on QUANTISED_OPERATORS inside QUANTISED_SCOPES
-    and outside the recurrent module types.
+    tensor (static ranges from calibration), on QUANTISED_OPERATORS inside QUANTISED_SCOPES,
+    outside the recurrent module types and outside the module paths of `keep_float` (the
+    search's choice).
 
     Configured per operator, not globally: the global config also runs XNNPACK's `cat`
     annotator, which ignores the filter (ExecuTorch 1.5,
@@ -82,17 +96,79 @@ def xnnpack_int8_quantizer() -> Any:
     # set_module_name refuses None in ExecuTorch 1.5, and its name filter matches whole module
     # paths of called modules (a ModuleList such as `stages` is never called): an allow-list
     # of path prefixes on the innermost module instead.
-    return quantizer.set_filter_function(in_quantised_scope)
+    return quantizer.set_filter_function(functools.partial(in_quantised_scope, keep_float=tuple(keep_float)))
 
 
-def in_quantised_scope(node: torch.fx.Node) -> bool:
-    """Whether `node` may be quantised. A parameter (get_attr) carries no module path; it
-    follows the operator that reads it (the conv annotator filters the weight node too, and a
-    path-less weight would keep every convolution float)."""
+def in_quantised_scope(node: torch.fx.Node, keep_float: Sequence[str] = ()) -> bool:
+    """Whether `node` may be quantised: inside QUANTISED_SCOPES and outside `keep_float`. A
+    parameter (get_attr) carries no module path; it follows the operator that reads it (the
+    conv annotator filters the weight node too, and a path-less weight would keep every
+    convolution float)."""
     if node.op == "get_attr":
         return True
     path = _scope(node)
-    return any(path == scope or path.startswith(scope + ".") for scope in QUANTISED_SCOPES)
+    return _under(path, QUANTISED_SCOPES) and not _under(path, keep_float)
+
+
+def _under(path: str, scopes: Sequence[str]) -> bool:
+    return any(path == scope or path.startswith(scope + ".") for scope in scopes)
+
+
+def search_groups(model: E3DPSM) -> list[tuple[str, list[str]]]:
+    """The search's units, (name, [module path]) in the traced wrapper: each member of a
+    quantised scope that is a list of blocks (a stage, an attention layer), the other scopes
+    whole; only those holding a convolution or linear layer that would take 8 bits."""
+    groups = []
+    for scope in QUANTISED_SCOPES:
+        module = model.get_submodule(scope.removeprefix("model."))
+        members = ([(f"{scope}.{name}", child) for name, child in module.named_children()]
+                   if isinstance(module, torch.nn.ModuleList) else [(scope, module)])
+        groups += [(path, [path]) for path, child in members if _quantisable_layers(child)]
+    return groups
+
+
+def _quantisable_layers(module: torch.nn.Module) -> int:
+    kept = [m for m in module.modules() if isinstance(m, KEEP_FLOAT_TYPES)]
+    inside_kept = {id(m) for k in kept for m in k.modules()}
+    return sum(1 for m in module.modules()
+               if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) and id(m) not in inside_kept)
+
+
+class QuantizedModuleStepper:
+    """A PT2E-converted step module (export/executorch_export.quantized_module) behind the
+    stepping protocol: the search runs it in PyTorch, with the quantisation's rounding, over
+    frames with states carried, as check_stepper runs any runtime."""
+
+    def __init__(self, module: torch.fx.GraphModule, model: E3DPSM) -> None:
+        self.module, self.model = module, model
+        self.state_names = [s.name for s in model.state_spec()]
+
+    def init_state(self, batch: int = 1) -> StateArrays:
+        return {k: v.numpy() for k, v in self.model.init_state(batch).items()}
+
+    @torch.no_grad()
+    def step(self, lnes: np.ndarray, state: Mapping[str, np.ndarray],
+             window_ms: float) -> tuple[dict[str, np.ndarray], StateArrays]:
+        window = torch.full((lnes.shape[0],), float(window_ms))
+        out = self.module(torch.from_numpy(lnes), window, *(torch.from_numpy(state[n]) for n in self.state_names))
+        poses, states = out[:len(OUTPUT_NAMES)], out[len(OUTPUT_NAMES):]
+        return ({n: v.numpy() for n, v in zip(OUTPUT_NAMES, poses)},
+                {n: v.numpy() for n, v in zip(self.state_names, states)})
+
+
+def search_keep_float(model: E3DPSM, program: Any, calibrate: Callable[[torch.nn.Module], None],
+                      search: HeldOut, options: EdgeInt8Options) -> Placement:
+    """Which blocks stay float for the program to meet the budget on `search` (module doc):
+    greedy over search_groups, each trial a converted module run in PyTorch."""
+
+    def evaluate(floats: Sequence[str], _int16: Sequence[str], label: str) -> Judgement:
+        module = quantized_module(program, xnnpack_int8_quantizer(floats), calibrate)
+        check = check_stepper(QuantizedModuleStepper(module, model), search, options.budget)
+        log.info("INT8 search: %s (%d block(s) float): worst share %.3f%s", label, len(floats),
+                 check.worst_share, ", within" if check.within else "")
+        return Judgement({"pt2e": check})
+
+    return greedy_groups(search_groups(model), evaluate, max_rounds=options.search_rounds, first="all-int8")
 
 
 def step_inputs(calibration: CalibrationSet, input_names: Sequence[str]) -> list[tuple[torch.Tensor, ...]]:
@@ -158,17 +234,29 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
     """Write the INT8 program to `path` and judge it: (ExecuTorchResult with the calibration
     and the kept-float modules recorded, the budget check, the held-out frames). `program`:
     ExecuTorchOptions (default: the fp32 converter's)."""
-    from e3dpsm.export.edge_export import step_spec
-    from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
+    from e3dpsm.export.edge_export import export_ready, step_spec
+    from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch, step_program
 
+    program = program or ExecuTorchOptions()
     reference = fp32_reference(model, work)
     calibration = calibration_set(reference, data, options)
-    inputs = step_inputs(calibration, step_spec(model).input_names)
-    record = {"keep_float": keep_float_record(),
-              "calibration": {"split": options.split, "frames": len(calibration), "state_source":
-                              calibration.state_source, "seconds": round(calibration.seconds, 2)}}
-    result = convert_executorch(model, path, program or ExecuTorchOptions(), precision="int8",
-                                quantizer=xnnpack_int8_quantizer(), calibrate=calibrator(inputs),
+    calibrate = calibrator(step_inputs(calibration, step_spec(model).input_names))
+    record: dict[str, Any] = {
+        "keep_float": keep_float_record(),
+        "calibration": {"split": options.split, "frames": len(calibration), "state_source":
+                        calibration.state_source, "seconds": round(calibration.seconds, 2)}}
+    keep_float: tuple[str, ...] = ()
+    if options.search_rounds > 0:
+        search = held_out(reference, data.split(options.search_split), data.window_ms, options.search_frames,
+                          f"{Path(data.root).name}/{options.search_split}", options.threads)
+        with export_ready(model, program.attention_form):  # the graph the program will be lowered from
+            placement = search_keep_float(model, step_program(model, program), calibrate, search, options)
+        keep_float = placement.float_nodes
+        record["search"] = {"split": options.search_split, "frames": search.frames, "runtime": "PyTorch (PT2E)",
+                            "kept_float": list(keep_float), **placement.to_dict()}
+        record["keep_float"]["searched"] = list(keep_float)
+    result = convert_executorch(model, path, program, precision="int8",
+                                quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,
                                 extra_record=record)
     held = held_out_set(reference, data, options)
     return result, check_artifact(path, "executorch", held, options), held

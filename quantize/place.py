@@ -144,13 +144,16 @@ def place_precisions(compute: Sequence[str], evaluate: Evaluate, rank: Rank, *, 
     return Placement(tuple(ranked), (), False, tuple(trials), ranking)
 
 
-def greedy_groups(groups: Sequence[tuple[str, Sequence[str]]], evaluate: Evaluate, max_rounds: int = 4) -> Placement:
+def greedy_groups(groups: Sequence[tuple[str, Sequence[str]]], evaluate: Evaluate, max_rounds: int = 4,
+                  first: str = "all-fp16") -> Placement:
     """FP16's search (its error lives in whole stages, not single nodes: a residual stream of
-    ~5,000 rounds to steps of 4 in fp16): while over budget, try each remaining (name, nodes)
-    group in float32 beside those chosen and keep the one that lowers the worst share most."""
+    ~5,000 rounds to steps of 4 in fp16), and the INT8 `.pte`'s (export/executorch_int8.py):
+    `first` is the trial with no group in float; while over budget, try each remaining
+    (name, nodes) group in float32 beside those chosen and keep the one that lowers the worst
+    share most."""
     chosen: list[str] = []
-    best = evaluate((), (), "all-fp16")
-    trials = [_trial("all-fp16", (), (), best)]
+    best = evaluate((), (), first)
+    trials = [_trial(first, (), (), best)]
     remaining = dict(groups)
     for _ in range(max_rounds):
         if best.within or not remaining:

@@ -58,13 +58,17 @@ def test_feeds_map_onto_the_traced_step(edge_model, trained_graph, quant_data) -
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known: the trained tiny's INT8 program is over budget on its 50 held-out "
-                   "frames (PA-MPJPE +2.5%, jitter +14%; the trained small's is within: docs/edge.md#int8); "
-                   "no search returns layers to float yet")
 def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
-    """Calibrated on 16 train frames, judged on the whole test split (a sequence neither saw)."""
+    """Calibrated on 16 train frames, judged on the whole test split (a sequence neither the
+    calibration nor the search saw). The full 8-bit program of the trained tiny is over budget
+    (PA-MPJPE +2.5%, jitter +14% when it was shipped so): the search keeps blocks float, found
+    on the val split, and the program it lowers is within."""
     report = int8_run["report"]
     budget = report["budget"]
+    search = report["artifact"]["search"]
+    assert search["split"] == "val" and search["frames"] == 50 and search["within"]
+    assert search["trials"][0]["label"] == "all-int8" and not search["trials"][0]["within"]
+    assert 1 <= len(search["kept_float"]) <= 4 and report["artifact"]["keep_float"]["searched"] == search["kept_float"]
     assert int8_run["code"] == 0 and budget["within"], budget["metrics"]
     assert budget["frames"] == 50 and budget["data"].endswith("/test")
     assert report["artifact"]["calibration"] == {**report["artifact"]["calibration"], "split": "train",

@@ -24,6 +24,9 @@ def add_int8_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--frames", type=positive_int, default=200, help="calibration frames (default 200, minimum 16)")
     group.add_argument("--holdout-frames", type=int, default=0,
                        help="frames per held-out sequence of the budget check (default 0: all)")
+    group.add_argument("--search-rounds", type=int, default=4,
+                       help="blocks the return-to-float search may keep float when the 8-bit program is over "
+                            "budget on the val split (default 4; 0: no search, everything quantisable in 8 bits)")
     group.add_argument("--budget-pct", type=positive_float, default=1.0,
                        help="allowed rise of MPJPE and PA-MPJPE over fp32, %% (default 1)")
     add_threads(group)
@@ -44,7 +47,8 @@ def options_from_args(args: argparse.Namespace) -> Any:
     from e3dpsm.budget import TaskBudget
     from e3dpsm.export.edge_int8 import EdgeInt8Options
 
-    return EdgeInt8Options(frames=args.frames, holdout_frames=args.holdout_frames, threads=args.threads,
+    return EdgeInt8Options(frames=args.frames, holdout_frames=args.holdout_frames, search_rounds=args.search_rounds,
+                           threads=args.threads,
                            budget=TaskBudget(mpjpe_pct=args.budget_pct, pa_mpjpe_pct=args.budget_pct))
 
 
@@ -79,5 +83,11 @@ def run_executorch_int8(args: argparse.Namespace) -> int:
     print(f"wrote {report['path']} ({result.bytes / 1e6:.2f} MB, {result.bytes / fp32_bytes:.2f}x the fp32 graph, "
           f"{result.seconds['total']:.0f} s); XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in coverage.items())
                                                                or "none"))
+    search = result.to_dict().get("artifact", {}).get("search") or report.get("search")
+    if search:
+        kept = search["kept_float"]
+        print(f"search on {search['frames']} {search['split']} frames, {len(search['trials'])} trial(s): "
+              + (f"kept float {', '.join(kept)}" if kept else "every block in 8 bits")
+              + ("" if search["within"] else " (still over budget there)"))
     print(budget_line(check))
     return 0 if check.within else 1
