@@ -15,7 +15,7 @@ from typing import Any
 
 from e3dpsm.budget import BudgetCheck, TaskBudget
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.errors import ConfigError
+from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.models import E3DPSM
 from e3dpsm.quantize.calibration import CalibrationSet, record_calibration_set
 from e3dpsm.quantize.holdout import HeldOut, check_stepper, held_out, open_stepper
@@ -53,8 +53,14 @@ def open_data(path: str | os.PathLike, model: E3DPSM, options: EdgeInt8Options) 
     data = PreparedData.open(path)
     cfg = model.config
     data.check_compatible(window_ms=cfg.train_window_ms, height=cfg.height, width=cfg.width)
-    for split in (options.split, options.holdout_split, *((options.search_split,) if options.search_rounds else ())):
+    for split in (options.split, options.holdout_split):
         data.split(split)
+    if options.search_rounds:
+        try:
+            data.split(options.search_split)
+        except DataError as error:
+            raise DataError(f"{error}: the return-to-float search judges its trials there "
+                            "(--search-rounds 0 converts without it)") from None
     return data
 
 

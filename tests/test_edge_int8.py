@@ -138,10 +138,11 @@ def test_holdout_opens_edge_artifacts_on_their_own_runtime(int8_run) -> None:
 
 # -- bad input: one line, exit 2, nothing written ------------------------------------------
 
-def _fails(capsys, argv: list[str], needle: str) -> None:
+def _fails(capsys, argv: list[str], *needles: str) -> None:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("e3dpsm convert: error:") and needle in err, err
+    assert len(err.splitlines()) == 1 and err.startswith("e3dpsm convert: error:"), err
+    assert all(needle in err for needle in needles), err
 
 
 def test_quantize_without_data(capsys, tmp_path) -> None:
@@ -150,6 +151,30 @@ def test_quantize_without_data(capsys, tmp_path) -> None:
            "--quantize int8 needs --data PREP")
     _fails(capsys, ["convert", "executorch", "--variant", "tiny", "--out", str(out), "--data", str(tmp_path)],
            "--data is read only with --quantize int8")
+    assert not out.exists()
+
+
+def test_a_negative_search_is_refused(capsys, tmp_path, quant_data) -> None:
+    skip_without("executorch")
+    out = tmp_path / "et"
+    _fails(capsys, ["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize",
+                    "int8", "--data", str(quant_data), "--search-rounds", "-1"], "--search-rounds must be 0 or positive")
+    assert not out.exists()
+
+
+def test_data_without_a_search_split(capsys, tmp_path, quant_data) -> None:
+    """No val sequence: the search has nowhere to judge; the error says how to go without it."""
+    skip_without("executorch")
+    import shutil
+
+    no_val = tmp_path / "prep"
+    shutil.copytree(quant_data, no_val)
+    meta = json.loads((no_val / "meta.json").read_text())
+    meta["sequences"] = [s for s in meta["sequences"] if s["split"] != "val"]
+    (no_val / "meta.json").write_text(json.dumps(meta))
+    out = tmp_path / "et"
+    _fails(capsys, ["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize",
+                    "int8", "--data", str(no_val)], "no sequences in split 'val'", "(--search-rounds 0 converts without it)")
     assert not out.exists()
 
 
