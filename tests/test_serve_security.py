@@ -122,6 +122,11 @@ def test_no_token_off_loopback_is_refused_with_one_line(capsys):
         assert main(["serve", "--model", "none.onnx", "--source", "none.h5", "--host", host, "--no-token"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("e3dpsm serve: error: --no-token") and host in err[0]
+    # the rules' own guard, for callers that build them without the CLI
+    from e3dpsm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^--no-token is allowed on loopback only, not with --host 0\.0\.0\.0$"):
+        Access.for_server("0.0.0.0", 8765, None)
 
 
 
@@ -147,7 +152,7 @@ def test_the_page_headers_admit_its_own_script_style_and_socket_only():
 @pytest.mark.parametrize("host, loopback", [("localhost", True), ("LOCALHOST", True), ("127.0.0.1", True),
                                             ("127.8.9.10", True), ("::1", True), ("[::1]", True),
                                             ("0.0.0.0", False), ("192.0.2.7", False), ("localhost.example", False),
-                                            ("", False)])
+                                            ("", False), ("X127.0.0.1", False), ("127.0.0.1X", False)])
 def test_loopback_is_the_127_net_ipv6_one_and_localhost(host, loopback):
     """RFC 1122 3.2.1.3 (127.0.0.0/8), RFC 4291 2.5.3 (::1), RFC 6761 6.3 (localhost)."""
     assert is_loopback(host) is loopback
@@ -176,6 +181,22 @@ def test_netloc_and_host_headers_are_canonical():
     for bad in ("http://x?q=1", "http://x#f", "http://:pw@x", "http://"):
         with pytest.raises(ValueError, match="origin"):
             normalise_origin(bad)
+
+
+def test_a_name_with_one_bracket_is_not_unbracketed():
+    """Only a whole `[...]` is an IPv6 literal's brackets: `[::1` is a malformed name, kept (and
+    never equal to the loopback `::1` a Host check compares it with)."""
+    assert netloc("[::1", 80) == "[[::1]:80" and netloc("::1]", 80) == "[::1]]:80"
+    assert parse_host_header("[::1") is None
+
+
+def test_a_sessions_rules_cannot_change_and_admit_no_extra_origin_by_default():
+    import dataclasses
+
+    access = Access(8765, "secret", frozenset({"127.0.0.1:8765"}))
+    assert access.origin_allowed("http://127.0.0.1:8765") and not access.origin_allowed("http://viewer.example:9000")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        access.token = None  # type: ignore[misc]
 
 
 def test_the_cookie_is_hmac_sha256_of_the_token():
