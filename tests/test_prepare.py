@@ -167,6 +167,11 @@ def test_workers_prepare_the_same_frames_and_poses(prepared_20ms, dataset, tmp_p
     out = tmp_path / "parallel"
     report = prepare_dataset(dataset[0], out, 20, progress=False, workers=3)
     assert report["workers"] == 3 and report["sequences"] == serial_report["sequences"]
+    for entry in report["sequences"]:  # each entry describes its own sequence, whatever order the workers end in
+        seq = dataset[1][entry["name"]]  # windows [t_pose[0] - T, t_pose[-1]) at T = 20 ms, counted here
+        inside = (seq.events.t_us >= seq.t_us[0] - 20_000) & (seq.events.t_us < seq.t_us[-1])
+        assert entry["events_in_windows"] == np.count_nonzero(inside), entry["name"]
+        assert entry["frames"] == len(np.load(out / entry["name"] / "lnes.npy", mmap_mode="r")), entry["name"]
     names = sorted(p.name for p in serial.iterdir() if p.is_dir())
     assert names == sorted(p.name for p in out.iterdir() if p.is_dir()) and len(names) >= 3
     for name in names:
