@@ -83,7 +83,7 @@ def run_executorch_int8(args: argparse.Namespace) -> int:
     print(f"wrote {report['path']} ({result.bytes / 1e6:.2f} MB, {result.bytes / fp32_bytes:.2f}x the fp32 graph, "
           f"{result.seconds['total']:.0f} s); XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in coverage.items())
                                                                or "none"))
-    search = result.to_dict().get("artifact", {}).get("search") or report.get("search")
+    search = report["artifact"].get("search")  # absent with --search-rounds 0
     if search:
         kept = search["kept_float"]
         print(f"search on {search['frames']} {search['split']} frames, {len(search['trials'])} trial(s): "
