@@ -69,31 +69,48 @@ def delegate_partitions(content: bytes, threads: int = 1) -> int:
     return sum(1 for d in nodes if d["op_name"] == "DELEGATE")
 
 
-def convert_litert(model: E3DPSM, path: str | os.PathLike, options: LiteRTOptions = LiteRTOptions(),
-                   precision: str = "fp32", quant_config: Any = None,
-                   extra_record: dict[str, Any] | None = None) -> LiteRTResult:
-    """Write `path` (.tflite) with the state layout inside; returns sizes, timings, ops."""
+def litert_content(model: E3DPSM, options: LiteRTOptions = LiteRTOptions()) -> bytes:
+    """The step as a .tflite flatbuffer (no state layout yet: write_litert adds it)."""
     litert_torch = require("litert_torch", "to write .tflite models")
     require("ai_edge_litert", "to write .tflite models")
+    wrapper = NamedStepGraph(model).eval()  # the wrapper has no layers of its own; eval() says so to the converter
+    with export_ready(model, options.attention_form):
+        converted = litert_torch.convert(wrapper, sample_kwargs=wrapper.example_kwargs())
+    return converted.model_content()
+
+
+def embed_contract(content: bytes, model: E3DPSM, options: LiteRTOptions, precision: str,
+                   extra_record: dict[str, Any] | None = None) -> tuple[bytes, dict[str, Any]]:
+    """(`content` with the state layout and the artifact record in its `e3dpsm` metadata, the record)."""
     from e3dpsm.runtime.tflite_metadata import with_metadata
 
     meta, record = artifact_contract(model, FORMAT, precision, options.attention_form,
                                      ("litert-torch", "ai-edge-litert"), extra_record)
-    wrapper = NamedStepGraph(model).eval()  # the wrapper has no layers of its own; eval() says so to the converter
+    return with_metadata(content, EMBEDDED_NAME, encode(meta, record).encode("utf-8")), record
+
+
+def write_litert(content: bytes, model: E3DPSM, path: str | os.PathLike, options: LiteRTOptions, precision: str,
+                 seconds: dict[str, float], extra_record: dict[str, Any] | None = None) -> LiteRTResult:
+    """Write `content` to `path` (atomically) with the state layout inside; sizes, timings, ops."""
     started = time.perf_counter()
-    with export_ready(model, options.attention_form):
-        converted = litert_torch.convert(wrapper, sample_kwargs=wrapper.example_kwargs(), quant_config=quant_config)
-    converted_at = time.perf_counter()
-    content = with_metadata(converted.model_content(), EMBEDDED_NAME, encode(meta, record).encode("utf-8"))
+    content, record = embed_contract(content, model, options, precision, extra_record)
     with atomic_path(path, suffix=".tflite") as tmp:
         tmp.write_bytes(content)
-    done = time.perf_counter()
+    seconds = {**seconds, "write": round(time.perf_counter() - started, 2)}
+    seconds["total"] = round(sum(seconds.values()), 2)
     ops = tflite_op_histogram(content)
     return LiteRTResult(
-        path=str(path), bytes=len(content),
-        seconds={"convert": round(converted_at - started, 2), "write": round(done - converted_at, 2),
-                 "total": round(done - started, 2)},
+        path=str(path), bytes=len(content), seconds=seconds,
         ops={"histogram": ops, "mac_ops": {k: v for k, v in ops.items() if k in MAC_OPS},
              "xnnpack_partitions": delegate_partitions(content)},
         options=vars(options).copy(), artifact=record,
     )
+
+
+def convert_litert(model: E3DPSM, path: str | os.PathLike, options: LiteRTOptions = LiteRTOptions(),
+                   precision: str = "fp32", extra_record: dict[str, Any] | None = None) -> LiteRTResult:
+    """Write `path` (.tflite) with the state layout inside; returns sizes, timings, ops."""
+    started = time.perf_counter()
+    content = litert_content(model, options)
+    return write_litert(content, model, path, options, precision,
+                        {"convert": round(time.perf_counter() - started, 2)}, extra_record)

@@ -54,7 +54,7 @@ def count_both(model: Any, graph: onnx.ModelProto) -> dict[str, Any]:
     return counting
 
 
-def _build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any, window_ms: float) -> Any:
+def build_runner(target: Target, graphs: Mapping[str, Path | None], model: Any, window_ms: float) -> Any:
     if target.runtime == "torch":
         return TorchRunner(model, target.threads, window_ms)
     path = str(graphs[target.graph_key])
@@ -119,7 +119,7 @@ def _load_runners(targets: Sequence[Target], entries: Sequence[dict[str, Any]], 
             continue
         try:
             with RssSampler() as rss:
-                runner = _build_runner(target, graphs, model, frames.window_ms)
+                runner = build_runner(target, graphs, model, frames.window_ms)
                 for k in range(MEMORY_STEPS):
                     runner.step(frames.lnes[k % len(frames.lnes)][None])
         except Exception as exc:  # a runtime that refuses the graph is a result, not a crash

@@ -228,6 +228,7 @@ def test_cli_writes_a_checkpoint_that_rebuilds_and_exports(teacher_checkpoint: P
     assert student.pose_prior_mm.abs().sum() > 0  # the fresh variant got the teacher's mean pose
     report = json.loads((out / "report.json").read_text())
     assert report["command"] == "distill" and "isa" in report["machine"]
+    assert report["device"].startswith("cuda" if torch.cuda.is_available() else "cpu")  # --device auto
     assert report["steps"] == 2 and report["teacher"]["variant"] == "tiny" and report["student"]["source"] == "variant"
     assert report["final"]["fused"] == pytest.approx(report["log"][-1]["fused"])
     assert "| step |" in (out / "report.md").read_text()
@@ -262,6 +263,9 @@ def test_cli_bad_input_is_one_line(teacher_checkpoint: Path, prepared_small: Pat
         (cli_args(teacher_checkpoint, "tiny", prepared_small, tmp_path / "e", "--qat", "--qat-ranges-only"),
          "is a fresh variant: give a checkpoint"),
     ]
+    if not torch.cuda.is_available():
+        cases.append((cli_args(teacher_checkpoint, "tiny", prepared_small, tmp_path / "f", "--device", "cuda"),
+                      "CUDA is not available"))
     for argv, expected in cases:
         capsys.readouterr()
         assert main(argv) == 2, argv

@@ -252,12 +252,12 @@ def test_parity_runner_converts_an_onnx_graph(tmp_path, tiny_step_graph, frames)
 
 
 def test_profile_stateful_runner_steps_the_graph(tiny_step_graph, frames):  # noqa: F811
-    from e3dpsm.profiles.profiler import _build_runner
+    from e3dpsm.profiles.profiler import build_runner
     from e3dpsm.profiles.targets import load_targets
 
     target = load_targets()["openvino-cpu-stateful-fp32"]
     assert (target.runtime, target.provider, target.precision) == ("openvino-stateful", "CPU", "fp32")
-    runner = _build_runner(target, {"fp32": tiny_step_graph}, None, 20.0)
+    runner = build_runner(target, {"fp32": tiny_step_graph}, None, 20.0)
     reference = StepSession(tiny_step_graph, threads=2)
     for _ in range(2):  # the second round checks reset()
         runner.reset()

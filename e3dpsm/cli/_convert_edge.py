@@ -34,8 +34,9 @@ def register(formats: argparse._SubParsersAction) -> None:
     et.set_defaults(func=run_executorch)
 
     lt = formats.add_parser("litert", help="LiteRT model (.tflite, XNNPACK delegate)",
-                            description="Write OUT/step.tflite (litert-torch) and OUT/convert.json.")
+                            description="Write OUT/step.tflite (litert-torch; --quantize int8: ai-edge-quantizer) and OUT/convert.json.")
     _common(lt, "gather")
+    add_int8_options(lt)
     lt.set_defaults(func=run_litert)
 
     cm = formats.add_parser("coreml", help="Core ML ML program (.mlpackage)",
@@ -95,6 +96,11 @@ def run_executorch(args: argparse.Namespace) -> int:
 def run_litert(args: argparse.Namespace) -> int:
     from e3dpsm.export.litert_export import LiteRTOptions, convert_litert
 
+    check_int8_args(args)
+    if args.quantize:
+        from e3dpsm.cli._convert_int8 import run_litert_int8
+
+        return run_litert_int8(args)
     options = LiteRTOptions(attention_form=args.attention_form)
     return _convert(args, "litert", lambda model, path: convert_litert(model, path, options))
 

@@ -1,13 +1,14 @@
-"""`e3dpsm convert executorch --quantize int8 --data PREP`: the INT8 program (PT2E, XNNPACK's
-quantizer), calibrated on PREP's train split and judged on its test split against the fp32
-ONNX graph with the task budget `e3dpsm quantize` uses (docs/edge.md#int8). Exit 1 when the
-program is over budget (written, with convert.json saying so), as a failed `golden check`."""
+"""`e3dpsm convert executorch|litert --quantize int8 --data PREP`: the INT8 artifact (PT2E with
+XNNPACK's quantizer for the .pte, ai-edge-quantizer on the .tflite), calibrated on PREP's train
+split and judged on its test split against the fp32 ONNX graph with the task budget `e3dpsm
+quantize` uses (docs/edge.md#int8). Exit 1 when the artifact is over budget (written, with
+convert.json saying so), as a failed `golden check`."""
 from __future__ import annotations
 
 import argparse
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from e3dpsm.cli._common import add_threads, positive_float, positive_int
 
@@ -53,36 +54,65 @@ def options_from_args(args: argparse.Namespace) -> Any:
 
 
 def run_executorch_int8(args: argparse.Namespace) -> int:
-    from e3dpsm.cli._common import load_model_from_args
-    from e3dpsm.export.edge_int8 import budget_line, budget_record, open_data
     from e3dpsm.export.executorch_export import ExecuTorchOptions
     from e3dpsm.export.executorch_int8 import convert_executorch_int8
+
+    program = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
+
+    def coverage(result: Any) -> str:
+        counts = result.delegation["int8"]["xnnpack_int8"]
+        return "XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in counts.items()) or "none")
+
+    return _run_edge_int8(args, "executorch", "step.pte", ("executorch",),
+                          lambda model, data, path, options, work: convert_executorch_int8(
+                              model, data, path, options, work, program), coverage)
+
+
+def run_litert_int8(args: argparse.Namespace) -> int:
+    from e3dpsm.export.litert_export import LiteRTOptions
+    from e3dpsm.export.litert_int8 import convert_litert_int8
+
+    litert = LiteRTOptions(attention_form=args.attention_form)
+
+    def coverage(result: Any) -> str:
+        mac = result.ops["mac_ops"]
+        int8 = sum(result.artifact["coverage"]["int8_candidates_by_group"][g] for g in result.artifact["groups"]
+                   if g not in result.artifact["keep_float"])
+        return f"{int8} of {sum(mac.values())} CONV_2D / FULLY_CONNECTED / BATCH_MATMUL in 8 bits"
+
+    return _run_edge_int8(args, "litert", "step.tflite", ("litert_torch", "ai_edge_quantizer"),
+                          lambda model, data, path, options, work: convert_litert_int8(
+                              model, data, path, options, work, litert), coverage)
+
+
+def _run_edge_int8(args: argparse.Namespace, fmt: str, name: str, modules: tuple[str, ...],
+                   convert: Callable[..., tuple[Any, Any, Any]], coverage: Callable[[Any], str]) -> int:
+    """The INT8 artifact of `fmt` in OUT (atomically), convert.json beside it; exit 1 when it is
+    over budget on the held-out split (written, convert.json saying so)."""
+    from e3dpsm.cli._common import load_model_from_args
+    from e3dpsm.export.edge_int8 import budget_line, budget_record, open_data
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.extras import require
     from e3dpsm.utils.io import atomic_dir, refuse_existing_output, write_json_atomic
 
-    require("executorch", "to convert for executorch")
+    for module in modules:  # a missing extra fails before anything loads
+        require(module, f"to write INT8 {fmt} artifacts")
     refuse_existing_output(args.out, args.force)
     options = options_from_args(args)
     model = load_model_from_args(args)
     data = open_data(args.data, model, options)  # a folder at another size fails here, nothing written
-    name = "step.pte"
-    program = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
     with atomic_dir(args.out, force=args.force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-int8-") as work:
-        result, check, held = convert_executorch_int8(model, data, tmp / name, options, Path(work),
-                                                      program)
+        result, check, held = convert(model, data, tmp / name, options, Path(work))
         fp32_bytes = (Path(work) / "fp32.onnx").stat().st_size
         report = report_header("convert", {k: v for k, v in vars(args).items() if k != "func"})
-        report.update(format="executorch", file=name, variant=model.config.variant, **result.to_dict(),
-                      int8=options.to_dict(), budget=budget_record(check, held, "executorch"),
+        report.update(format=fmt, file=name, variant=model.config.variant, **result.to_dict(),
+                      int8=options.to_dict(), budget=budget_record(check, held, fmt),
                       size={"int8_bytes": result.bytes, "fp32_onnx_bytes": fp32_bytes,
                             "ratio_vs_fp32_onnx": result.bytes / fp32_bytes})
         report["path"] = str(Path(args.out) / name)
         write_json_atomic(tmp / REPORT_NAME, report)
-    coverage = result.delegation["int8"]["xnnpack_int8"]
     print(f"wrote {report['path']} ({result.bytes / 1e6:.2f} MB, {result.bytes / fp32_bytes:.2f}x the fp32 graph, "
-          f"{result.seconds['total']:.0f} s); XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in coverage.items())
-                                                               or "none"))
+          f"{result.seconds['total']:.0f} s); {coverage(result)}")
     search = report["artifact"].get("search")  # absent with --search-rounds 0
     if search:
         kept = search["kept_float"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from e3dpsm.cli._common import add_threads, add_force
+from e3dpsm.utils.env import DEVICE_CHOICES
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -63,6 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="with --qat: learn the ranges alone, the student's weights frozen (use --student = "
                         "--teacher): its fp32 graph stays the teacher's, so the INT8 graph is held to the budget's "
                         "own reference")
+    p.add_argument("--device", default="auto", choices=DEVICE_CHOICES,
+                   help="where teacher and student run: auto (CUDA if available, default), cpu or cuda; "
+                        "the checkpoint is written for the CPU either way")
     add_threads(p, "torch CPU threads")
     add_force(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         prior=args.prior or ("data" if fresh and not args.qat_ranges_only else "keep"),
     )
     report = run_distill(args.teacher, args.student, args.data, args.out, config, split=args.split,
-                         force=args.force, progress=not args.no_progress and sys.stderr.isatty())
+                         force=args.force, progress=not args.no_progress and sys.stderr.isatty(), device=args.device)
     first, last = report["initial"], report["final"]
     print(f"distilled {report['teacher']['variant']} -> {report['student']['variant']} in {report['steps']} steps "
           f"({report['seconds']:.0f} s): fused {first['fused']:.1f} -> {last['fused']:.1f} mm from the teacher "

@@ -7,6 +7,7 @@ import sys
 
 from e3dpsm.training.ablations import ABLATIONS
 from e3dpsm.cli._common import add_threads, add_force
+from e3dpsm.utils.env import DEVICE_CHOICES
 
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -49,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--save-every", type=int, default=200)
     p.add_argument("--stop-at", type=int, help="stop after this step, leaving a resumable checkpoint")
-    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--device", default="auto", choices=DEVICE_CHOICES)
     add_threads(p, "torch CPU threads per process")
     p.add_argument("--num-workers", type=int, default=0, help="data-loader worker processes (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

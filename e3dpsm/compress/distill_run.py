@@ -12,6 +12,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
 from e3dpsm.compress.distill import DistillConfig, check_pair, distill
 from e3dpsm.errors import ConfigError, OutputExistsError
@@ -55,10 +57,14 @@ def build_student(spec: str, teacher: Any) -> tuple[Any, str]:
 
 def run_distill(teacher_path: str | os.PathLike, student_spec: str, data_dir: str | os.PathLike,
                 out: str | os.PathLike, config: DistillConfig, *, split: str | None = None,
-                force: bool = False, progress: bool = True) -> dict[str, Any]:
+                force: bool = False, progress: bool = True, device: str = "cpu") -> dict[str, Any]:
     """Distil and write OUT; returns the report. `config.prior` applies as given (the CLI
-    defaults it to "data" for a fresh variant, "keep" for a checkpoint)."""
+    defaults it to "data" for a fresh variant, "keep" for a checkpoint). `device`: where both
+    models run ("auto", "cpu", "cuda"); the student is written from the CPU either way."""
     from e3dpsm.models import list_models
+    from e3dpsm.training.distributed import resolve_device
+
+    where = resolve_device(device)  # refuse a missing GPU before reading anything
 
     if config.qat_ranges_only and student_spec in list_models():
         raise ConfigError(f"--qat-ranges-only learns INT8 ranges for a trained model and keeps its weights; "
@@ -68,7 +74,9 @@ def run_distill(teacher_path: str | os.PathLike, student_spec: str, data_dir: st
     teacher, teacher_payload = load_checkpoint(teacher_path)
     student, student_kind = build_student(student_spec, teacher)
     check_pair(teacher, student)
-    summary = distill(teacher, student, data_dir, config, split=split, progress=progress)
+    summary = distill(teacher.to(where), student.to(where), data_dir, config, split=split, progress=progress)
+    student.cpu()
+    summary["device"] = str(where) if where.type == "cpu" else f"{where} ({torch.cuda.get_device_name(where)})"
     teacher_info = {"path": str(teacher_path), "sha256": sha256_file(teacher_path),
                     "variant": teacher.config.variant, "train_step": teacher_payload.get("step")}
     student_info = {"source": student_kind, "spec": student_spec, "variant": student.config.variant}
@@ -109,7 +117,7 @@ def report_markdown(report: dict[str, Any]) -> str:
            if cfg.get("stream_windows", 1) > 1 else ""),
         *([_qat_line(cfg, report.get("qat_range_start", {}))] if cfg.get("qat") else []),
         f"- {report['steps']} steps x {cfg['batch_size']} windows in {report['seconds']:.1f} s "
-        f"({report['seconds_per_step']:.3f} s/step); CPU {report['machine'].get('cpu_model', '?')}, "
+        f"({report['seconds_per_step']:.3f} s/step) on {report.get('device', 'cpu')}; CPU {report['machine'].get('cpu_model', '?')}, "
         f"ISA `{report['machine'].get('isa', {}).get('kind', '?')}`",
         "", "Loss terms (mm, Charbonnier distance per joint; `labels`: the paper's loss):", "",
         "| step | lr | " + " | ".join(terms) + " |", "|---:|---:|" + "---:|" * len(terms),

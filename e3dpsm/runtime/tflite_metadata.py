@@ -32,16 +32,21 @@ def read_metadata(content: bytes) -> dict[str, bytes]:
 
 
 def with_metadata(content: bytes, name: str, data: bytes) -> bytes:
-    """The flatbuffer with metadata entry `name` set to `data` (replaced if present)."""
+    """The flatbuffer with metadata entry `name` set to `data` (replaced if present). Buffers a
+    writer stored past the flatbuffer (offset and size: ai-edge-quantizer does so once its
+    weights pass 256 KiB) are moved inside it, where the rewritten table can point at them."""
     import flatbuffers
+    import numpy as np
 
     schema = _schema()
     model = schema.ModelT.InitFromPackedBuf(bytearray(content), 0)
-    if any(buffer.offset > 1 for buffer in model.buffers or []):
-        raise ValueError("the model keeps buffers outside its flatbuffer; metadata cannot be added in place")
+    for buffer in model.buffers or []:
+        if buffer.offset > 1:
+            buffer.data = np.frombuffer(content, dtype=np.uint8, count=buffer.size, offset=buffer.offset)
+            buffer.offset, buffer.size = 0, 0
     model.metadata = [m for m in (model.metadata or []) if m.name.decode("utf-8") != name]
     buffer = schema.BufferT()
-    buffer.data = list(data)
+    buffer.data = np.frombuffer(data, dtype=np.uint8)
     model.buffers.append(buffer)
     entry = schema.MetadataT()
     entry.name = name

@@ -18,6 +18,7 @@ import torch.distributed as dist
 from torch import nn
 
 from e3dpsm.errors import ConfigError
+from e3dpsm.utils.env import DEVICE_CHOICES
 
 
 @dataclass(frozen=True)
@@ -36,12 +37,22 @@ class DistContext:
         return self.rank == 0
 
 
+def resolve_device(device: str = "auto") -> torch.device:
+    """The single-process device for `--device`: "auto" (CUDA if available), "cpu" or "cuda"
+    (ConfigError where CUDA is not available)."""
+    if device not in DEVICE_CHOICES:
+        raise ConfigError(f"--device must be one of {list(DEVICE_CHOICES)}, got {device!r}")
+    use_cuda = torch.cuda.is_available() if device == "auto" else device == "cuda"
+    if use_cuda and not torch.cuda.is_available():
+        raise ConfigError("--device cuda was asked for, but CUDA is not available (a CPU build of torch, or no GPU): "
+                          "use --device cpu")
+    return torch.device("cuda" if use_cuda else "cpu")
+
+
 def setup_distributed(device: str = "auto") -> DistContext:
     """Initialise the process group when launched by torchrun; a single-process context
     otherwise. `device`: "auto" (CUDA if available), "cpu" or "cuda"."""
-    use_cuda = torch.cuda.is_available() if device == "auto" else device == "cuda"
-    if use_cuda and not torch.cuda.is_available():
-        raise ConfigError("--device cuda was asked for, but CUDA is not available")
+    use_cuda = resolve_device(device).type == "cuda"
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size <= 1:
         return DistContext(device=torch.device("cuda" if use_cuda else "cpu"))

@@ -11,6 +11,9 @@ from typing import Any
 _PACKAGES = ("e3dpsm", "torch", "numpy", "onnx", "onnxruntime", "onnxsim", "openvino", "pandas",
              "executorch", "litert-torch", "ai-edge-litert", "coremltools", "tensorrt")
 
+# `--device` of the commands that train (train, distill): auto is CUDA where torch sees a GPU.
+DEVICE_CHOICES: tuple[str, ...] = ("auto", "cpu", "cuda")
+
 
 def package_versions() -> dict[str, str | None]:
     versions: dict[str, str | None] = {}

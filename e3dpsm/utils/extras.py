@@ -15,6 +15,7 @@ EXTRA_OF_MODULE: dict[str, str] = {
     "executorch": "executorch",
     "litert_torch": "litert",
     "ai_edge_litert": "litert",
+    "ai_edge_quantizer": "litert",
     "coremltools": "coreml",
     "tensorrt": "tensorrt",
     "cuda": "tensorrt",

@@ -1,0 +1,275 @@
+"""`e3dpsm convert litert --quantize int8 --data PREP`: an INT8 `.tflite` through
+ai-edge-quantizer's static-range recipe applied to the fp32 `.tflite` litert-torch writes.
+
+litert-torch lowers only the 8-bit patterns its own PT2E quantizer annotates, and that
+quantizer filters by module type and name alone (docs/edge.md), so the 8 bits are placed on
+the flatbuffer instead, by operator scope (ai-edge-quantizer names an operator by its output
+tensors, which litert-torch names by the module path: `<module>.<Class>_<attribute>/...`):
+
+- The convolutions and fully connected layers of the feature extractor take 8 bits: weights
+  symmetric per output channel, activations asymmetric per tensor, ranges from the same
+  calibration `e3dpsm quantize` and the INT8 `.pte` use (frames of the `train` split, each
+  with the states a continuous fp32 rollout carried into it). XNNPACK runs them as QS8
+  kernels; every other operator stays float, as in the `.pte` (export/executorch_int8.py).
+- Kept float, as there: the S5 layers' projections (the recurrence), the pose heads, the
+  embedding of the fused-pose state and the Kalman fusion.
+- The return-to-float search of the `.pte` (quantize/place.greedy_groups) on the `val` split,
+  each trial a real `.tflite` run by LiteRT's interpreter (quantising takes a second); the
+  artifact is then judged on `test`, which neither the calibration nor the search saw.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from e3dpsm.budget import BudgetCheck
+from e3dpsm.data.prepared import PreparedData
+from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
+from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
+from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
+from e3dpsm.models import E3DPSM
+from e3dpsm.quantize.calibration import CalibrationSet
+from e3dpsm.quantize.holdout import HeldOut, Judgement, check_stepper, held_out, open_stepper
+from e3dpsm.quantize.place import Placement, greedy_groups
+from e3dpsm.utils.extras import require
+
+log = logging.getLogger(__name__)
+
+QUANTISED_OPERATORS: tuple[str, ...] = ("CONV_2D", "FULLY_CONNECTED")
+SIGNATURE = "serving_default"  # litert-torch's one signature
+# The step graph's own scope: what a module called from the step (not from another module) sits under.
+_STEP_SCOPE = "e3dpsm.export.wrapper.StepGraph_step/"
+# Operators kept float whatever their group (scope pattern, why). The S5 layer is not called
+# as a module in the step (its `step` method is), so its projections sit under the step graph.
+FLOAT_RULES: tuple[tuple[str, str], ...] = (
+    (r"e3dpsm\.layers\.products\.Projection_", "S5 input drive and readouts (the recurrence)"),
+    (r"Linear_direct_head|Linear_delta_head|serving_default_pose\w*_output", "pose heads (mm outputs)"),
+    (r"Sequential_pose_embed", "embedding of the fused-pose state"),
+)
+
+
+def _scope_name(module: torch.nn.Module, attribute: str) -> str:
+    return re.escape(f"{type(module).__module__}.{type(module).__name__}_{attribute}") + r"(?=[/;]|$)"
+
+
+def group_patterns(model: E3DPSM) -> list[tuple[str, str]]:
+    """(group, scope pattern) for each of the search's groups (executorch_int8.search_groups:
+    the stem, each stage, each attention layer, the SSM blocks' feed-forwards, the decoder). A
+    container that is never called (the SSM blocks' dict) is named by its members' called
+    children, which the converter places under the step graph itself."""
+    groups = []
+    for path, _ in search_groups(model):
+        module = model.get_submodule(path.removeprefix("model."))
+        attribute = path.rsplit(".", 1)[1]
+        if isinstance(module, torch.nn.ModuleDict):
+            children = {(type(child).__module__, type(child).__name__, name): child
+                        for member in module.values() for name, child in member.named_children()
+                        if not isinstance(child, KEEP_FLOAT_TYPES)
+                        and any(isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) for m in child.modules())}
+            pattern = "|".join(re.escape(_STEP_SCOPE) + _scope_name(child, name)
+                               for (_, _, name), child in sorted(children.items(), key=lambda kv: kv[0]))
+        else:
+            pattern = _scope_name(module, attribute)
+        groups.append((path, pattern))
+    return groups
+
+
+def mac_op_scopes(content: bytes) -> list[tuple[str, str]]:
+    """(operator, scope) of every QUANTISED_OPERATORS operator of the flatbuffer, the scope as
+    ai-edge-quantizer matches its recipe against it."""
+    from ai_edge_quantizer.utils import tfl_flatbuffer_utils as tfl
+
+    model = tfl.read_model(bytearray(content))
+    graph = model.subgraphs[0]
+    found = []
+    for op in graph.operators:
+        code = model.operatorCodes[op.opcodeIndex]
+        name = tfl.TFL_OP_CODE_TO_NAME.get(max(code.builtinCode, code.deprecatedBuiltinCode))
+        if name in QUANTISED_OPERATORS:
+            found.append((name, tfl.get_op_scope(op, graph.tensors)))
+    return found
+
+
+def classify(scopes: Sequence[tuple[str, str]], groups: Sequence[tuple[str, str]]) -> dict[str, Any]:
+    """Where each MAC operator falls: float by a FLOAT_RULES rule, in exactly one group, or in
+    none (left float: a scope this module does not know, reported). Two groups claiming one
+    operator is a naming clash: ValueError."""
+    by_group: dict[str, int] = {name: 0 for name, _ in groups}
+    by_rule: dict[str, int] = {why: 0 for _, why in FLOAT_RULES}
+    unmatched: list[str] = []
+    for _, scope in scopes:
+        rule = next((why for pattern, why in FLOAT_RULES if re.search(pattern, scope)), None)
+        if rule is not None:
+            by_rule[rule] += 1
+            continue
+        owners = [name for name, pattern in groups if re.search(pattern, scope)]
+        if len(owners) > 1:
+            raise ValueError(f"operator scope {scope[:200]!r} matches groups {owners}: the group patterns overlap")
+        if owners:
+            by_group[owners[0]] += 1
+        else:
+            unmatched.append(scope[:300])
+    return {"int8_candidates_by_group": by_group, "float_by_rule": by_rule, "unmatched_float": unmatched}
+
+
+def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequence[tuple[str, str]],
+                      keep_float: Sequence[str] = ()) -> bytes:
+    """The flatbuffer with the groups not in `keep_float` in 8 bits (module doc)."""
+    from ai_edge_quantizer import qtyping, quantizer
+    from ai_edge_quantizer.algorithm_manager import AlgorithmName
+
+    quantised = "|".join(f"(?:{pattern})" for name, pattern in groups if name not in keep_float)
+    engine = quantizer.Quantizer(bytearray(float_content))
+    for operator in QUANTISED_OPERATORS:
+        op = qtyping.TFLOperationName(operator)
+        if quantised:
+            engine.add_static_config(quantised, op, activation_num_bits=8, weight_num_bits=8,
+                                     weight_granularity=qtyping.QuantGranularity.CHANNELWISE)
+        for pattern, _ in FLOAT_RULES:  # the last matching config wins
+            engine.update_quantization_recipe(pattern, op, algorithm_key=AlgorithmName.NO_QUANTIZE)
+    if not quantised:
+        return bytes(float_content)
+    return bytes(engine.quantize(qsvs, enable_progress_bar=False, enable_progress_report=False).quantized_model)
+
+
+def quantised_activations(content: bytes, groups: Sequence[tuple[str, str]]) -> list[str]:
+    """Names of the activations a group's operators read and write (the tensors the 8-bit
+    recipe quantises: each quantised operator is wrapped in QUANTIZE / DEQUANTIZE)."""
+    from ai_edge_quantizer.utils import tfl_flatbuffer_utils as tfl
+
+    model = tfl.read_model(bytearray(content))
+    graph = model.subgraphs[0]
+    names: dict[str, None] = {}
+    for op in graph.operators:
+        code = model.operatorCodes[op.opcodeIndex]
+        if tfl.TFL_OP_CODE_TO_NAME.get(max(code.builtinCode, code.deprecatedBuiltinCode)) not in QUANTISED_OPERATORS:
+            continue
+        scope = tfl.get_op_scope(op, graph.tensors)
+        if any(re.search(p, scope) for p, _ in FLOAT_RULES) or not any(re.search(p, scope) for _, p in groups):
+            continue
+        for index in (op.inputs[0], *op.outputs):
+            names[graph.tensors[index].name.decode()] = None
+    return list(names)
+
+
+def mse_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds: Sequence[dict[str, np.ndarray]],
+               threads: int | None) -> dict[str, Any]:
+    """`qsvs` with the ranges of `names` chosen per tensor for the least expected squared
+    quantisation error (quantize/ranges.py: min-max, percentiles, narrower ranges, from a
+    histogram of the calibration values), as `quantize --calibration mse` and PT2E's
+    histogram observer choose them; min-max keeps every outlier. Returns a summary."""
+    from ai_edge_litert.interpreter import Interpreter
+
+    from e3dpsm.quantize.ranges import HISTOGRAM_BINS, Histogram, choose_range, with_zero
+
+    interpreter = Interpreter(model_content=bytes(content), num_threads=threads or 1,
+                              experimental_preserve_all_tensors=True)
+    runner = interpreter.get_signature_runner(SIGNATURE)
+    index = {d["name"]: d["index"] for d in interpreter.get_tensor_details()}
+    wanted = [n for n in names if n in qsvs and n in index]
+    bounds = {n: with_zero(float(np.min(qsvs[n]["min"])), float(np.max(qsvs[n]["max"]))) for n in wanted}
+    counts = {n: np.zeros(HISTOGRAM_BINS, np.int64) for n in wanted}
+    for feed in feeds:
+        runner(**feed)
+        for n in wanted:
+            low, high = bounds[n]
+            if high > low:
+                counts[n] += np.histogram(interpreter.get_tensor(index[n]).ravel(), HISTOGRAM_BINS, (low, high))[0]
+    narrowed = 0
+    for n in wanted:
+        choice = choose_range(Histogram(counts[n], *bounds[n]))
+        if choice.kind != "minmax":
+            narrowed += 1
+            qsvs[n] = {**qsvs[n], "min": np.full_like(qsvs[n]["min"], choice.low),
+                       "max": np.full_like(qsvs[n]["max"], choice.high)}
+    return {"rule": "mse", "tensors": len(wanted), "narrowed": narrowed}
+
+
+def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequence[tuple[str, str]],
+              threads: int | None) -> tuple[dict[str, Any], dict[str, Any], float]:
+    """(ranges of every tensor the full 8-bit recipe reads, how they were chosen, seconds):
+    once, before any trial. ai-edge-quantizer's min-max calibration, then mse_ranges."""
+    from ai_edge_quantizer import qtyping, quantizer
+
+    started = time.perf_counter()
+    engine = quantizer.Quantizer(bytearray(float_content))
+    for operator in QUANTISED_OPERATORS:
+        engine.add_static_config("|".join(f"(?:{p})" for _, p in groups), qtyping.TFLOperationName(operator), 8, 8)
+    feeds = [{k: np.ascontiguousarray(v) for k, v in f.items()} for f in calibration.feeds]
+    qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
+    rule = mse_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads)
+    return qsvs, rule, time.perf_counter() - started
+
+
+def search_keep_float(model: E3DPSM, quantise: Any, search: HeldOut, options: EdgeInt8Options,
+                      groups: Sequence[tuple[str, str]], work: Path, litert: LiteRTOptions) -> Placement:
+    """Which groups stay float for the artifact to meet the budget on `search`: greedy over the
+    groups, each trial a quantised flatbuffer run by LiteRT's interpreter, states carried."""
+    trial_path = work / "trial.tflite"
+
+    def evaluate(floats: Sequence[str], _int16: Sequence[str], label: str) -> Judgement:
+        content, _ = embed_contract(quantise(floats), model, litert, "int8")
+        trial_path.write_bytes(content)
+        check = check_stepper(open_stepper(trial_path, "litert", options.threads), search, options.budget)
+        log.info("INT8 search (LiteRT): %s (%d group(s) float): worst share %.3f%s", label, len(floats),
+                 check.worst_share, ", within" if check.within else "")
+        return Judgement({"litert": check})
+
+    return greedy_groups([(name, [name]) for name, _ in groups], evaluate, max_rounds=options.search_rounds,
+                         first="all-int8")
+
+
+def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLike, options: EdgeInt8Options,
+                        work: Path, litert: LiteRTOptions = LiteRTOptions()) -> tuple[LiteRTResult, BudgetCheck, HeldOut]:
+    """Write the INT8 `.tflite` to `path` and judge it: (LiteRTResult with the calibration, the
+    groups and the search recorded, the budget check on the held-out split, its frames)."""
+    require("ai_edge_quantizer", "to write INT8 .tflite models")
+    from absl import logging as absl_logging
+
+    absl_logging.set_verbosity(absl_logging.WARNING)  # ai-edge-quantizer's step-by-step INFO lines
+    reference = fp32_reference(model, work)
+    calibration = calibration_set(reference, data, options)
+    started = time.perf_counter()
+    float_content = litert_content(model, litert)
+    convert_seconds = time.perf_counter() - started
+    groups = group_patterns(model)
+    coverage = classify(mac_op_scopes(float_content), groups)
+    qsvs, ranges_rule, calibrate_seconds = calibrate(float_content, calibration, groups, options.threads)
+
+    def quantise(keep_float: Sequence[str]) -> bytes:
+        return quantised_content(float_content, qsvs, groups, keep_float)
+
+    record: dict[str, Any] = {
+        "quantizer": "ai-edge-quantizer static range: int8 weights per channel, int8 activations per tensor",
+        "operators": list(QUANTISED_OPERATORS), "groups": dict(groups), "coverage": coverage,
+        "float_rules": [why for _, why in FLOAT_RULES],
+        "calibration": {"split": options.split, "frames": len(calibration), "state_source": calibration.state_source,
+                        "ranges": ranges_rule, "seconds": round(calibration.seconds + calibrate_seconds, 2)}}
+    keep_float: tuple[str, ...] = ()
+    if options.search_rounds > 0:
+        search = held_out(reference, data.split(options.search_split), data.window_ms, options.search_frames,
+                          f"{Path(data.root).name}/{options.search_split}", options.threads)
+        with tempfile.TemporaryDirectory(prefix="e3dpsm-litert-search-", dir=work) as trials:
+            placement = search_keep_float(model, quantise, search, options, groups, Path(trials), litert)
+        keep_float = placement.float_nodes
+        record["search"] = {"split": options.search_split, "frames": search.frames, "runtime": "LiteRT (XNNPACK)",
+                            "kept_float": list(keep_float), **placement.to_dict()}
+    record["keep_float"] = list(keep_float)
+    started = time.perf_counter()
+    content = quantise(keep_float)
+    seconds = {"convert": round(convert_seconds, 2), "quantize": round(time.perf_counter() - started, 2)}
+    result = write_litert(content, model, path, litert, "int8", seconds, record)
+    held = held_out_set(reference, data, options)
+    return result, check_artifact(path, "litert", held, options), held
+
+
+__all__ = ["FLOAT_RULES", "QUANTISED_OPERATORS", "classify", "convert_litert_int8", "group_patterns", "mac_op_scopes",
+           "quantised_content"]
