@@ -194,9 +194,12 @@ def mse_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds
 
 
 def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequence[tuple[str, str]],
-              threads: int | None) -> tuple[dict[str, Any], dict[str, Any], float]:
+              threads: int | None, rule: str = "mse") -> tuple[dict[str, Any], dict[str, Any], float]:
     """(ranges of every tensor the full 8-bit recipe reads, how they were chosen, seconds):
-    once, before any trial. ai-edge-quantizer's min-max calibration, then mse_ranges."""
+    once, before any trial. ai-edge-quantizer's min-max calibration, then (rule "mse")
+    mse_ranges; rule "minmax" keeps the calibration's ranges."""
+    if rule not in ("mse", "minmax"):
+        raise ValueError(f"range rule must be 'mse' or 'minmax', got {rule!r}")
     from ai_edge_quantizer import qtyping, quantizer
 
     started = time.perf_counter()
@@ -205,8 +208,9 @@ def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequenc
         engine.add_static_config("|".join(f"(?:{p})" for _, p in groups), qtyping.TFLOperationName(operator), 8, 8)
     feeds = [{k: np.ascontiguousarray(v) for k, v in f.items()} for f in calibration.feeds]
     qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
-    rule = mse_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads)
-    return qsvs, rule, time.perf_counter() - started
+    chosen = (mse_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads)
+              if rule == "mse" else {"rule": "minmax"})
+    return qsvs, chosen, time.perf_counter() - started
 
 
 def search_keep_float(model: E3DPSM, quantise: Any, search: HeldOut, options: EdgeInt8Options,

@@ -62,6 +62,30 @@ def _weight_types(content: bytes) -> list[tuple[str, str, bool]]:
     return found
 
 
+def test_mse_ranges_narrow_the_quantised_activations_inside_min_max(float_content, edge_model, trained_graph,
+                                                                    quant_data, ranges) -> None:
+    """The chosen ranges replace the calibration's min-max ranges of the activations the 8-bit
+    operators read and write: each inside its min-max range (widened to hold 0), many narrower."""
+    from e3dpsm.data.prepared import PreparedData
+    from e3dpsm.export.litert_int8 import calibrate, group_patterns, quantised_activations
+    from e3dpsm.quantize.calibration import record_calibration_set
+
+    data = PreparedData.open(quant_data)
+    calibration = record_calibration_set(trained_graph, data.split("train"), 16, data.window_ms, threads=1)
+    groups = group_patterns(edge_model)
+    minmax, rule, _ = calibrate(float_content, calibration, groups, threads=1, rule="minmax")
+    assert rule == {"rule": "minmax"}
+    names = quantised_activations(float_content, groups)
+    assert len(names) > 2 * len(groups)
+    narrower = 0
+    for name in names:
+        low, high = float(np.min(ranges[name]["min"])), float(np.max(ranges[name]["max"]))
+        raw_low, raw_high = min(float(np.min(minmax[name]["min"])), 0.0), max(float(np.max(minmax[name]["max"])), 0.0)
+        assert raw_low - 1e-6 <= low <= 0.0 <= high <= raw_high + 1e-6, name
+        narrower += (high - low) < 0.99 * (raw_high - raw_low)
+    assert narrower >= len(names) // 4, (narrower, len(names))
+
+
 def test_every_mac_operator_has_a_place(float_content, edge_model) -> None:
     from e3dpsm.export.litert_int8 import FLOAT_RULES, classify, group_patterns, mac_op_scopes
     from e3dpsm.layers.products import Projection
