@@ -83,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import write_benchmark_report
     from e3dpsm.utils.isa import detect_isa
 
     convert = json.loads((Path(args.int8) / "convert.json").read_text())
@@ -93,9 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     report.update(isa=detect_isa().to_dict(), threads=args.threads, load_before=os.getloadavg()[0],
                   int8_bytes=int8.stat().st_size, fp32_bytes=Path(args.fp32).stat().st_size, int8_convert=convert)
     report["timing"] = time_programs(int8, Path(args.fp32), args.data, args.steps, args.threads, convert["format"])
-    out = Path(f"{args.out}_{report['isa']['kind']}")
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1, default=str))
-    out.with_suffix(".md").write_text(markdown(report))
+    write_benchmark_report(args.out, report, markdown(report))
     print(markdown(report))
     return 0
 

@@ -15,7 +15,6 @@ each model is named. Writes OUT_<isa kind>.json and .md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -94,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.profiles.targets import availability, load_targets, select_targets
     from e3dpsm.utils.env import report_header
+    from e3dpsm.utils.io import write_benchmark_report
     from e3dpsm.utils.isa import detect_isa
 
     pruned = dict(spec.split("=", 1) for spec in args.pruned)
@@ -115,10 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     report["load_after"] = os.getloadavg()[0]
     report["runners"] = figures
     report["summary"] = summarise(figures, list(checkpoints), report["targets"])
-    out = Path(f"{args.out}_{report['isa']['kind']}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1, default=str))
-    out.with_suffix(".md").write_text(markdown(report))
+    write_benchmark_report(args.out, report, markdown(report))
     print(markdown(report))
     return 0
 

@@ -10,7 +10,6 @@ fp32 conversion alone takes over a minute on two cores."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -50,6 +50,16 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
     return write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 
 
+def write_benchmark_report(prefix: str | os.PathLike, report: dict[str, Any], markdown: str) -> Path:
+    """PREFIX_<ISA kind>.json and .md (each atomically; folders made): a benchmark's report,
+    named by the kind of CPU it ran on (report["isa"]["kind"]) so that hosts do not overwrite
+    each other's figures. Returns the .md path."""
+    stem = Path(f"{prefix}_{report['isa']['kind']}")
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(stem.with_suffix(".json"), report)
+    return write_text_atomic(stem.with_suffix(".md"), markdown)
+
+
 def _json_default(obj: Any) -> Any:
     import numpy as np
 
