@@ -19,6 +19,7 @@ tensors, which litert-torch names by the module path: `<module>.<Class>_<attribu
 """
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import re
@@ -32,6 +33,7 @@ import torch
 
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
+from e3dpsm.errors import ConfigError
 from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
 from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
@@ -112,7 +114,7 @@ def classify(scopes: Sequence[tuple[str, str]], groups: Sequence[tuple[str, str]
             continue
         owners = [name for name, pattern in groups if re.search(pattern, scope)]
         if len(owners) > 1:
-            raise ValueError(f"operator scope {scope[:200]!r} matches groups {owners}: the group patterns overlap")
+            raise ConfigError(f"operator scope {scope[:200]!r} matches groups {owners}: the group patterns overlap")
         if owners:
             by_group[owners[0]] += 1
         else:
@@ -137,7 +139,10 @@ def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequen
             engine.update_quantization_recipe(pattern, op, algorithm_key=AlgorithmName.NO_QUANTIZE)
     if not quantised:
         return bytes(float_content)
-    return bytes(engine.quantize(qsvs, enable_progress_bar=False, enable_progress_report=False).quantized_model)
+    # A copy per trial: the quantizer writes derived ranges into the dict it is given for
+    # some operators (same-as-input scales), which must not leak into the next trial.
+    return bytes(engine.quantize(copy.deepcopy(qsvs), enable_progress_bar=False,
+                                 enable_progress_report=False).quantized_model)
 
 
 def quantised_activations(content: bytes, groups: Sequence[tuple[str, str]]) -> list[str]:
@@ -160,12 +165,15 @@ def quantised_activations(content: bytes, groups: Sequence[tuple[str, str]]) -> 
     return list(names)
 
 
-def mse_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds: Sequence[dict[str, np.ndarray]],
-               threads: int | None) -> dict[str, Any]:
-    """`qsvs` with the ranges of `names` chosen per tensor for the least expected squared
-    quantisation error (quantize/ranges.py: min-max, percentiles, narrower ranges, from a
-    histogram of the calibration values), as `quantize --calibration mse` and PT2E's
-    histogram observer choose them; min-max keeps every outlier. Returns a summary."""
+def choose_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds: Sequence[dict[str, np.ndarray]],
+                  threads: int | None, rule: str = "mse") -> dict[str, Any]:
+    """Set the ranges of `names` in `qsvs` from the calibration values themselves (returns a
+    summary). ai-edge-quantizer's calibration keeps a moving average of each batch's min and
+    max (factor 0.95), not the extremes, so both rules first find the true min and max:
+    "minmax" keeps them (every outlier in range); "mse" picks, from a histogram of the values
+    on that range, the range of least expected squared quantisation error (quantize/ranges.py:
+    min-max, percentiles, narrower ranges), as `quantize --calibration mse` and PT2E's
+    histogram observer do."""
     from ai_edge_litert.interpreter import Interpreter
 
     from e3dpsm.quantize.ranges import HISTOGRAM_BINS, Histogram, choose_range, with_zero
@@ -175,29 +183,36 @@ def mse_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds
     runner = interpreter.get_signature_runner(SIGNATURE)
     index = {d["name"]: d["index"] for d in interpreter.get_tensor_details()}
     wanted = [n for n in names if n in qsvs and n in index]
-    bounds = {n: with_zero(float(np.min(qsvs[n]["min"])), float(np.max(qsvs[n]["max"]))) for n in wanted}
-    counts = {n: np.zeros(HISTOGRAM_BINS, np.int64) for n in wanted}
+    low = {n: np.inf for n in wanted}
+    high = {n: -np.inf for n in wanted}
     for feed in feeds:
         runner(**feed)
         for n in wanted:
-            low, high = bounds[n]
-            if high > low:
-                counts[n] += np.histogram(interpreter.get_tensor(index[n]).ravel(), HISTOGRAM_BINS, (low, high))[0]
-    narrowed = 0
-    for n in wanted:
-        choice = choose_range(Histogram(counts[n], *bounds[n]))
-        if choice.kind != "minmax":
-            narrowed += 1
-            qsvs[n] = {**qsvs[n], "min": np.full_like(qsvs[n]["min"], choice.low),
-                       "max": np.full_like(qsvs[n]["max"], choice.high)}
-    return {"rule": "mse", "tensors": len(wanted), "narrowed": narrowed}
+            values = interpreter.get_tensor(index[n])
+            low[n], high[n] = min(low[n], float(values.min())), max(high[n], float(values.max()))
+    bounds = {n: with_zero(low[n], high[n]) for n in wanted}
+    if rule == "mse":
+        counts = {n: np.zeros(HISTOGRAM_BINS, np.int64) for n in wanted}
+        for feed in feeds:  # a second pass: the histograms need the true extremes first
+            runner(**feed)
+            for n in wanted:
+                if bounds[n][1] > bounds[n][0]:
+                    counts[n] += np.histogram(interpreter.get_tensor(index[n]).ravel(), HISTOGRAM_BINS, bounds[n])[0]
+        chosen = {n: choose_range(Histogram(counts[n], *bounds[n])) for n in wanted}
+        ranges = {n: (c.low, c.high) for n, c in chosen.items()}
+        narrowed = sum(c.kind != "minmax" for c in chosen.values())
+    else:
+        ranges, narrowed = bounds, 0
+    for n, (lo, hi) in ranges.items():
+        qsvs[n] = {**qsvs[n], "min": np.full_like(qsvs[n]["min"], lo), "max": np.full_like(qsvs[n]["max"], hi)}
+    return {"rule": rule, "tensors": len(wanted), "narrowed": narrowed}
 
 
 def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequence[tuple[str, str]],
               threads: int | None, rule: str = "mse") -> tuple[dict[str, Any], dict[str, Any], float]:
     """(ranges of every tensor the full 8-bit recipe reads, how they were chosen, seconds):
-    once, before any trial. ai-edge-quantizer's min-max calibration, then (rule "mse")
-    mse_ranges; rule "minmax" keeps the calibration's ranges."""
+    once, before any trial. ai-edge-quantizer's calibration, then choose_ranges by `rule`
+    ("mse" or "minmax") for the activations the quantised operators read and write."""
     if rule not in ("mse", "minmax"):
         raise ValueError(f"range rule must be 'mse' or 'minmax', got {rule!r}")
     from ai_edge_quantizer import qtyping, quantizer
@@ -208,8 +223,7 @@ def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequenc
         engine.add_static_config("|".join(f"(?:{p})" for _, p in groups), qtyping.TFLOperationName(operator), 8, 8)
     feeds = [{k: np.ascontiguousarray(v) for k, v in f.items()} for f in calibration.feeds]
     qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
-    chosen = (mse_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads)
-              if rule == "mse" else {"rule": "minmax"})
+    chosen = choose_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads, rule)
     return qsvs, chosen, time.perf_counter() - started
 
 
