@@ -96,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     from e3dpsm.utils.io import write_benchmark_report
     from e3dpsm.utils.isa import detect_isa
 
+    if any("=" not in spec for spec in args.pruned):
+        parser.error("--pruned takes NAME=CHECKPOINT pairs")
     pruned = dict(spec.split("=", 1) for spec in args.pruned)
     if "unpruned" in pruned or any(not Path(ck).is_file() for ck in pruned.values()):
         parser.error("--pruned takes NAME=CHECKPOINT pairs of existing files, no NAME 'unpruned'")
@@ -108,8 +110,11 @@ def main(argv: list[str] | None = None) -> int:
                   models=list(checkpoints), load_before=os.getloadavg()[0])
     with tempfile.TemporaryDirectory(prefix="e3dpsm-pruned-paths-") as work:
         graphs = {name: export_static(ck, Path(work) / name / "step.onnx") for name, ck in checkpoints.items()}
-        usable = [t for t in targets if availability(t, {"fp32-static": graphs["unpruned"]}, False).available]
+        usable = [t for t in targets
+                  if availability(t, {"fp32-static": graphs["unpruned"], "fp32": graphs["unpruned"]}, False).available]
         report["unavailable"] = sorted({t.name for t in targets} - {t.name for t in usable})
+        if not usable:
+            parser.error(f"none of the targets runs here: {', '.join(report['unavailable'])}")
         report["targets"] = [t.name for t in usable]
         figures = measure(graphs, usable, frames, data.window_ms, args.steps, args.warmup)
     report["load_after"] = os.getloadavg()[0]

@@ -91,7 +91,9 @@ side_by_side() {  # $1: steps, $2: folder suffix; every student at once, each it
             --warmup-steps "$(( $1 / 10 < WARMUP ? $1 / 10 + 1 : WARMUP ))" > "$WORK/$name$2.log" 2>&1 &
         pids+=($!)
     done
-    for pid in "${pids[@]}"; do wait "$pid" || { tail -n 20 "$WORK"/*"$2".log; exit 1; }; done
+    for pid in "${pids[@]}"; do
+        wait "$pid" || { kill "${pids[@]}" 2>/dev/null || true; tail -n 20 "$WORK"/*"$2".log; exit 1; }
+    done  # one student failing stops the others: nothing keeps running on the GPU
 }
 if [ -z "${STEPS:-}" ]; then  # STEPS=N distils exactly N steps (a recipe); else the budget decides
     stamp "probe: 20 steps each, side by side"

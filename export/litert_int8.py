@@ -33,7 +33,7 @@ import torch
 
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.errors import ConfigError
+from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
 from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
@@ -139,6 +139,13 @@ def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequen
             engine.update_quantization_recipe(pattern, op, algorithm_key=AlgorithmName.NO_QUANTIZE)
     if not quantised:
         return bytes(float_content)
+    try:
+        return _quantize(engine, qsvs)
+    except (ValueError, RuntimeError, KeyError) as exc:  # the quantizer's own refusals, one line each
+        raise DataError(f"ai-edge-quantizer could not quantise the model: {str(exc).splitlines()[0][:300]}") from exc
+
+
+def _quantize(engine: Any, qsvs: dict[str, Any]) -> bytes:
     # A copy per trial: the quantizer writes derived ranges into the dict it is given for
     # some operators (same-as-input scales), which must not leak into the next trial.
     return bytes(engine.quantize(copy.deepcopy(qsvs), enable_progress_bar=False,
@@ -222,7 +229,10 @@ def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequenc
     for operator in QUANTISED_OPERATORS:
         engine.add_static_config("|".join(f"(?:{p})" for _, p in groups), qtyping.TFLOperationName(operator), 8, 8)
     feeds = [{k: np.ascontiguousarray(v) for k, v in f.items()} for f in calibration.feeds]
-    qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
+    try:
+        qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
+    except (ValueError, RuntimeError, KeyError) as exc:  # e.g. feeds named for another model's signature
+        raise DataError(f"ai-edge-quantizer could not calibrate the model: {str(exc).splitlines()[0][:300]}") from exc
     chosen = choose_ranges(float_content, qsvs, quantised_activations(float_content, groups), feeds, threads, rule)
     return qsvs, chosen, time.perf_counter() - started
 
@@ -272,6 +282,7 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
         "calibration": {"split": options.split, "frames": len(calibration), "state_source": calibration.state_source,
                         "ranges": ranges_rule, "seconds": round(calibration.seconds + calibrate_seconds, 2)}}
     keep_float: tuple[str, ...] = ()
+    search_started = time.perf_counter()
     if options.search_rounds > 0:
         search = held_out(reference, data.split(options.search_split), data.window_ms, options.search_frames,
                           f"{Path(data.root).name}/{options.search_split}", options.threads)
@@ -283,7 +294,8 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
     record["keep_float"] = list(keep_float)
     started = time.perf_counter()
     content = quantise(keep_float)
-    seconds = {"convert": round(convert_seconds, 2), "quantize": round(time.perf_counter() - started, 2)}
+    seconds = {"convert": round(convert_seconds, 2), "calibrate": round(calibrate_seconds, 2),
+               "search": round(started - search_started, 2), "quantize": round(time.perf_counter() - started, 2)}
     result = write_litert(content, model, path, litert, "int8", seconds, record)
     held = held_out_set(reference, data, options)
     return result, check_artifact(path, "litert", held, options), held
