@@ -3,23 +3,15 @@ speed-up of each pruned model over the unpruned one per target and each model's 
 checked on injected timings; and a runner per (model, target) is timed in the one interleaved run."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_pruned_paths.py"
+from _benchmark_scripts import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_pruned_paths", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_pruned_paths")
 
 
 def test_speedups_and_fastest_paths_from_injected_medians(bench) -> None:
