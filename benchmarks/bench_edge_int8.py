@@ -41,9 +41,7 @@ def coverage_line(convert: dict[str, Any]) -> str:
         return (f"XNNPACK INT8: {coverage['xnnpack_int8']}; XNNPACK float: {coverage['xnnpack_float']}; "
                 f"portable: {coverage['portable']}.")
     artifact = convert["artifact"]
-    by_group = artifact["coverage"]["int8_candidates_by_group"]
-    int8 = sum(n for group, n in by_group.items() if group not in artifact["keep_float"])
-    return (f"8-bit CONV_2D / FULLY_CONNECTED: {int8}; float by rule: {artifact['coverage']['float_by_rule']}; "
+    return (f"8-bit CONV_2D / FULLY_CONNECTED: {artifact['int8_operators']}; float by rule: {artifact['coverage']['float_by_rule']}; "
             f"groups kept float: {artifact['keep_float'] or 'none'}; operators: {convert['ops']['mac_ops']}.")
 
 

@@ -8,17 +8,22 @@ jitter within +5%, the bootstrap's upper bound counting), on frames calibration 
 """
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 from e3dpsm.budget import BudgetCheck, TaskBudget
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.models import E3DPSM
 from e3dpsm.quantize.calibration import CalibrationSet, record_calibration_set
-from e3dpsm.quantize.holdout import HeldOut, check_stepper, held_out, open_stepper
+from e3dpsm.quantize.holdout import HeldOut, Judgement, check_stepper, held_out, open_stepper
+from e3dpsm.quantize.place import Placement, greedy_groups
+from e3dpsm.runtime.stepping import Stepper
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,35 @@ def calibration_set(fp32_onnx: Path, data: PreparedData, options: EdgeInt8Option
 def held_out_set(fp32_onnx: Path, data: PreparedData, options: EdgeInt8Options) -> HeldOut:
     return held_out(fp32_onnx, data.split(options.holdout_split), data.window_ms, options.holdout_frames,
                     f"{Path(data.root).name}/{options.holdout_split}", options.threads)
+
+
+def search_set(fp32_onnx: Path, data: PreparedData, options: EdgeInt8Options) -> HeldOut:
+    """The return-to-float search's frames: the search split, with the fp32 graph's poses."""
+    return held_out(fp32_onnx, data.split(options.search_split), data.window_ms, options.search_frames,
+                    f"{Path(data.root).name}/{options.search_split}", options.threads)
+
+
+def search_float_groups(groups: Sequence[str], trial: Callable[[Sequence[str]], Stepper], search: HeldOut,
+                        options: EdgeInt8Options, runtime: str) -> Placement:
+    """The return-to-float search of both INT8 converters (quantize/place.greedy_groups): the
+    artifact fully in 8 bits first, judged on `search`; while it is over budget there, the group
+    whose return to float lowers the worst upper bound most stays float. `trial(floats)` is a
+    stepper of the artifact with the groups `floats` float, on `runtime`."""
+
+    def evaluate(floats: Sequence[str], _int16: Sequence[str], label: str) -> Judgement:
+        check = check_stepper(trial(floats), search, options.budget)
+        log.info("INT8 search (%s): %s (%d group(s) float): worst share %.3f%s", runtime, label, len(floats),
+                 check.worst_share, ", within" if check.within else "")
+        return Judgement({runtime: check})
+
+    return greedy_groups([(name, [name]) for name in groups], evaluate, max_rounds=options.search_rounds,
+                         first="all-int8")
+
+
+def search_record(placement: Placement, search: HeldOut, options: EdgeInt8Options, runtime: str) -> dict[str, Any]:
+    """convert.json's `artifact.search`: where the search judged, what it kept float, every trial."""
+    return {"split": options.search_split, "frames": search.frames, "runtime": runtime,
+            "kept_float": list(placement.float_nodes), **placement.to_dict()}
 
 
 def check_artifact(path: str | os.PathLike, runtime: str, held: HeldOut, options: EdgeInt8Options) -> BudgetCheck:

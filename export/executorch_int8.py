@@ -19,7 +19,6 @@ PT2E (torchao's `prepare_pt2e` / `convert_pt2e` with ExecuTorch's `XNNPACKQuanti
 from __future__ import annotations
 
 import functools
-import logging
 import os
 from collections import Counter
 from pathlib import Path
@@ -31,17 +30,17 @@ import torch
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.export.delegation import DELEGATE_CALL, node_macs, op_name
-from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
+from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
+                                     search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_export import quantized_module
 from e3dpsm.layers.fusion import PoseFusion
 from e3dpsm.layers.s5 import S5
 from e3dpsm.models import E3DPSM, OUTPUT_NAMES
 from e3dpsm.quantize.calibration import CalibrationSet
-from e3dpsm.quantize.holdout import HeldOut, Judgement, check_stepper, held_out
-from e3dpsm.quantize.place import Placement, greedy_groups
+from e3dpsm.quantize.holdout import HeldOut
+from e3dpsm.quantize.place import Placement
 from e3dpsm.runtime.stepping import StateArrays
 
-log = logging.getLogger(__name__)
 
 # What is quantised: the feature extractor, by module path in the traced wrapper (`model.` is
 # StepGraph's attribute), less the recurrent module types inside it. Left float besides: the
@@ -159,16 +158,11 @@ class QuantizedModuleStepper:
 def search_keep_float(model: E3DPSM, program: Any, calibrate: Callable[[torch.nn.Module], None],
                       search: HeldOut, options: EdgeInt8Options) -> Placement:
     """Which blocks stay float for the program to meet the budget on `search` (module doc):
-    greedy over search_groups, each trial a converted module run in PyTorch."""
-
-    def evaluate(floats: Sequence[str], _int16: Sequence[str], label: str) -> Judgement:
-        module = quantized_module(program, xnnpack_int8_quantizer(floats), calibrate)
-        check = check_stepper(QuantizedModuleStepper(module, model), search, options.budget)
-        log.info("INT8 search: %s (%d block(s) float): worst share %.3f%s", label, len(floats),
-                 check.worst_share, ", within" if check.within else "")
-        return Judgement({"pt2e": check})
-
-    return greedy_groups(search_groups(model), evaluate, max_rounds=options.search_rounds, first="all-int8")
+    edge_int8.search_float_groups over search_groups, each trial a converted module run in PyTorch."""
+    return search_float_groups(
+        [name for name, _ in search_groups(model)],
+        lambda floats: QuantizedModuleStepper(quantized_module(program, xnnpack_int8_quantizer(floats), calibrate), model),
+        search, options, "PyTorch (PT2E)")
 
 
 def step_inputs(calibration: CalibrationSet, input_names: Sequence[str]) -> list[tuple[torch.Tensor, ...]]:
@@ -247,13 +241,11 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
                         calibration.state_source, "seconds": round(calibration.seconds, 2)}}
     keep_float: tuple[str, ...] = ()
     if options.search_rounds > 0:
-        search = held_out(reference, data.split(options.search_split), data.window_ms, options.search_frames,
-                          f"{Path(data.root).name}/{options.search_split}", options.threads)
+        search = search_set(reference, data, options)
         with export_ready(model, program.attention_form):  # the graph the program will be lowered from
             placement = search_keep_float(model, step_program(model, program), calibrate, search, options)
         keep_float = placement.float_nodes
-        record["search"] = {"split": options.search_split, "frames": search.frames, "runtime": "PyTorch (PT2E)",
-                            "kept_float": list(keep_float), **placement.to_dict()}
+        record["search"] = search_record(placement, search, options, "PyTorch (PT2E)")
         record["keep_float"]["searched"] = list(keep_float)
     result = convert_executorch(model, path, program, precision="int8",
                                 quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,

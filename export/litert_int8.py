@@ -20,13 +20,12 @@ tensors, which litert-torch names by the module path: `<module>.<Class>_<attribu
 from __future__ import annotations
 
 import copy
-import logging
 import os
 import re
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -34,19 +33,20 @@ import torch
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
-from e3dpsm.export.edge_int8 import EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set
+from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
+                                     search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
 from e3dpsm.models import E3DPSM
 from e3dpsm.quantize.calibration import CalibrationSet
-from e3dpsm.quantize.holdout import HeldOut, Judgement, check_stepper, held_out, open_stepper
-from e3dpsm.quantize.place import Placement, greedy_groups
+from e3dpsm.quantize.holdout import HeldOut, open_stepper
+from e3dpsm.quantize.place import Placement
 from e3dpsm.utils.extras import require
 
-log = logging.getLogger(__name__)
 
 QUANTISED_OPERATORS: tuple[str, ...] = ("CONV_2D", "FULLY_CONNECTED")
 SIGNATURE = "serving_default"  # litert-torch's one signature
+SEARCH_RUNTIME = "LiteRT (XNNPACK)"
 # The step graph's own scope: what a module called from the step (not from another module) sits under.
 _STEP_SCOPE = "e3dpsm.export.wrapper.StepGraph_step/"
 # Operators kept float whatever their group (scope pattern, why). The S5 layer is not called
@@ -84,9 +84,10 @@ def group_patterns(model: E3DPSM) -> list[tuple[str, str]]:
     return groups
 
 
-def mac_op_scopes(content: bytes) -> list[tuple[str, str]]:
-    """(operator, scope) of every QUANTISED_OPERATORS operator of the flatbuffer, the scope as
-    ai-edge-quantizer matches its recipe against it."""
+def _mac_operators(content: bytes) -> list[tuple[str, str, tuple[str, ...]]]:
+    """(operator, scope, activations) of every QUANTISED_OPERATORS operator of the flatbuffer:
+    the scope as ai-edge-quantizer matches its recipe against it, the activations the names of
+    the tensors the recipe quantises around it (its input and its outputs)."""
     from ai_edge_quantizer.utils import tfl_flatbuffer_utils as tfl
 
     model = tfl.read_model(bytearray(content))
@@ -96,80 +97,86 @@ def mac_op_scopes(content: bytes) -> list[tuple[str, str]]:
         code = model.operatorCodes[op.opcodeIndex]
         name = tfl.TFL_OP_CODE_TO_NAME.get(max(code.builtinCode, code.deprecatedBuiltinCode))
         if name in QUANTISED_OPERATORS:
-            found.append((name, tfl.get_op_scope(op, graph.tensors)))
+            tensors = tuple(graph.tensors[i].name.decode() for i in (op.inputs[0], *op.outputs))
+            found.append((name, tfl.get_op_scope(op, graph.tensors), tensors))
     return found
+
+
+def mac_op_scopes(content: bytes) -> list[tuple[str, str]]:
+    """(operator, scope) of every QUANTISED_OPERATORS operator of the flatbuffer."""
+    return [(name, scope) for name, scope, _ in _mac_operators(content)]
+
+
+def _place(scope: str, groups: Sequence[tuple[str, str]]) -> tuple[str, str | None]:
+    """("rule", why) when a FLOAT_RULES rule keeps the operator float, ("group", name) for the
+    one group that holds it, ("none", None) for neither. Two groups claiming one operator is a
+    naming clash: ConfigError."""
+    rule = next((why for pattern, why in FLOAT_RULES if re.search(pattern, scope)), None)
+    if rule is not None:
+        return "rule", rule
+    owners = [name for name, pattern in groups if re.search(pattern, scope)]
+    if len(owners) > 1:
+        raise ConfigError(f"operator scope {scope[:200]!r} matches groups {owners}: the group patterns overlap")
+    return ("group", owners[0]) if owners else ("none", None)
 
 
 def classify(scopes: Sequence[tuple[str, str]], groups: Sequence[tuple[str, str]]) -> dict[str, Any]:
     """Where each MAC operator falls: float by a FLOAT_RULES rule, in exactly one group, or in
-    none (left float: a scope this module does not know, reported). Two groups claiming one
-    operator is a naming clash: ValueError."""
+    none (left float: a scope this module does not know, reported)."""
     by_group: dict[str, int] = {name: 0 for name, _ in groups}
     by_rule: dict[str, int] = {why: 0 for _, why in FLOAT_RULES}
     unmatched: list[str] = []
     for _, scope in scopes:
-        rule = next((why for pattern, why in FLOAT_RULES if re.search(pattern, scope)), None)
-        if rule is not None:
-            by_rule[rule] += 1
-            continue
-        owners = [name for name, pattern in groups if re.search(pattern, scope)]
-        if len(owners) > 1:
-            raise ConfigError(f"operator scope {scope[:200]!r} matches groups {owners}: the group patterns overlap")
-        if owners:
-            by_group[owners[0]] += 1
+        kind, owner = _place(scope, groups)
+        if kind == "rule":
+            by_rule[owner] += 1
+        elif kind == "group":
+            by_group[owner] += 1
         else:
             unmatched.append(scope[:300])
     return {"int8_candidates_by_group": by_group, "float_by_rule": by_rule, "unmatched_float": unmatched}
 
 
-def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequence[tuple[str, str]],
-                      keep_float: Sequence[str] = ()) -> bytes:
-    """The flatbuffer with the groups not in `keep_float` in 8 bits (module doc)."""
+def _recipe(content: bytes, groups: Sequence[tuple[str, str]], keep_float: Sequence[str] = ()) -> Any:
+    """ai-edge-quantizer set up for the groups not in `keep_float` in 8 bits, the FLOAT_RULES
+    operators float; None when no group is left to quantise."""
     from ai_edge_quantizer import qtyping, quantizer
     from ai_edge_quantizer.algorithm_manager import AlgorithmName
 
     quantised = "|".join(f"(?:{pattern})" for name, pattern in groups if name not in keep_float)
-    engine = quantizer.Quantizer(bytearray(float_content))
+    if not quantised:
+        return None
+    engine = quantizer.Quantizer(bytearray(content))
     for operator in QUANTISED_OPERATORS:
         op = qtyping.TFLOperationName(operator)
-        if quantised:
-            engine.add_static_config(quantised, op, activation_num_bits=8, weight_num_bits=8,
-                                     weight_granularity=qtyping.QuantGranularity.CHANNELWISE)
+        engine.add_static_config(quantised, op, activation_num_bits=8, weight_num_bits=8,
+                                 weight_granularity=qtyping.QuantGranularity.CHANNELWISE)
         for pattern, _ in FLOAT_RULES:  # the last matching config wins
             engine.update_quantization_recipe(pattern, op, algorithm_key=AlgorithmName.NO_QUANTIZE)
-    if not quantised:
+    return engine
+
+
+def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequence[tuple[str, str]],
+                      keep_float: Sequence[str] = ()) -> bytes:
+    """The flatbuffer with the groups not in `keep_float` in 8 bits (module doc)."""
+    engine = _recipe(float_content, groups, keep_float)
+    if engine is None:
         return bytes(float_content)
     try:
-        return _quantize(engine, qsvs)
+        # A copy per trial: the quantizer writes derived ranges into the dict it is given for
+        # some operators (same-as-input scales), which must not leak into the next trial.
+        return bytes(engine.quantize(copy.deepcopy(qsvs), enable_progress_bar=False,
+                                     enable_progress_report=False).quantized_model)
     except (ValueError, RuntimeError, KeyError) as exc:  # the quantizer's own refusals, one line each
         raise DataError(f"ai-edge-quantizer could not quantise the model: {str(exc).splitlines()[0][:300]}") from exc
-
-
-def _quantize(engine: Any, qsvs: dict[str, Any]) -> bytes:
-    # A copy per trial: the quantizer writes derived ranges into the dict it is given for
-    # some operators (same-as-input scales), which must not leak into the next trial.
-    return bytes(engine.quantize(copy.deepcopy(qsvs), enable_progress_bar=False,
-                                 enable_progress_report=False).quantized_model)
 
 
 def quantised_activations(content: bytes, groups: Sequence[tuple[str, str]]) -> list[str]:
     """Names of the activations a group's operators read and write (the tensors the 8-bit
     recipe quantises: each quantised operator is wrapped in QUANTIZE / DEQUANTIZE)."""
-    from ai_edge_quantizer.utils import tfl_flatbuffer_utils as tfl
-
-    model = tfl.read_model(bytearray(content))
-    graph = model.subgraphs[0]
-    names: dict[str, None] = {}
-    for op in graph.operators:
-        code = model.operatorCodes[op.opcodeIndex]
-        if tfl.TFL_OP_CODE_TO_NAME.get(max(code.builtinCode, code.deprecatedBuiltinCode)) not in QUANTISED_OPERATORS:
-            continue
-        scope = tfl.get_op_scope(op, graph.tensors)
-        if any(re.search(p, scope) for p, _ in FLOAT_RULES) or not any(re.search(p, scope) for _, p in groups):
-            continue
-        for index in (op.inputs[0], *op.outputs):
-            names[graph.tensors[index].name.decode()] = None
-    return list(names)
+    names = [tensor for _, scope, tensors in _mac_operators(content) if _place(scope, groups)[0] == "group"
+             for tensor in tensors]
+    return list(dict.fromkeys(names))
 
 
 def choose_ranges(content: bytes, qsvs: dict[str, Any], names: Sequence[str], feeds: Sequence[dict[str, np.ndarray]],
@@ -222,12 +229,8 @@ def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequenc
     ("mse" or "minmax") for the activations the quantised operators read and write."""
     if rule not in ("mse", "minmax"):
         raise ValueError(f"range rule must be 'mse' or 'minmax', got {rule!r}")
-    from ai_edge_quantizer import qtyping, quantizer
-
     started = time.perf_counter()
-    engine = quantizer.Quantizer(bytearray(float_content))
-    for operator in QUANTISED_OPERATORS:
-        engine.add_static_config("|".join(f"(?:{p})" for _, p in groups), qtyping.TFLOperationName(operator), 8, 8)
+    engine = _recipe(float_content, groups)  # every trial's recipe is a part of this one
     feeds = [{k: np.ascontiguousarray(v) for k, v in f.items()} for f in calibration.feeds]
     try:
         qsvs = engine.calibrate({SIGNATURE: feeds}, num_threads=threads or 1)
@@ -237,22 +240,19 @@ def calibrate(float_content: bytes, calibration: CalibrationSet, groups: Sequenc
     return qsvs, chosen, time.perf_counter() - started
 
 
-def search_keep_float(model: E3DPSM, quantise: Any, search: HeldOut, options: EdgeInt8Options,
-                      groups: Sequence[tuple[str, str]], work: Path, litert: LiteRTOptions) -> Placement:
-    """Which groups stay float for the artifact to meet the budget on `search`: greedy over the
-    groups, each trial a quantised flatbuffer run by LiteRT's interpreter, states carried."""
+def search_keep_float(model: E3DPSM, quantise: Callable[[Sequence[str]], bytes], search: HeldOut,
+                      options: EdgeInt8Options, groups: Sequence[tuple[str, str]], work: Path,
+                      litert: LiteRTOptions) -> Placement:
+    """Which groups stay float for the artifact to meet the budget on `search`:
+    edge_int8.search_float_groups over the groups, each trial a quantised flatbuffer run by
+    LiteRT's interpreter, states carried."""
     trial_path = work / "trial.tflite"
 
-    def evaluate(floats: Sequence[str], _int16: Sequence[str], label: str) -> Judgement:
-        content, _ = embed_contract(quantise(floats), model, litert, "int8")
-        trial_path.write_bytes(content)
-        check = check_stepper(open_stepper(trial_path, "litert", options.threads), search, options.budget)
-        log.info("INT8 search (LiteRT): %s (%d group(s) float): worst share %.3f%s", label, len(floats),
-                 check.worst_share, ", within" if check.within else "")
-        return Judgement({"litert": check})
+    def trial(floats: Sequence[str]) -> Any:
+        trial_path.write_bytes(embed_contract(quantise(floats), model, litert, "int8")[0])
+        return open_stepper(trial_path, "litert", options.threads)
 
-    return greedy_groups([(name, [name]) for name, _ in groups], evaluate, max_rounds=options.search_rounds,
-                         first="all-int8")
+    return search_float_groups([name for name, _ in groups], trial, search, options, SEARCH_RUNTIME)
 
 
 def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLike, options: EdgeInt8Options,
@@ -284,14 +284,14 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
     keep_float: tuple[str, ...] = ()
     search_started = time.perf_counter()
     if options.search_rounds > 0:
-        search = held_out(reference, data.split(options.search_split), data.window_ms, options.search_frames,
-                          f"{Path(data.root).name}/{options.search_split}", options.threads)
+        search = search_set(reference, data, options)
         with tempfile.TemporaryDirectory(prefix="e3dpsm-litert-search-", dir=work) as trials:
             placement = search_keep_float(model, quantise, search, options, groups, Path(trials), litert)
         keep_float = placement.float_nodes
-        record["search"] = {"split": options.search_split, "frames": search.frames, "runtime": "LiteRT (XNNPACK)",
-                            "kept_float": list(keep_float), **placement.to_dict()}
+        record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
     record["keep_float"] = list(keep_float)
+    record["int8_operators"] = sum(count for group, count in coverage["int8_candidates_by_group"].items()
+                                   if group not in keep_float)
     started = time.perf_counter()
     content = quantise(keep_float)
     seconds = {"convert": round(convert_seconds, 2), "calibrate": round(calibrate_seconds, 2),

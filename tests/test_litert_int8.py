@@ -209,6 +209,9 @@ def test_cli_writes_a_judged_int8_tflite(tmp_path, quant_data, capsys) -> None:
     assert report["size"]["int8_bytes"] == (out / "step.tflite").stat().st_size
     _, record = tflite_metadata(out / "step.tflite", (out / "step.tflite").read_bytes())
     assert record["precision"] == "int8" and record["keep_float"] == report["artifact"]["keep_float"]
+    # The 8-bit operator count convert.json records, against the weights in the file itself.
+    weights = _weight_types((out / "step.tflite").read_bytes())
+    assert report["artifact"]["int8_operators"] == sum(q for *_, q in weights) > 0
     assert "held-out frames" in capsys.readouterr().out
 
 

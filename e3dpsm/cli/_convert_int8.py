@@ -75,10 +75,8 @@ def run_litert_int8(args: argparse.Namespace) -> int:
     litert = LiteRTOptions(attention_form=args.attention_form)
 
     def coverage(result: Any) -> str:
-        mac = result.ops["mac_ops"]
-        int8 = sum(result.artifact["coverage"]["int8_candidates_by_group"][g] for g in result.artifact["groups"]
-                   if g not in result.artifact["keep_float"])
-        return f"{int8} of {sum(mac.values())} CONV_2D / FULLY_CONNECTED / BATCH_MATMUL in 8 bits"
+        return (f"{result.artifact['int8_operators']} of {sum(result.ops['mac_ops'].values())} "
+                "CONV_2D / FULLY_CONNECTED / BATCH_MATMUL in 8 bits")
 
     return _run_edge_int8(args, "litert", "step.tflite", ("litert_torch", "ai_edge_quantizer"),
                           lambda model, data, path, options, work: convert_litert_int8(
