@@ -41,18 +41,7 @@ stamp "synthesising the training set (seed 3)"
 $E3 synth --out "$WORK/data192" --sequences "$SEQUENCES" --seconds "$SEQ_SECONDS" --seed 3 --render-scale 0.5 \
     --workers "$WORKERS" --force --no-progress > "$WORK/synth.log" 2>&1 || { cat "$WORK/synth.log"; exit 1; }
 $E3 prepare --data "$WORK/data192" --out "$WORK/prep192" --height 192 --width 256 --workers "$WORKERS" --force --no-progress
-python3 - "$WORK/prep192" "$WORK/data_digest.json" <<'EOF'
-import hashlib, json, sys
-from pathlib import Path
-import numpy as np
-digest = {}
-for seq in sorted(p for p in Path(sys.argv[1]).iterdir() if p.is_dir()):
-    pose = np.load(seq / "pose.npz")
-    h = hashlib.sha256(np.ascontiguousarray(pose["j3d_mm"]).tobytes())
-    h.update(np.ascontiguousarray(np.load(seq / "lnes.npy", mmap_mode="r")[::50]).tobytes())
-    digest[seq.name] = h.hexdigest()[:16]
-Path(sys.argv[2]).write_text(json.dumps(digest, indent=1))
-EOF
+python3 benchmarks/data_digest.py "$WORK/data_digest.json" "$WORK/prep192"
 
 stamp "rebuilding the students from their cuts"
 NAMES=()

@@ -44,20 +44,7 @@ wait $TRAIN_DATA && wait $TEST_DATA || { cat "$WORK"/synth*.log; exit 1; }
 stamp "preparing"
 $E3 prepare --data "$WORK/data192" --out "$WORK/prep192" --height 192 --width 256 --workers "$WORKERS" --force --no-progress
 $E3 prepare --data "$WORK/data192_test" --out "$WORK/prep192_test" --height 192 --width 256 --workers 3 --force --no-progress
-python3 - "$WORK" "$OUT/data_digest.json" <<'EOF'
-import hashlib, json, sys
-from pathlib import Path
-import numpy as np
-digest = {}
-for prep in ("prep192", "prep192_test"):
-    for seq in sorted(p for p in (Path(sys.argv[1]) / prep).iterdir() if p.is_dir()):
-        pose = np.load(seq / "pose.npz")
-        lnes = np.load(seq / "lnes.npy", mmap_mode="r")
-        h = hashlib.sha256(np.ascontiguousarray(pose["j3d_mm"]).tobytes())
-        h.update(np.ascontiguousarray(lnes[::50]).tobytes())  # every 50th frame: cheap, still any change
-        digest[f"{prep}/{seq.name}"] = h.hexdigest()[:16]
-Path(sys.argv[2]).write_text(json.dumps(digest, indent=1))
-EOF
+python3 benchmarks/data_digest.py "$OUT/data_digest.json" "$WORK/prep192" "$WORK/prep192_test"
 
 TRAIN=(--variant "$VARIANT" --data "$WORK/prep192" --split all --seq-len "$SEQ_LEN" --batch-size "$BATCH" --device "$DEVICE"
        --num-workers 6 --log-every 10 --no-progress --force)
