@@ -3,7 +3,7 @@
 # from nothing but this repository: the pruning itself (which units, how far) is planned on the
 # target CPU by `e3dpsm prune --steps 0` (its latency model is that host's); the cuts travel as
 # the prune reports' `cuts` and each student is rebuilt here from the teacher by the same
-# surgery (compress/importance.keep_lists: a magnitude criterion, so the same channels), then
+# surgery (`e3dpsm prune --replay`: a magnitude criterion, so the same channels), then
 # distilled from the unpruned teacher with the labels (`distill --labels gt --device cuda`).
 # Several students distil side by side on the one GPU, each its own process.
 #
@@ -47,27 +47,8 @@ stamp "rebuilding the students from their cuts"
 NAMES=()
 for spec in $CUTS; do
     name=${spec%%=*}; NAMES+=("$name")
-    python3 - "$TEACHER" "${spec#*=}" "$WORK/$name.pruned.pt" <<'EOF'
-import json, sys
-from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
-from e3dpsm.compress.importance import keep_lists
-from e3dpsm.compress.plan import total_macs
-from e3dpsm.compress.surgery import prune_model
-from e3dpsm.compress.units import prunable_units
-teacher, payload = load_checkpoint(sys.argv[1])
-report = json.loads(open(sys.argv[2]).read())
-if report["config"]["steps"] != 0:  # recovered rounds change the weights the next round's keep lists read
-    sys.exit(f"{sys.argv[2]}: a prune run with --steps {report['config']['steps']}; the cuts replay exactly only from --steps 0")
-rounds = report["rounds"][1:report["best"] + 1]
-student = teacher
-for record in rounds:  # each round cut the previous round's model
-    student = prune_model(student, keep_lists(student, prunable_units(student.config), record["cuts"]))
-macs = total_macs(student)
-assert macs == report["rounds"][report["best"]]["macs"], (macs, report["rounds"][report["best"]]["macs"])
-save_checkpoint(sys.argv[3], student.eval(), step=0, window_ms=payload.get("window_ms"), pruned_from=sys.argv[1],
-                cuts=[r["cuts"] for r in rounds])
-print(f"{sys.argv[3]}: {student.num_parameters():,} parameters, {macs / total_macs(teacher):.3f} of the MACs")
-EOF
+    $E3 prune --checkpoint "$TEACHER" --replay "${spec#*=}" --out "$WORK/$name.replay" --force
+    cp "$WORK/$name.replay/checkpoint.pt" "$WORK/$name.pruned.pt"
 done
 
 DISTILL=(--teacher "$TEACHER" --data "$WORK/prep192" --labels gt --split all --seq-len "$SEQ_LEN" --batch-size "$BATCH"

@@ -85,7 +85,8 @@ def _inputs_section(request: ProfileRequest, frames: Frames) -> dict[str, Any]:
     settings = request.settings
     return {"source": frames.source, "window_ms": frames.window_ms, "frames": int(len(frames.lnes)),
             "steps": settings.steps, "warmup": settings.warmup, "chunk": settings.chunk,
-            "threads": request.targets[0].threads, "outside_seconds": settings.outside_seconds}
+            "threads": request.targets[0].threads, "outside_seconds": settings.outside_seconds,
+            "outside_turns": settings.outside_turns}
 
 
 def summary_lines(report: Mapping[str, Any]) -> list[str]:
@@ -104,7 +105,8 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
             line += f"; runtime {entry['runtime_ms']['p50']:.2f} + Python {entry['overhead_ms']['p50']:.3f}"
         outside = entry.get("outside") or {}
         if outside.get("p50_ms") is not None:
-            line += f"; {outside['tool']} {outside['p50_ms']:.2f} ms ({entry['agreement']:.2f}x)"
+            line += (f"; {outside['tool']} {outside['p50_ms']:.2f} ms against runtime {entry['beside_ms']:.2f} "
+                     f"in turns with it ({entry['agreement']:.2f}x)")
         lines.append(line)
     lines += [f"  {name}: {ratio:.2f}x" for name, ratio in report["ratios"].items()]
     return lines

@@ -44,6 +44,8 @@ class OutsideFigure:
     runs: int | None = None
     command: str | None = None
     reason: str | None = None
+    round_p50_ms: tuple[float, ...] | None = None  # one median per turn (profiles.agreement)
+    note: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -165,14 +167,6 @@ def run_perf_test(graph: Path, threads: int, seconds: float, dynamic: bool, work
     except OutsideToolError as exc:
         return OutsideFigure(PERF_TEST, command=shown, reason=str(exc))
     return OutsideFigure(PERF_TEST, p50, runs, shown)
-
-
-def ort_profiler_figure(summary: Mapping[str, Any] | None) -> OutsideFigure:
-    """ONNX Runtime's profiler: median `model_run` of the profiled session (it includes the
-    profiler's own per-node cost)."""
-    if not summary or summary.get("run_ms_median") is None:
-        return OutsideFigure(ORT_PROFILER, reason="no profiled run (--profile-steps 0)")
-    return OutsideFigure(ORT_PROFILER, float(summary["run_ms_median"]), int(summary["steps"]))
 
 
 # -- subprocess ----------------------------------------------------------------------------

@@ -18,12 +18,12 @@ from e3dpsm.profiles.flops import CATEGORIES, relative_difference
 from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
-from e3dpsm.profiles.agreement import agreement_ratio, outside_figure
+from e3dpsm.profiles.agreement import DEFAULT_TURNS, ProfiledOrtRuns, measure_agreement
 from e3dpsm.profiles.latency import (ArtifactRunner, OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner,
                                      latency_summary, matmul_peak_gflops)
 from e3dpsm.profiles.memory import RssSampler
-from e3dpsm.profiles.ort_profile import summarize_trace
-from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side
+from e3dpsm.utils.cpu_time import CpuShareMeter
+from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side, turn_paired_speedup
 from e3dpsm.profiles.targets import EDGE_RUNTIMES, Target, availability
 from e3dpsm.profiles.verdict import fastest_path
 
@@ -39,6 +39,7 @@ class ProfileSettings:
     ort_profile_steps: int = 50
     roofline_precisions: tuple[str, ...] = ("fp32", "fp16")
     outside_seconds: float = 5.0  # each CPU target's outside timer (benchmark_app ...); 0: none
+    outside_turns: int = DEFAULT_TURNS  # the outside timer and the target's runner take turns
 
 
 def count_both(model: Any, graph: onnx.ModelProto) -> dict[str, Any]:
@@ -75,15 +76,16 @@ def _model_bytes(target: Target, graphs: Mapping[str, Path | None], model: Any, 
     return sum(t.numel() * t.element_size() for t in model.state_dict().values())
 
 
-def _ratios(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
-    """p50 speed-up of each target over each baseline measured in the same run (a baseline is
-    compared only with the targets listed after it in BASELINES, and with all others)."""
-    p50 = {e["name"]: e["latency_ms"]["p50"] for e in entries if e.get("latency_ms")}
+def _ratios(entries: Sequence[Mapping[str, Any]], times: Mapping[str, StepTimes], chunk: int) -> dict[str, float]:
+    """Speed-up of each target over each baseline measured in the same run, round by round
+    (step_timing.turn_paired_speedup; a baseline is compared only with the targets listed
+    after it in BASELINES, and with all others)."""
+    measured = [e["name"] for e in entries if e.get("latency_ms") and e["name"] in times]
     ratios = {}
     for i, base in enumerate(BASELINES):
-        for name, value in p50.items():
-            if base in p50 and name != base and name not in BASELINES[:i]:
-                ratios[f"{name} vs {base}"] = p50[base] / value
+        for name in measured:
+            if base in measured and name != base and name not in BASELINES[:i]:
+                ratios[f"{name} vs {base}"] = turn_paired_speedup(times[name].total, times[base].total, chunk)
     return ratios
 
 
@@ -94,10 +96,9 @@ def _ort_profile(target: Target, graphs: Mapping[str, Path | None], frames: Fram
     _, dtypes = static_shapes(graph)
     node_groups = assign_groups(graph, dtypes)
     with tempfile.TemporaryDirectory(prefix="e3dpsm-ortprof-") as tmp:
-        runner = OrtRunner(str(graph_path), target, frames.window_ms, profile_prefix=str(Path(tmp) / "ort"))
-        for k in range(steps):
-            runner.step(frames.lnes[k % len(frames.lnes)][None])
-        return summarize_trace(runner.end_profiling(), node_groups)
+        profiled = ProfiledOrtRuns(graph_path, target, frames, steps, Path(tmp))
+        profiled.turn(0)
+        return profiled.summary(node_groups)
 
 
 def _target_entry(target: Target, graphs: Mapping[str, Path | None], model: Any, params: int,
@@ -106,7 +107,7 @@ def _target_entry(target: Target, graphs: Mapping[str, Path | None], model: Any,
     return {**target.to_dict(), "available": status.available, "reason": status.reason, "params": params,
             "macs": primary["macs"], "flops": primary["flops"], "latency_ms": None, "runtime_ms": None,
             "overhead_ms": None, "hz": None, "peak_rss_mb": None, "model_bytes": None, "outside": None,
-            "agreement": None}
+            "beside_ms": None, "beside_burst_ms": None, "agreement": None, "agreement_median": None}
 
 
 def _load_runners(targets: Sequence[Target], entries: Sequence[dict[str, Any]], graphs: Mapping[str, Path | None],
@@ -140,18 +141,16 @@ def _record_times(entry: dict[str, Any], times: StepTimes, peak_gflops: float) -
     entry["peak_fraction"] = entry["gflops_achieved"] / peak_gflops
 
 
-def _outside_figures(targets: Sequence[Target], entries: Sequence[dict[str, Any]], graphs: Mapping[str, Path | None],
-                     frames: Frames, settings: ProfileSettings, ort_profiles: Mapping[str, Any]) -> None:
-    """Each measured target's outside timer, beside the profile's runtime figure."""
-    with tempfile.TemporaryDirectory(prefix="e3dpsm-outside-") as tmp:
-        for target, entry in zip(targets, entries):
-            if entry["latency_ms"] is None:
-                continue
-            graph = graphs.get(target.graph_key) if target.graph != "none" else None
-            figure = outside_figure(target, graph, frames, settings.outside_seconds, Path(tmp) / target.name,
-                                    ort_profiles.get(target.name))
-            own = (entry["runtime_ms"] or entry["latency_ms"])["p50"]
-            entry.update(outside=figure.to_dict(), agreement=agreement_ratio(own, figure))
+def _outside_figures(targets: Sequence[Target], entries: Sequence[dict[str, Any]], runners: Mapping[str, Any],
+                     graphs: Mapping[str, Path | None], frames: Frames, settings: ProfileSettings) -> None:
+    """Each measured target's outside timer, timed in turns with the target's own runner
+    (profiles.agreement), beside the profile's runtime figure."""
+    for target, entry in zip(targets, entries):
+        if entry["latency_ms"] is None:
+            continue
+        graph = graphs.get(target.graph_key) if target.graph != "none" else None
+        entry.update(measure_agreement(runners[target.name], target, graph, frames, settings.outside_seconds,
+                                       settings.ort_profile_steps, settings.chunk, settings.outside_turns))
 
 
 def profile_targets(
@@ -174,8 +173,8 @@ def profile_targets(
     # The peak is measured before and after the timed steps and the better kept: on a shared
     # host a burst of outside load during one measurement halved it (152 vs 305 GFLOP/s).
     peak_before = matmul_peak_gflops(threads)
-    with RssSampler() as overall, tqdm(total=settings.steps * len(runners), desc="timed steps", unit="step",
-                                       disable=not progress) as bar:
+    with RssSampler() as overall, CpuShareMeter() as timed_cpu, \
+            tqdm(total=settings.steps * len(runners), desc="timed steps", unit="step", disable=not progress) as bar:
         times = time_side_by_side(runners, frames.lnes, settings.steps, settings.warmup, settings.chunk,
                                   on_chunk=bar.update)
     peak_after = matmul_peak_gflops(threads)
@@ -189,8 +188,9 @@ def profile_targets(
     for target in targets:
         if target.name in runners and target.runtime == "onnxruntime" and settings.ort_profile_steps > 0:
             ort_profiles[target.name] = _ort_profile(target, graphs, frames, settings.ort_profile_steps)
-    if settings.outside_seconds > 0:
-        _outside_figures(targets, entries, graphs, frames, settings, ort_profiles)
+    with CpuShareMeter() as outside_cpu:
+        if settings.outside_seconds > 0:
+            _outside_figures(targets, entries, runners, graphs, frames, settings)
 
     state_values = sum(math.prod(s.shape) for s in meta.states)
     act_values = activation_bytes(graph) // 4
@@ -201,8 +201,9 @@ def profile_targets(
     ]
     body = {
         "counting": {**counting, "categories": list(CATEGORIES)},
-        "verdict": fastest_path(entries), "targets": entries, "ratios": _ratios(entries), "machine_peak": peak,
-        "process_peak_rss_mb": overall.peak_mb, "ort_profiles": ort_profiles, "devices": rooflines,
+        "verdict": fastest_path(entries), "targets": entries, "ratios": _ratios(entries, times, settings.chunk), "machine_peak": peak,
+        "process_peak_rss_mb": overall.peak_mb,
+        "cpu_time": {"timed_steps": timed_cpu.shares, "outside_timers": outside_cpu.shares}, "ort_profiles": ort_profiles, "devices": rooflines,
         "bytes_per_step_inputs": {"weight_values": params, "activation_values": act_values,
                                   "state_values": state_values},
     }

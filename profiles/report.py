@@ -64,17 +64,38 @@ def target_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
     return rows
 
 
+def cpu_time_sentence(cpu_time: Mapping[str, Any] | None) -> str:
+    """' CPU time during ...: busy x%, idle y%, stolen by the hypervisor z%.' or '' (no /proc/stat)."""
+    parts = []
+    for phase, label in (("timed_steps", "the timed steps"), ("outside_timers", "the outside timers")):
+        shares = (cpu_time or {}).get(phase)
+        if shares:
+            parts.append(f"{label}: busy {100 * shares['busy']:.0f}%, idle {100 * shares['idle']:.0f}%, "
+                         f"stolen by the hypervisor {100 * shares['steal']:.0f}%")
+    return f" The machine's CPU time during {'; during '.join(parts)}." if parts else ""
+
+
 def agreement_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Each measured target's runtime figure beside its outside timer's median."""
-    rows = ["| target | profile p50 ms (step) | runtime p50 ms | outside timer | outside p50 ms | runtime / outside |",
-            "|---|---|---|---|---|---|"]
+    """Each measured target's runtime figure beside its outside timer's median, both timed in
+    turns (profiles.agreement), with the side-by-side figures for reference."""
+    rows = ["| target | profile p50 ms (step, side by side) | runtime p50 ms (side by side) | runtime p50 ms "
+            "(in turns with the tool; each burst) | outside timer | outside p50 ms (each turn) | runtime / outside: "
+            "fastest burst / fastest turn | medians |", "|---|---|---|---|---|---|---|---|"]
     for t in targets:
         outside = t.get("outside")
         if not t.get("latency_ms") or outside is None:
             continue
-        figure = _g(outside.get("p50_ms")) if outside.get("p50_ms") is not None else f"- ({outside.get('reason')})"
+        if outside.get("p50_ms") is None:
+            figure = f"- ({outside.get('reason')})"
+        else:
+            turns = outside.get("round_p50_ms") or ()
+            figure = _g(outside["p50_ms"]) + (f" ({', '.join(_g(v) for v in turns)})" if len(turns) > 1 else "")
+            figure += f"; {outside['note']}" if outside.get("note") else ""
+        bursts = t.get("beside_burst_ms") or ()
+        beside = _g(t.get("beside_ms")) + (f" ({', '.join(_g(v) for v in bursts)})" if len(bursts) > 1 else "")
         rows.append(f"| {t['name']} | {_g(t['latency_ms']['p50'])} | {_g((t.get('runtime_ms') or {}).get('p50'))} | "
-                    f"{outside['tool']} | {figure} | {_g(t.get('agreement'))} |")
+                    f"{beside} | {outside['tool']} | {figure} | {_g(t.get('agreement'))} | "
+                    f"{_g(t.get('agreement_median'))} |")
     return rows if len(rows) > 2 else []
 
 
@@ -95,7 +116,7 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
              f"({report['machine']['cpu_count']} CPUs); {inputs['threads']} threads per target; "
              f"{inputs['steps']} timed steps after {inputs['warmup']} warm-up steps, states carried, inputs: "
              f"{inputs['source']} ({inputs['window_ms']:g} ms windows). Targets measured side by side in one process, "
-             f"taking turns every {inputs['chunk']} steps.", "",
+             f"taking turns every {inputs['chunk']} steps.{cpu_time_sentence(report.get('cpu_time'))}", "",
              "## Parameters and compute per pose update", "", CONVENTION_LINE, ""]
     primary = counting.get("pytorch") or counting.get("onnx")
     secondary = counting.get("onnx") if counting.get("pytorch") else None
@@ -114,10 +135,16 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
                   "Each CPU target's runtime figure beside the runtime's own tool on the same graph, inputs and "
                   "settings (`benchmark_app` with one stream, synchronous requests, the target's threads, precision "
                   "and compile properties; `onnxruntime_perf_test` where installed, else ONNX Runtime's profiler, "
-                  "whose median `model_run` includes its own per-node cost). The outside tools run after the "
-                  f"side-by-side steps, alone, for {inputs.get('outside_seconds', '?')} s each.", "", *agreement, ""]
+                  "whose median `model_run` includes its own per-node cost; its kernels' sum is noted beside it). "
+                  f"Each tool runs {inputs.get('outside_seconds', '?')} s in {inputs.get('outside_turns', 1)} turns, the "
+                  "target's own runner timing a burst of steps before each turn and after the last, so the two "
+                  "figures compared are taken over the same minutes. The agreement compares the fastest burst with "
+                  "the fastest turn (load from outside only adds time, so each side's fastest is its least "
+                  "disturbed, as Python's `timeit` reasons); the ratio of the medians is beside it.", "",
+                  *agreement, ""]
     if report.get("ratios"):
-        lines += ["Median ratios (speed-up = slower p50 / faster p50):", ""]
+        lines += ["Speed-ups over the baselines, round by round (the median over the side-by-side rounds of each "
+                  "round's baseline median over the target's: drift slower than a round cancels):", ""]
         lines += [f"- {name}: **{value:.2f}x**" for name, value in report["ratios"].items()]
         lines.append("")
     peak = report.get("machine_peak")

@@ -68,7 +68,7 @@ def time_side_by_side(runners: Mapping[str, Any], frames: np.ndarray, steps: int
             for k in range(start, min(start + chunk, steps)):
                 frame = frames[position[name] % len(frames)][None]
                 if name in runtime:
-                    total[name][k], runtime[name][k] = _phased_step(runner, frame, clock)
+                    total[name][k], runtime[name][k] = phased_step(runner, frame, clock)
                 else:
                     t0 = clock()
                     runner.step(frame)
@@ -79,7 +79,7 @@ def time_side_by_side(runners: Mapping[str, Any], frames: np.ndarray, steps: int
     return {name: StepTimes(total[name], runtime.get(name)) for name in runners}
 
 
-def _phased_step(runner: PhasedRunner, frame: np.ndarray, clock: Clock) -> tuple[float, float]:
+def phased_step(runner: PhasedRunner, frame: np.ndarray, clock: Clock) -> tuple[float, float]:
     """(whole step, runtime's call) in seconds."""
     t0 = clock()
     runner.prepare(frame)
@@ -132,6 +132,20 @@ def speedup_interval(candidate_s: np.ndarray, reference_s: np.ndarray, chunk: in
     tail = 50 * (1 - coverage)
     low, high = np.percentile(draws, [tail, 100 - tail])
     return SpeedupInterval(speedup, float(low), float(high), coverage, len(rounds))
+
+
+def turn_paired_speedup(candidate_s: np.ndarray, reference_s: np.ndarray, chunk: int) -> float:
+    """The speed-up of `candidate_s` over `reference_s` (per-step times in step order, timed
+    side by side in rounds of `chunk` steps) as the median over rounds of each round's
+    reference median over its candidate median: drift slower than a round cancels within
+    each round's pair. Why not the ratio of whole-run medians: on the 2-core VNNI host
+    (2026-12-04) one graph's median jumped from 28 to 39 ms for tens of seconds at a time, and
+    the ratio of two runs' medians moved by up to 1.3x with which of them the jumps hit."""
+    candidate_s, reference_s = np.asarray(candidate_s, float), np.asarray(reference_s, float)
+    if candidate_s.shape != reference_s.shape or candidate_s.size == 0 or chunk < 1:
+        raise ValueError("turn_paired_speedup needs two equally long, non-empty timings and chunk >= 1")
+    return float(np.median([np.median(reference_s[i:i + chunk]) / np.median(candidate_s[i:i + chunk])
+                            for i in range(0, candidate_s.size, chunk)]))
 
 
 def time_beside(candidate: Any, reference: Any, frames: np.ndarray, steps: int, *, warmup: int = 5,

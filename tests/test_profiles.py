@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -152,7 +153,13 @@ def test_profile_command_report(tmp_path, tiny_step_graph, capsys):
     assert latency_table.count("| ort-cpu-fp32 |") == 1 and agreement_table.count("| ort-cpu-fp32 |") == 1
     assert fp32["runtime_ms"]["p50"] + fp32["overhead_ms"]["p50"] == pytest.approx(fp32["latency_ms"]["p50"], rel=0.2)
     assert fp32["outside"]["tool"] == "onnxruntime profiler (model_run)" and fp32["outside"]["runs"] == 3
-    assert fp32["agreement"] == pytest.approx(fp32["runtime_ms"]["p50"] / fp32["outside"]["p50_ms"])
+    assert fp32["agreement_median"] == pytest.approx(fp32["beside_ms"] / fp32["outside"]["p50_ms"])
+    assert fp32["agreement"] == pytest.approx(min(fp32["beside_burst_ms"]) / fp32["outside"]["p50_ms"])
+    assert len(fp32["beside_burst_ms"]) == 4  # before each of the 3 profiler turns, and after the last
+    assert min(fp32["beside_burst_ms"]) <= fp32["beside_ms"] <= max(fp32["beside_burst_ms"])
+    if Path("/proc/stat").is_file():
+        shares = report["cpu_time"]["timed_steps"]
+        assert sum(shares.values()) == pytest.approx(1.0) and "stolen by the hypervisor" in markdown
     assert report["verdict"]["fastest"] == "ort-cpu-fp32" and report["verdict"]["not_measured"] == ["ort-cuda-fp32", "ort-cpu-int8"]
     assert (out / "latency.png").stat().st_size > 0 and (out / "macs_per_module.png").stat().st_size > 0
 

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from e3dpsm.profiles.agreement import agreement_ratio
-from e3dpsm.profiles.outside import (OutsideFigure, OutsideToolError, _run, benchmark_app_args, ort_profiler_figure,
+from e3dpsm.profiles.agreement import (NO_AGREEMENT, agreement_ratio, best_turn_agreement, combine_turns,
+                                      measure_agreement, time_in_turns)
+from e3dpsm.profiles.outside import (OutsideFigure, OutsideToolError, _run, benchmark_app_args,
                                      parse_benchmark_app_report, parse_perf_test_output, perf_test_args)
 from e3dpsm.profiles.profiler import _record_times
 from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side
@@ -97,6 +98,27 @@ def test_runtime_and_overhead_split_on_an_injected_clock() -> None:
     assert entry["hz"] == pytest.approx(1e3 / 13.0)
     assert entry["gflops_achieved"] == pytest.approx(2e9 / 0.013 / 1e9)
     assert entry["peak_fraction"] == pytest.approx(entry["gflops_achieved"] / 400.0)
+
+
+def test_turn_paired_speedup_cancels_drift_between_rounds() -> None:
+    """Rounds of 2 steps; the host slows 3x from the second round on, the candidate's rounds
+    land on the slow stretch later than the reference's. Per round: 2/1, 6/1, 6/3 -> median 2
+    (the candidate is twice as fast in every round it shares with the reference); the ratio of
+    whole-run medians would say 6 (reference median 6, candidate median 1)."""
+    from e3dpsm.profiles.profiler import _ratios
+    from e3dpsm.profiles.step_timing import turn_paired_speedup
+
+    candidate = np.array([1.0, 1.0, 1.0, 1.0, 3.0, 3.0])
+    reference = np.array([2.0, 2.0, 6.0, 6.0, 6.0, 6.0])
+    assert turn_paired_speedup(candidate, reference, chunk=2) == pytest.approx(2.0)
+    assert np.median(reference) / np.median(candidate) == pytest.approx(6.0)
+    assert turn_paired_speedup(candidate[:5], reference[:5], chunk=2) == pytest.approx(2.0)  # a short last round
+    with pytest.raises(ValueError, match="equally long"):
+        turn_paired_speedup(candidate, reference[:4], chunk=2)
+    entries = [{"name": "ort-cpu-fp32", "latency_ms": {"p50": 6.0}}, {"name": "fast", "latency_ms": {"p50": 1.0}},
+               {"name": "gone", "latency_ms": None}]
+    times = {"ort-cpu-fp32": StepTimes(reference), "fast": StepTimes(candidate)}
+    assert _ratios(entries, times, chunk=2) == {"fast vs ort-cpu-fp32": pytest.approx(2.0)}
 
 
 def test_step_only_runner_records_no_split() -> None:
@@ -186,14 +208,125 @@ def test_perf_test_output_parsed_from_a_sample() -> None:
     assert "-f" not in perf_test_args(Path("g.onnx"), 2, 5, dynamic=False)
 
 
-def test_ort_profiler_figure_and_agreement_ratio() -> None:
-    figure = ort_profiler_figure({"run_ms_median": 20.0, "steps": 50})
-    assert (figure.p50_ms, figure.runs, figure.reason) == (20.0, 50, None)
+def test_agreement_ratio() -> None:
+    figure = OutsideFigure("benchmark_app", p50_ms=20.0, runs=50)
     assert agreement_ratio(21.0, figure) == pytest.approx(1.05)
-    missing = ort_profiler_figure(None)
-    assert missing.p50_ms is None and "profile-steps" in missing.reason
-    assert agreement_ratio(21.0, missing) is None and agreement_ratio(None, figure) is None
+    assert agreement_ratio(21.0, OutsideFigure("x", reason="failed")) is None and agreement_ratio(None, figure) is None
     assert agreement_ratio(5.0, OutsideFigure("x", p50_ms=0.0)) is None
+
+
+# -- the runner and the outside tool in turns ------------------------------------------------
+class ScriptedTool:
+    """An outside tool whose turns are logged beside the runner's steps; `fail_at`: the turn
+    that fails."""
+
+    def __init__(self, log: list, medians: list[float], fail_at: int | None = None) -> None:
+        self.log, self.medians, self.fail_at, self.turns = log, medians, fail_at, []
+
+    def turn(self, index: int) -> str | None:
+        self.log.append(f"turn {index}")
+        failed = index == self.fail_at
+        self.turns.append(OutsideFigure("tool", None if failed else self.medians[index], None if failed else 10,
+                                        reason="exit 1: boom" if failed else None))
+        return self.turns[-1].reason
+
+    def figure(self) -> OutsideFigure:
+        return combine_turns("tool", self.turns)
+
+
+class LoggedRunner(ScriptedRunner):
+    def __init__(self, clock: FakeClock, log: list, run_ms: list[float]) -> None:
+        n = len(run_ms)
+        super().__init__(clock, [0.0] * n, [v * 1e-3 for v in run_ms], [0.0] * n)
+        self.log = log
+
+    def step(self, lnes: np.ndarray) -> None:
+        super().step(lnes)
+        self.log.append("warm-up")
+
+    def run(self) -> None:
+        super().run()
+        self.log.append("timed")
+
+
+def test_runner_bursts_bracket_the_tools_turns_on_an_injected_clock() -> None:
+    """Turns 2, steps 2, one untimed warm-up step per burst: warm-up, timed, timed, turn 0,
+    warm-up, timed, timed, turn 1, warm-up, timed, timed. The runner's median is over its
+    timed runs only (6, 7, 9, 10, 11, 30 ms -> 9.5); the tool's is the median of its turns'."""
+    clock, log = FakeClock(), []
+    runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
+    tool = ScriptedTool(log, [8.0, 12.0])
+    frames = np.arange(5, dtype=np.float32).reshape(5, 1, 1, 1)
+    figure, own = time_in_turns(runner, tool, frames, turns=2, steps=2, clock=clock, warmup=1)
+
+    assert log == ["warm-up", "timed", "timed", "turn 0", "warm-up", "timed", "timed", "turn 1",
+                   "warm-up", "timed", "timed"]
+    np.testing.assert_allclose(own * 1e3, [[6, 7], [9, 10], [11, 30]])
+    assert runner.frames == [0, 1, 2, 3, 4, 0, 1, 2, 3]  # one frame sequence across the bursts, warm-ups included
+    assert (figure.p50_ms, figure.runs, figure.round_p50_ms) == (10.0, 20, (8.0, 12.0))
+    assert agreement_ratio(1e3 * float(np.median(own)), figure) == pytest.approx(9.5 / 10.0)
+    # The fastest burst (median 6.5 ms) over the fastest turn (8 ms): both sides' least disturbed.
+    bursts = [1e3 * float(np.median(burst)) for burst in own]
+    assert bursts == pytest.approx([6.5, 9.5, 20.5])
+    assert best_turn_agreement(bursts, figure) == pytest.approx(6.5 / 8.0)
+    assert best_turn_agreement(bursts, OutsideFigure("profiler", 13.0)) == pytest.approx(6.5 / 13.0)  # no turns
+    assert best_turn_agreement([], figure) is None and best_turn_agreement(bursts, OutsideFigure("x")) is None
+
+
+def test_a_failed_turn_ends_the_turns_and_gives_no_figure() -> None:
+    clock, log = FakeClock(), []
+    runner = LoggedRunner(clock, log, [5.0] * 6)
+    tool = ScriptedTool(log, [8.0, 12.0, 9.0], fail_at=1)
+    figure, own = time_in_turns(runner, tool, np.zeros((2, 1, 1, 1), np.float32), turns=3, steps=1, clock=clock,
+                                warmup=0)
+    assert [entry for entry in log if entry.startswith("turn")] == ["turn 0", "turn 1"]
+    assert own.shape == (3, 1)  # before each turn run, and the closing burst
+    assert figure.p50_ms is None and figure.reason == "turn 2 of 2: exit 1: boom"
+    assert agreement_ratio(5.0, figure) is None
+
+
+def test_turns_combine_into_the_median_of_their_medians() -> None:
+    turns = [OutsideFigure("benchmark_app", 10.0, 100, "cmd"), OutsideFigure("benchmark_app", 30.0, 40, "cmd"),
+             OutsideFigure("benchmark_app", 12.0, 90, "cmd")]
+    figure = combine_turns("benchmark_app", turns)
+    assert (figure.p50_ms, figure.runs, figure.command, figure.round_p50_ms) == (12.0, 230, "cmd", (10.0, 30.0, 12.0))
+    assert combine_turns("benchmark_app", []).reason == "the tool did not run"
+
+
+def test_targets_without_an_outside_timer_say_why(tiny_static_graph: Path) -> None:
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    targets = load_targets()
+    frames = moving_edge_frames(1, 192, 256, 20.0)
+    eager = measure_agreement(None, targets["torch-eager-cpu"], None, frames, 1.0, 3, 2)
+    assert eager == {"outside": OutsideFigure("-", reason="no outside timer for torch").to_dict(), **NO_AGREEMENT}
+    profiler_off = measure_agreement(object(), targets["ort-cpu-fp32-static"], tiny_static_graph, frames, 1.0, 0, 2)
+    assert profiler_off["outside"]["reason"] == "no profiled run (--profile-steps 0)"
+    assert profiler_off["agreement"] is None
+
+
+def test_onnxruntime_profiler_in_turns_on_the_tiny_static_graph(tiny_static_graph: Path) -> None:
+    """Without onnxruntime_perf_test the profiler is ONNX Runtime's timer: 6 profiled steps in
+    3 turns of 2, timed in turns with the target's own runner (2 steps a burst, 4 bursts)."""
+    from e3dpsm.profiles.latency import OrtRunner
+    from e3dpsm.profiles.outside import ORT_PROFILER, perf_test_path
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    if perf_test_path() is not None:
+        pytest.skip("onnxruntime_perf_test is on PATH: it, not the profiler, is the outside timer")
+    target = load_targets()["ort-cpu-fp32-static"]
+    frames = moving_edge_frames(4, 192, 256, 20.0)
+    runner = OrtRunner(str(tiny_static_graph), target, frames.window_ms, side_by_side=True)
+    runner.reset()
+    result = measure_agreement(runner, target, tiny_static_graph, frames, 1.0, 6, 2, turns=3)
+    outside = result["outside"]
+    assert outside["tool"] == ORT_PROFILER and outside["reason"] is None and outside["runs"] == 6
+    assert 0 < outside["p50_ms"] < 1e3 and outside["note"].startswith("kernels alone ")
+    assert 0 < result["beside_ms"] < 1e3 and len(result["beside_burst_ms"]) == 4
+    assert result["agreement_median"] == pytest.approx(result["beside_ms"] / outside["p50_ms"])
+    assert result["agreement"] == pytest.approx(min(result["beside_burst_ms"]) / outside["p50_ms"])
 
 
 def test_a_failing_outside_tool_is_one_line_of_reason(tmp_path: Path) -> None:
@@ -206,15 +339,17 @@ def test_a_failing_outside_tool_is_one_line_of_reason(tmp_path: Path) -> None:
 @pytest.mark.slow  # ~14 s on a loaded 2-core host: IR conversion, a fresh interpreter, compile, 1 s of steps
 def test_benchmark_app_runs_on_the_tiny_static_graph(tiny_static_graph: Path, tmp_path: Path) -> None:
     pytest.importorskip("openvino")
-    from e3dpsm.profiles.agreement import outside_figure
+    from e3dpsm.profiles.agreement import outside_timer
     from e3dpsm.profiles.inputs import moving_edge_frames
     from e3dpsm.profiles.targets import load_targets
 
-    figure = outside_figure(load_targets()["openvino-cpu-fp32-static"], tiny_static_graph,
-                            moving_edge_frames(1, 192, 256, 20.0), 1, tmp_path, None)
+    timer = outside_timer(load_targets()["openvino-cpu-fp32-static"], tiny_static_graph,
+                          moving_edge_frames(1, 192, 256, 20.0), 1, tmp_path, profiler_steps=0, turns=1)
+    assert timer.turn(0) is None
+    figure = timer.figure()
     assert figure.reason is None, figure.reason
     assert figure.tool == "benchmark_app" and figure.runs >= 1 and 0 < figure.p50_ms < 1e4
-    report = json.loads((tmp_path / "benchmark_report.json").read_text())
+    report = json.loads((tmp_path / "turn0" / "benchmark_report.json").read_text())
     assert parse_benchmark_app_report(report) == (figure.p50_ms, figure.runs)
     assert report["configuration_setup"]["number of CPU streams"] == "1" and report["configuration_setup"]["inference_only"]
     assert (report["cmd_options"]["-nthreads"], report["cmd_options"]["-infer_precision"]) == ("2", "f32")

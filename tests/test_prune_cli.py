@@ -89,3 +89,70 @@ def test_latency_percentage_is_checked_in_one_line(tmp_path, capsys):
                  str(tmp_path / "out"), "--target-latency-ms", "120%"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "(0, 100)%" in err
+
+
+# -- replaying a plan's cuts elsewhere (prune --replay) ----------------------------------------
+@pytest.fixture(scope="module")
+def planned_tiny(tmp_path_factory, quant_data) -> Path:
+    """A plan without recovery (--steps 0), two rounds: the kind of run whose cuts replay."""
+    out = tmp_path_factory.mktemp("plan") / "tiny_plan"
+    code = main(["prune", "--checkpoint", str(TRAINED_TINY), "--data", str(quant_data), "--out", str(out),
+                 "--target-macs", "0.6", "--rounds", "2", "--steps", "0", "--eval-frames", "10",
+                 "--timing-steps", "5", "--threads", "1", "--no-int8", "--no-progress"])
+    assert code == 0
+    return out
+
+
+def test_replay_rebuilds_the_planned_model_bit_for_bit(planned_tiny, tmp_path, capsys):
+    import torch
+
+    from e3dpsm.checkpoint import load_checkpoint, read_checkpoint
+
+    report = json.loads((planned_tiny / "report.json").read_text())
+    assert report["best"] == 2, "the plan should cut in two rounds (each round cuts the previous one's model)"
+    out = tmp_path / "replayed"
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", str(planned_tiny / "report.json"),
+                 "--out", str(out)]) == 0
+    assert "replayed 2 round(s)" in capsys.readouterr().out
+    planned, _ = load_checkpoint(planned_tiny / "checkpoint.pt")
+    replayed, _ = load_checkpoint(out / "checkpoint.pt")
+    assert replayed.config == planned.config
+    planned_state, replayed_state = planned.state_dict(), replayed.state_dict()
+    assert planned_state.keys() == replayed_state.keys()
+    for name, value in planned_state.items():
+        assert torch.equal(value, replayed_state[name]), name
+    payload = read_checkpoint(out / "checkpoint.pt")
+    assert payload["step"] == 0 and payload["prune"]["cuts"] == [r["cuts"] for r in report["rounds"][1:3]]
+
+
+def test_replay_refuses_a_recovered_run_and_a_foreign_teacher(pruned_tiny, planned_tiny, tmp_path, capsys):
+    out = tmp_path / "never"
+    # pruned_tiny recovered (--steps 2) between its cuts: its keep lists read changed weights.
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", str(pruned_tiny / "report.json"),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--steps 2" in err and "--steps 0" in err
+    # A report whose MACs the replayed cuts do not reproduce was made from another teacher.
+    report = json.loads((planned_tiny / "report.json").read_text())
+    report["rounds"][report["best"]]["macs"] += 1
+    forged = tmp_path / "report.json"
+    forged.write_text(json.dumps(report))
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", str(forged), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "was not made by pruning this checkpoint" in err
+    report["rounds"][1]["cuts"] = {"stages.9.block1": 4}
+    forged.write_text(json.dumps(report))
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", str(forged), "--out", str(out)]) == 2
+    assert "round 1's cuts do not fit this model" in capsys.readouterr().err
+    forged.write_text("{not json")
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", str(forged), "--out", str(out)]) == 2
+    assert "cannot read the prune report" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_prune_without_data_or_with_a_target_on_replay_is_one_line(tmp_path, capsys):
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--out", str(tmp_path / "o"), "--target-macs", "0.5"]) == 2
+    assert "needs --data" in capsys.readouterr().err
+    assert main(["prune", "--checkpoint", str(TRAINED_TINY), "--replay", "r.json", "--target-macs", "0.5",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "takes no --target-macs" in capsys.readouterr().err

@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "exported here with --variant / --checkpoint")
     p.add_argument("--outside-seconds", type=float, default=5.0,
                    help="seconds of each CPU target's outside timer (benchmark_app ...; 0: none; default 5)")
+    p.add_argument("--outside-turns", type=positive_int, default=3,
+                   help="turns the outside timer and the target's own runner take (its seconds split among "
+                        "them), so both are timed over the same minutes (default 3)")
     p.add_argument("--edge-models", nargs="+", default=[], metavar="ARTIFACT",
                    help="converted artifacts (.pte, .tflite from e3dpsm convert) for the executorch-* / litert-* "
                         "targets; each goes to the targets of its runtime and precision")
@@ -76,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     request = ProfileRequest(
         targets=tuple(targets), graphs=graphs, out=Path(args.out), force=args.force, data=args.data,
         settings=ProfileSettings(steps=args.steps, warmup=args.warmup, ort_profile_steps=args.profile_steps,
-                                 outside_seconds=args.outside_seconds),
+                                 outside_seconds=args.outside_seconds, outside_turns=args.outside_turns),
         source=args.model or args.checkpoint or f"variant {args.variant}", checkpoint=args.checkpoint,
         config={k: v for k, v in vars(args).items() if k != "func"},
         progress=not args.no_progress and sys.stderr.isatty(),

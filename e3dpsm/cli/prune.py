@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "unpruned one. Writes DIR/checkpoint.pt (rebuilds alone), DIR/report.md, DIR/report.json, "
         "DIR/front.png and the round graphs DIR/graphs/round<k>.onnx.")
     p.add_argument("--checkpoint", required=True, help="trained checkpoint to prune (it is also the teacher)")
-    p.add_argument("--data", required=True, help="prepared folder for the distillation (labels optional)")
+    p.add_argument("--data", help="prepared folder for the distillation (labels optional); required but with --replay")
     p.add_argument("--out", required=True, help="output folder (must not exist unless --force)")
     p.add_argument("--target-macs", type=float, default=None,
                    help="fraction of the unpruned MACs to reach, in (0, 1), e.g. 0.5")
@@ -35,6 +35,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="fp32 step (ms, batch 1, --threads) to reach, met as measured on --target-runtime; "
                    "'60%%' means 60%% of the unpruned step measured at the start")
     p.add_argument("--target-runtime", choices=("onnxruntime", "openvino"), default="onnxruntime")
+    p.add_argument("--replay", metavar="REPORT",
+                   help="instead of pruning: rebuild the model of an earlier `prune --steps 0` run's report.json "
+                        "from --checkpoint (the same cuts pick the same channels) and write DIR/checkpoint.pt "
+                        "unrecovered, e.g. to distil it on another machine")
     p.add_argument("--steps", type=int, default=300, help="distillation steps per round (default 300; 0: none)")
     p.add_argument("--rounds", type=positive_int, default=3, help="planned rounds (default 3)")
     p.add_argument("--extra-rounds", type=int, default=2,
@@ -61,8 +65,13 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from e3dpsm.compress.prune import PruneConfig
     from e3dpsm.compress.run import run_prune
+    from e3dpsm.errors import ConfigError
     from e3dpsm.utils.io import refuse_existing_output
 
+    if args.replay:
+        return _replay(args)
+    if not args.data:
+        raise ConfigError("prune needs --data (the prepared folder to distil on), unless it replays a report (--replay)")
     config = PruneConfig(
         target_macs=args.target_macs, target_runtime=args.target_runtime,
         target_latency_ms=args.target_latency_ms[1] if args.target_latency_ms and args.target_latency_ms[0] == "ms" else None,
@@ -81,3 +90,15 @@ def run(args: argparse.Namespace) -> int:
           f"(unpruned {rows[0]['ort_fp32']:.2f} ms), held-out MPJPE {best['mpjpe_mm']:.2f} mm "
           f"({best['mpjpe_change_pct']:+.2f}%); target {'met' if result['met'] else 'NOT met'} -> {args.out}")
     return 0 if result["met"] else 1
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from e3dpsm.compress.replay import replay_prune_report
+    from e3dpsm.errors import ConfigError
+
+    if args.target_macs is not None or args.target_latency_ms is not None:
+        raise ConfigError("--replay rebuilds the report's model; it takes no --target-macs / --target-latency-ms")
+    result = replay_prune_report(args.checkpoint, args.replay, args.out, force=args.force)
+    print(f"replayed {result['rounds']} round(s) of {args.replay}: {result['params']:,} parameters, "
+          f"{result['macs_fraction']:.3f} of the MACs, unrecovered -> {result['checkpoint']}")
+    return 0
