@@ -128,3 +128,71 @@ def test_the_verdict_dict_by_hand():
         "headline": verdict.headline(), "within_budget": True, "check_runtime": "openvino", "size_ratio": 0.29,
         "timings": timings, "fastest": {"runtime": "onnxruntime", "speedup_vs_fp32": 1.1}, "surely_faster": True}
     assert verdict.headline().startswith("Verdict: ship it: int8 within budget")
+
+
+def test_other_modes_name_what_a_slower_graph_still_serves():
+    slow = {"onnxruntime": _timing(0.9, 0.8, 1.0), "openvino": _timing(0.95, 0.85, 1.02)}
+    dynamic = Verdict("int8-dynamic", _check(3.0), "onnxruntime", 0.3, slow, AVX2).headline()
+    assert "(ONNX Runtime 0.90x, OpenVINO 0.95x fp32's speed)" in dynamic  # every timed runtime, in order
+    assert "ship it for size and integer-only accelerators." in dynamic
+    other = Verdict("int4", _check(3.0), "onnxruntime", 0.2, slow, AVX2).headline()
+    assert "ship it for size and accelerators. Faster here" in other  # a mode without a named accelerator
+
+
+def test_a_runtime_without_a_display_name_is_named_as_it_is():
+    verdict = Verdict("int8", _check(3.0), "onnxruntime", 0.29, {"tensorrt": _timing(1.5, 1.3, 1.7)}, VNNI)
+    assert verdict.headline().endswith("1.50x fp32's speed on tensorrt on this vnni host.")
+
+
+def test_defaults_and_immutability():
+    import dataclasses
+
+    import pytest
+
+    bare = Verdict("int8", _check(3.0), "onnxruntime", 0.3)  # no timings, no ISA: still one line
+    assert bare.fastest is None and bare.headline().startswith("Verdict: no int8 graph beats fp32 on this unknown host")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        bare.mode = "fp16"
+
+
+def test_without_a_core_count_one_core_is_assumed(monkeypatch):
+    """os.cpu_count() may be None: a load above 1 then counts as oversubscribed."""
+    monkeypatch.setattr("os.cpu_count", lambda: None)
+    timed = _timing(1.6, 1.1, 1.9)
+    verdict = Verdict("int8", _check(3.0), "onnxruntime", 0.3,
+                      {"onnxruntime": {**timed, "timer": {**timed["timer"], "load_average": 1.5}}}, VNNI)
+    assert verdict.loaded("onnxruntime") and not verdict.surely_faster("onnxruntime")
+
+
+def test_time_beside_fp32_times_each_runtime_and_records_its_timer(monkeypatch):
+    """Fake steppers: which graph opens on which runtime in which order, and each runtime's
+    timer record (runtime, threads, the load average rounded to 0.01, the timed steps)."""
+    import numpy as np
+
+    import e3dpsm.quantize.holdout as holdout
+    from e3dpsm.quantize.verdict import time_beside_fp32
+
+    opened = []
+
+    class FakeStepper:
+        def __init__(self, path: str, runtime: str, threads: int | None) -> None:
+            opened.append((path, runtime, threads))
+            self.path = path
+
+        def init_state(self, batch: int) -> dict:
+            return {"s": np.zeros((batch, 1), np.float32)}
+
+        def step(self, lnes, state, window_ms):
+            return {}, state
+
+    monkeypatch.setattr(holdout, "open_stepper", FakeStepper)
+    monkeypatch.setattr("os.getloadavg", lambda: (1.234, 5.0, 6.0))
+    frames = np.zeros((4, 2, 8, 8), np.float32)
+    timings = time_beside_fp32("q.onnx", "fp32.onnx", frames, 20.0, ("onnxruntime", "openvino"), 2, steps=10)
+    assert list(timings) == ["onnxruntime", "openvino"]
+    assert opened == [("q.onnx", "onnxruntime", 2), ("fp32.onnx", "onnxruntime", 2),
+                      ("q.onnx", "openvino", 2), ("fp32.onnx", "openvino", 2)]
+    for runtime, timed in timings.items():
+        assert timed["timer"]["runtime"] == runtime and timed["timer"]["threads"] == 2
+        assert timed["timer"]["load_average"] == 1.23 and timed["timer"]["steps"] == 10
+        assert timed["speedup_vs_fp32"] > 0 and set(timed["interval"]) >= {"low", "high"}

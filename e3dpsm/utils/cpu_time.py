@@ -40,10 +40,6 @@ class CpuTimes:
             raise ValueError(f"not a /proc/stat aggregate cpu line: {' '.join(first[:3])!r}")
         return cls(*(int(value) for value in first[1:1 + len(_FIELDS)]))
 
-    @property
-    def total(self) -> int:
-        return sum(getattr(self, name) for name in _FIELDS)
-
 
 def read_cpu_times(path: Path = PROC_STAT) -> CpuTimes | None:
     """The machine's CPU times now; None where /proc/stat is absent (macOS, Windows) or unreadable."""
