@@ -22,13 +22,12 @@ import numpy as np
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.profiles.inputs import Frames
 from e3dpsm.profiles.latency import OrtRunner, openvino_target_config
-from e3dpsm.profiles.outside import (BENCHMARK_APP, ORT_PROFILER, OutsideFigure, perf_test_path, run_benchmark_app,
-                                     run_perf_test)
+from e3dpsm.profiles.outside import (BENCHMARK_APP, DEFAULT_TURNS, ORT_PROFILER, OutsideFigure, perf_test_path,
+                                     run_benchmark_app, run_perf_test)
 from e3dpsm.profiles.step_timing import Clock, PhasedRunner, phased_step
 from e3dpsm.profiles.targets import Target
 
 CPU_PROVIDERS = ("CPUExecutionProvider", "CPU", "cpu")
-DEFAULT_TURNS = 3
 OUTSIDE_RUNTIMES = ("onnxruntime", "openvino", "openvino-stateful")
 
 
@@ -171,7 +170,8 @@ NO_AGREEMENT = {"beside_ms": None, "beside_burst_ms": None, "agreement": None, "
 
 
 def measure_agreement(runner: Any, target: Target, graph: Path | None, frames: Frames, seconds: float,
-                      profiler_steps: int, steps: int, turns: int = DEFAULT_TURNS) -> dict[str, Any]:
+                      profiler_steps: int, steps: int, turns: int = DEFAULT_TURNS,
+                      clock: Clock = time.perf_counter) -> dict[str, Any]:
     """The target's entry fields: `outside` (the tool's figure), `beside_ms` (the runner's
     runtime-call median timed in turns with it; `beside_burst_ms`: each burst's median),
     `agreement` (best_turn_agreement) and `agreement_median` (beside_ms / the tool's median)."""
@@ -182,7 +182,7 @@ def measure_agreement(runner: Any, target: Target, graph: Path | None, frames: F
         if not isinstance(runner, PhasedRunner):
             reason = "the runner has no separate runtime call"
             return {"outside": OutsideFigure(_tool_name(timer), reason=reason).to_dict(), **NO_AGREEMENT}
-        figure, own = time_in_turns(runner, timer, frames.lnes, turns, steps)
+        figure, own = time_in_turns(runner, timer, frames.lnes, turns, steps, clock)
     beside = 1e3 * float(np.median(own))
     bursts = [1e3 * float(np.median(burst)) for burst in own]
     return {"outside": figure.to_dict(), "beside_ms": beside, "beside_burst_ms": bursts,

@@ -32,6 +32,7 @@ ORT_PROFILER = "onnxruntime profiler (model_run)"
 # Properties benchmark_app sets from its own flags; every other compile property of the
 # target goes to it through -load_config.
 _FLAG_PROPERTIES = ("PERFORMANCE_HINT", "NUM_STREAMS", "INFERENCE_NUM_THREADS", "INFERENCE_PRECISION_HINT")
+DEFAULT_TURNS = 3  # turns an outside timer and the target's runner take (profiles.agreement)
 _START_UP_SECONDS = 300  # reading and compiling `paper` on a loaded 2-core host, with margin
 
 

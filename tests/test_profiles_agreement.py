@@ -354,3 +354,152 @@ def test_benchmark_app_runs_on_the_tiny_static_graph(tiny_static_graph: Path, tm
     assert report["configuration_setup"]["number of CPU streams"] == "1" and report["configuration_setup"]["inference_only"]
     assert (report["cmd_options"]["-nthreads"], report["cmd_options"]["-infer_precision"]) == ("2", "f32")
     assert "-data_shape" not in report["cmd_options"]  # a static graph runs as it is
+
+
+# -- which outside timer each target gets, and with what (the tools themselves faked) ----------
+class _Recorded:
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+
+    def benchmark_app(self, model, config, seconds, work, inputs, dynamic):
+        self.calls.append(("benchmark_app", model, dict(config), seconds, work.name, dict(inputs), dynamic))
+        return OutsideFigure("benchmark_app", 10.0 + len(self.calls), 7, "cmd")
+
+    def perf_test(self, graph, threads, seconds, dynamic, work):
+        self.calls.append(("perf_test", graph, threads, seconds, dynamic, work.name))
+        return OutsideFigure("onnxruntime_perf_test", 20.0, 5, "cmd")
+
+
+@pytest.fixture()
+def recorded(monkeypatch):
+    import e3dpsm.profiles.agreement as agreement
+
+    calls = _Recorded()
+    monkeypatch.setattr(agreement, "run_benchmark_app", calls.benchmark_app)
+    monkeypatch.setattr(agreement, "run_perf_test", calls.perf_test)
+    monkeypatch.setattr(agreement, "_openvino_ir", lambda graph, stateful, work: Path(f"ir-stateful-{stateful}.xml"))
+    return calls
+
+
+@pytest.mark.parametrize("name, stateful", [("openvino-cpu-fp32", False), ("openvino-cpu-stateful-fp32-static", True)])
+def test_benchmark_app_gets_the_targets_graph_inputs_and_turn_length(recorded, tiny_step_graph, tiny_static_graph,
+                                                                     name, stateful):
+    """8 s in 4 turns: 2 s a turn; the explicit-state graph is fed its initial states and kept
+    dynamic (-data_shape), the stateful IR (static, batch 1) only the frame and the window."""
+    from e3dpsm.profiles.agreement import outside_timer
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.latency import openvino_target_config
+    from e3dpsm.profiles.targets import load_targets
+
+    target = load_targets()[name]
+    graph = tiny_static_graph if stateful else tiny_step_graph
+    frames = moving_edge_frames(2, 192, 256, 20.0)
+    timer = outside_timer(target, graph, frames, 8.0, Path("work"), profiler_steps=0, turns=4)
+    assert timer.turn(0) is None and timer.turn(1) is None
+    assert [c[4] for c in recorded.calls] == ["turn0", "turn1"]
+    _, model, config, seconds, _, inputs, dynamic = recorded.calls[0]
+    assert model == Path(f"ir-stateful-{stateful}.xml") and config == openvino_target_config(target)
+    assert seconds == 2.0 and dynamic is (not stateful)
+    assert sorted(inputs) == sorted(["lnes", "window_ms"] + ([] if stateful else [
+        "s5_stage1_re_in", "s5_stage1_im_in", "s5_stage4_re_in", "s5_stage4_im_in", "fusion_pose_in",
+        "fusion_cov_in", "fusion_initialised_in"]))
+    np.testing.assert_array_equal(inputs["lnes"], frames.lnes[:1])
+    figure = timer.figure()
+    assert (figure.tool, figure.p50_ms, figure.runs, figure.round_p50_ms) == ("benchmark_app", 11.5, 14, (11.0, 12.0))
+
+
+def test_perf_test_is_onnx_runtimes_timer_where_it_is_installed(recorded, monkeypatch, tiny_step_graph):
+    import e3dpsm.profiles.agreement as agreement
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    monkeypatch.setattr(agreement, "perf_test_path", lambda: "/opt/ort/onnxruntime_perf_test")
+    timer = agreement.outside_timer(load_targets()["ort-cpu-fp32"], tiny_step_graph,
+                                    moving_edge_frames(1, 192, 256, 20.0), 6.0, Path("w"), profiler_steps=0, turns=3)
+    assert timer.turn(0) is None
+    assert recorded.calls == [("perf_test", tiny_step_graph, 2, 2.0, True, "turn0")]
+    assert timer.figure().tool == "onnxruntime_perf_test" and timer.figure().p50_ms == 20.0
+
+
+def test_cpu_only_and_runs_without_a_count(tiny_step_graph) -> None:
+    from e3dpsm.profiles.agreement import outside_timer
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    gpu = outside_timer(load_targets()["ort-cuda-fp32"], tiny_step_graph, moving_edge_frames(1, 192, 256, 20.0),
+                        5.0, Path("w"), profiler_steps=30)
+    assert gpu == OutsideFigure("-", reason="outside timers are run for CPU targets only")
+    turns = [OutsideFigure("t", 10.0, None), OutsideFigure("t", 12.0, 4)]
+    assert combine_turns("t", turns).runs == 4  # a turn that counted no runs adds none
+    assert agreement_ratio(1.0, OutsideFigure("x", p50_ms=0.5)) == pytest.approx(2.0)  # sub-millisecond tools count
+
+
+def test_agreement_in_milliseconds_on_an_injected_clock(monkeypatch) -> None:
+    """measure_agreement's figures in ms from the runner's seconds: bursts 6.5, 9.5, 20.5 ms."""
+    import e3dpsm.profiles.agreement as agreement
+    from e3dpsm.profiles.inputs import Frames
+    from e3dpsm.profiles.targets import load_targets
+
+    clock, log = FakeClock(), []
+    tool = ScriptedTool(log, [8.0, 12.0])
+    monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: tool)
+    runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
+    frames = Frames(np.zeros((3, 1, 1, 1), np.float32), 20.0, "test")
+    result = measure_agreement(runner, load_targets()["openvino-cpu-fp32"], Path("g.onnx"), frames, 4.0, 0, 2,
+                               turns=2, clock=clock)
+    assert result["beside_ms"] == pytest.approx(9.5) and result["beside_burst_ms"] == pytest.approx([6.5, 9.5, 20.5])
+    assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["agreement_median"] == pytest.approx(9.5 / 10.0)
+    assert tuple(result["outside"]["round_p50_ms"]) == (8.0, 12.0)
+
+
+def test_a_runner_without_phases_gets_the_tools_name_and_a_reason(monkeypatch) -> None:
+    import e3dpsm.profiles.agreement as agreement
+    from e3dpsm.profiles.inputs import Frames
+    from e3dpsm.profiles.targets import load_targets
+
+    class Tool:
+        tool = "benchmark_app"
+
+    monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: Tool())
+    frames = Frames(np.zeros((1, 1, 1, 1), np.float32), 20.0, "test")
+    result = measure_agreement(StepOnlyRunner(FakeClock(), 0.001), load_targets()["openvino-cpu-fp32"],
+                               Path("g.onnx"), frames, 4.0, 0, 2)
+    assert result == {"outside": OutsideFigure("benchmark_app", reason="the runner has no separate runtime call")
+                      .to_dict(), "beside_ms": None, "beside_burst_ms": None, "agreement": None,
+                      "agreement_median": None}
+
+
+def test_the_profiled_session_steps_its_frames_in_order(tiny_static_graph, tmp_path) -> None:
+    """3 profiled steps in 3 turns of 1 (profile steps equal to the turns still profile); a
+    session with no turn run says so; its threads stop spinning after each run, as the
+    side-by-side runners' do."""
+    from e3dpsm.profiles.agreement import ProfiledOrtRuns, outside_timer
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    target = load_targets()["ort-cpu-fp32-static"]
+    frames = moving_edge_frames(2, 192, 256, 20.0)
+    timer = outside_timer(target, tiny_static_graph, frames, 1.0, tmp_path / "a" / "b", profiler_steps=3, turns=3)
+    seen = []
+    original = timer.runner.step
+    timer.runner.step = lambda lnes: (seen.append(float(lnes.sum())), original(lnes))
+    for k in range(3):
+        assert timer.turn(k) is None
+    assert seen == [float(frames.lnes[k % 2].sum()) for k in range(3)]
+    assert timer.figure().runs == 3
+    options = timer.runner.session.session.get_session_options()
+    assert options.get_session_config_entry("session.force_spinning_stop") == "1"
+    idle = ProfiledOrtRuns(tiny_static_graph, target, frames, 2, tmp_path / "idle")
+    assert idle.figure() == OutsideFigure("onnxruntime profiler (model_run)", reason="the profiled session recorded no run")
+
+
+def test_the_documented_turns_and_warm_up_are_the_code_s() -> None:
+    """docs/validate-and-profile.md states both numbers; the CLI's default is the constant."""
+    from e3dpsm.cli import build_parser
+    from e3dpsm.profiles.agreement import BURST_WARMUP, DEFAULT_TURNS
+
+    text = " ".join((Path(__file__).parents[1] / "docs" / "validate-and-profile.md").read_text().split())
+    assert f"`--outside-turns` turns (default {DEFAULT_TURNS})" in text
+    assert f"a burst of steps (after {BURST_WARMUP} untimed ones)" in text
+    args = build_parser().parse_args(["profile", "--model", "g.onnx", "--out", "o"])
+    assert args.outside_turns == DEFAULT_TURNS == 3 and BURST_WARMUP == 3

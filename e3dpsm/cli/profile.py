@@ -8,6 +8,7 @@ from pathlib import Path
 
 from e3dpsm.cli._common import add_force, add_threads, positive_int
 from e3dpsm.errors import ConfigError
+from e3dpsm.profiles.outside import DEFAULT_TURNS
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -42,9 +43,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "exported here with --variant / --checkpoint")
     p.add_argument("--outside-seconds", type=float, default=5.0,
                    help="seconds of each CPU target's outside timer (benchmark_app ...; 0: none; default 5)")
-    p.add_argument("--outside-turns", type=positive_int, default=3,
+    p.add_argument("--outside-turns", type=positive_int, default=DEFAULT_TURNS,
                    help="turns the outside timer and the target's own runner take (its seconds split among "
-                        "them), so both are timed over the same minutes (default 3)")
+                        f"them), so both are timed over the same minutes (default {DEFAULT_TURNS})")
     p.add_argument("--edge-models", nargs="+", default=[], metavar="ARTIFACT",
                    help="converted artifacts (.pte, .tflite from e3dpsm convert) for the executorch-* / litert-* "
                         "targets; each goes to the targets of its runtime and precision")
