@@ -478,14 +478,14 @@ def test_the_profiled_session_steps_its_frames_in_order(tiny_static_graph, tmp_p
     from e3dpsm.profiles.targets import load_targets
 
     target = load_targets()["ort-cpu-fp32-static"]
-    frames = moving_edge_frames(2, 192, 256, 20.0)
+    frames = moving_edge_frames(3, 192, 256, 20.0)
     timer = outside_timer(target, tiny_static_graph, frames, 1.0, tmp_path / "a" / "b", profiler_steps=3, turns=3)
     seen = []
     original = timer.runner.step
     timer.runner.step = lambda lnes: (seen.append(float(lnes.sum())), original(lnes))
     for k in range(3):
         assert timer.turn(k) is None
-    assert seen == [float(frames.lnes[k % 2].sum()) for k in range(3)]
+    assert seen == [float(frames.lnes[k].sum()) for k in range(3)] and len(set(seen)) == 3
     assert timer.figure().runs == 3
     options = timer.runner.session.session.get_session_options()
     assert options.get_session_config_entry("session.force_spinning_stop") == "1"
@@ -503,3 +503,20 @@ def test_the_documented_turns_and_warm_up_are_the_code_s() -> None:
     assert f"a burst of steps (after {BURST_WARMUP} untimed ones)" in text
     args = build_parser().parse_args(["profile", "--model", "g.onnx", "--out", "o"])
     assert args.outside_turns == DEFAULT_TURNS == 3 and BURST_WARMUP == 3
+
+
+def test_the_stateful_ir_benchmark_app_reads_is_batch_one(tiny_static_graph, tmp_path) -> None:
+    import openvino as ov
+
+    from e3dpsm.profiles.agreement import _openvino_ir, outside_timer
+    from e3dpsm.profiles.inputs import moving_edge_frames
+    from e3dpsm.profiles.targets import load_targets
+
+    xml = _openvino_ir(tiny_static_graph, stateful=True, work=tmp_path / "nested" / "work")
+    model = ov.Core().read_model(str(xml))
+    assert [str(port.get_partial_shape()) for port in model.inputs if "lnes" in port.get_names()] == ["[1,2,192,256]"]
+    assert model.get_sinks(), "stateful: the states are variables inside the IR"
+    # PyTorch eager has no outside timer, whether or not a graph is at hand.
+    eager = outside_timer(load_targets()["torch-eager-cpu"], tiny_static_graph, moving_edge_frames(1, 192, 256, 20.0),
+                          1.0, tmp_path, profiler_steps=3)
+    assert eager == OutsideFigure("-", reason="no outside timer for torch")
