@@ -22,8 +22,8 @@ import numpy as np
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.profiles.inputs import Frames
 from e3dpsm.profiles.latency import OrtRunner, openvino_target_config
-from e3dpsm.profiles.outside import (BENCHMARK_APP, DEFAULT_TURNS, ORT_PROFILER, OutsideFigure, perf_test_path,
-                                     run_benchmark_app, run_perf_test)
+from e3dpsm.profiles.outside import (BENCHMARK_APP, DEFAULT_TURNS, ORT_PROFILER, PERF_TEST, OutsideFigure,
+                                     perf_test_path, run_benchmark_app, run_perf_test)
 from e3dpsm.profiles.step_timing import Clock, PhasedRunner, phased_step
 from e3dpsm.profiles.targets import Target
 
@@ -34,6 +34,8 @@ OUTSIDE_RUNTIMES = ("onnxruntime", "openvino", "openvino-stateful")
 class OutsideTimer(Protocol):
     """An outside tool run in turns: `turn(k)` runs it once (None, or why it failed);
     `figure()` combines the turns."""
+
+    tool: str
 
     def turn(self, index: int) -> str | None: ...
     def figure(self) -> OutsideFigure: ...
@@ -74,18 +76,18 @@ class ProfiledOrtRuns:
     steps a turn; the figure is the median `model_run` event over all turns. Its per-node
     kernel sum is noted beside it (the run's time less most of the profiler's own cost)."""
 
+    tool = ORT_PROFILER
+
     def __init__(self, graph: Path, target: Target, frames: Frames, steps: int, work: Path) -> None:
         work.mkdir(parents=True, exist_ok=True)
         self.runner = OrtRunner(str(graph), target, frames.window_ms, profile_prefix=str(work / "ort"), side_by_side=True)
         self.runner.reset()
         self.frames, self.steps, self.position = frames.lnes, steps, 0
-        self.turn_steps: list[int] = []
 
     def turn(self, index: int) -> str | None:
         for _ in range(self.steps):
             self.runner.step(self.frames[self.position % len(self.frames)][None])
             self.position += 1
-        self.turn_steps.append(self.steps)
         return None
 
     def summary(self, node_groups: Mapping[str, str] | None = None) -> dict[str, Any]:
@@ -116,7 +118,7 @@ def outside_timer(target: Target, graph: Path | None, frames: Frames, seconds: f
     per_turn = seconds / turns
     if target.runtime == "onnxruntime":
         if perf_test_path() is not None:
-            return _ToolRuns("onnxruntime_perf_test",
+            return _ToolRuns(PERF_TEST,
                              lambda folder: run_perf_test(graph, target.threads, per_turn, dynamic, folder), work)
         if profiler_steps < turns:
             return OutsideFigure(ORT_PROFILER, reason="no profiled run (--profile-steps 0)")
@@ -181,7 +183,7 @@ def measure_agreement(runner: Any, target: Target, graph: Path | None, frames: F
             return {"outside": timer.to_dict(), **NO_AGREEMENT}
         if not isinstance(runner, PhasedRunner):
             reason = "the runner has no separate runtime call"
-            return {"outside": OutsideFigure(_tool_name(timer), reason=reason).to_dict(), **NO_AGREEMENT}
+            return {"outside": OutsideFigure(timer.tool, reason=reason).to_dict(), **NO_AGREEMENT}
         figure, own = time_in_turns(runner, timer, frames.lnes, turns, steps, clock)
     beside = 1e3 * float(np.median(own))
     bursts = [1e3 * float(np.median(burst)) for burst in own]
@@ -204,10 +206,6 @@ def best_turn_agreement(burst_ms: list[float], outside: OutsideFigure) -> float 
     if not burst_ms or best is None:
         return None
     return agreement_ratio(min(burst_ms), replace(outside, p50_ms=best))
-
-
-def _tool_name(timer: OutsideTimer) -> str:
-    return getattr(timer, "tool", ORT_PROFILER)
 
 
 def _metadata(graph: Path) -> GraphMetadata:

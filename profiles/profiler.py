@@ -18,14 +18,14 @@ from e3dpsm.profiles.flops import CATEGORIES, relative_difference
 from e3dpsm.profiles.flops_onnx import activation_bytes, count_onnx, initializer_values, load_graph, static_shapes
 from e3dpsm.profiles.graph_groups import assign_groups
 from e3dpsm.profiles.inputs import Frames
-from e3dpsm.profiles.agreement import DEFAULT_TURNS, ProfiledOrtRuns, measure_agreement
+from e3dpsm.profiles.agreement import DEFAULT_TURNS, NO_AGREEMENT, ProfiledOrtRuns, measure_agreement
 from e3dpsm.profiles.latency import (ArtifactRunner, OpenVinoRunner, OpenVinoStatefulRunner, OrtRunner, TorchRunner,
                                      latency_summary, matmul_peak_gflops)
 from e3dpsm.profiles.memory import RssSampler
-from e3dpsm.utils.cpu_time import CpuShareMeter
 from e3dpsm.profiles.step_timing import StepTimes, time_side_by_side, turn_paired_speedup
 from e3dpsm.profiles.targets import EDGE_RUNTIMES, Target, availability
 from e3dpsm.profiles.verdict import fastest_path
+from e3dpsm.utils.cpu_time import CpuShareMeter
 
 BASELINES = ("torch-eager-cpu", "ort-cpu-fp32")
 MEMORY_STEPS = 5
@@ -107,7 +107,7 @@ def _target_entry(target: Target, graphs: Mapping[str, Path | None], model: Any,
     return {**target.to_dict(), "available": status.available, "reason": status.reason, "params": params,
             "macs": primary["macs"], "flops": primary["flops"], "latency_ms": None, "runtime_ms": None,
             "overhead_ms": None, "hz": None, "peak_rss_mb": None, "model_bytes": None, "outside": None,
-            "beside_ms": None, "beside_burst_ms": None, "agreement": None, "agreement_median": None}
+            **NO_AGREEMENT}
 
 
 def _load_runners(targets: Sequence[Target], entries: Sequence[dict[str, Any]], graphs: Mapping[str, Path | None],
@@ -201,9 +201,10 @@ def profile_targets(
     ]
     body = {
         "counting": {**counting, "categories": list(CATEGORIES)},
-        "verdict": fastest_path(entries), "targets": entries, "ratios": _ratios(entries, times, settings.chunk), "machine_peak": peak,
-        "process_peak_rss_mb": overall.peak_mb,
-        "cpu_time": {"timed_steps": timed_cpu.shares, "outside_timers": outside_cpu.shares}, "ort_profiles": ort_profiles, "devices": rooflines,
+        "verdict": fastest_path(entries), "targets": entries, "ratios": _ratios(entries, times, settings.chunk),
+        "machine_peak": peak, "process_peak_rss_mb": overall.peak_mb,
+        "cpu_time": {"timed_steps": timed_cpu.shares, "outside_timers": outside_cpu.shares},
+        "ort_profiles": ort_profiles, "devices": rooflines,
         "bytes_per_step_inputs": {"weight_values": params, "activation_values": act_values,
                                   "state_values": state_values},
     }

@@ -118,11 +118,8 @@ def speedup_interval(candidate_s: np.ndarray, reference_s: np.ndarray, chunk: in
 
     Why an interval: on a shared 2-core AVX-512 VNNI host (2026-12-02) eight 30-step timings of
     one INT8 graph against fp32 gave 0.56-1.25x, eight 100-step ones 0.82-1.03x."""
-    candidate_s, reference_s = np.asarray(candidate_s, float), np.asarray(reference_s, float)
-    if candidate_s.shape != reference_s.shape or candidate_s.size == 0 or chunk < 1:
-        raise ValueError("speedup_interval needs two equally long, non-empty timings and chunk >= 1")
-    speedup = float(np.median(reference_s) / np.median(candidate_s))
-    rounds = [(candidate_s[i:i + chunk], reference_s[i:i + chunk]) for i in range(0, candidate_s.size, chunk)]
+    rounds = _paired_rounds(candidate_s, reference_s, chunk, "speedup_interval")
+    speedup = float(np.median(np.asarray(reference_s, float)) / np.median(np.asarray(candidate_s, float)))
     rng = np.random.default_rng(seed)
     draws = np.empty(resamples)
     for k in range(resamples):
@@ -141,11 +138,17 @@ def turn_paired_speedup(candidate_s: np.ndarray, reference_s: np.ndarray, chunk:
     each round's pair. Why not the ratio of whole-run medians: on the 2-core VNNI host
     (2026-12-04) one graph's median jumped from 28 to 39 ms for tens of seconds at a time, and
     the ratio of two runs' medians moved by up to 1.3x with which of them the jumps hit."""
+    rounds = _paired_rounds(candidate_s, reference_s, chunk, "turn_paired_speedup")
+    return float(np.median([np.median(reference) / np.median(candidate) for candidate, reference in rounds]))
+
+
+def _paired_rounds(candidate_s: np.ndarray, reference_s: np.ndarray, chunk: int,
+                   caller: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(candidate, reference) seconds of each side-by-side round of `chunk` steps."""
     candidate_s, reference_s = np.asarray(candidate_s, float), np.asarray(reference_s, float)
     if candidate_s.shape != reference_s.shape or candidate_s.size == 0 or chunk < 1:
-        raise ValueError("turn_paired_speedup needs two equally long, non-empty timings and chunk >= 1")
-    return float(np.median([np.median(reference_s[i:i + chunk]) / np.median(candidate_s[i:i + chunk])
-                            for i in range(0, candidate_s.size, chunk)]))
+        raise ValueError(f"{caller} needs two equally long, non-empty timings and chunk >= 1")
+    return [(candidate_s[i:i + chunk], reference_s[i:i + chunk]) for i in range(0, candidate_s.size, chunk)]
 
 
 def time_beside(candidate: Any, reference: Any, frames: np.ndarray, steps: int, *, warmup: int = 5,

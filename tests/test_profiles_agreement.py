@@ -220,6 +220,8 @@ class ScriptedTool:
     """An outside tool whose turns are logged beside the runner's steps; `fail_at`: the turn
     that fails."""
 
+    tool = "tool"
+
     def __init__(self, log: list, medians: list[float], fail_at: int | None = None) -> None:
         self.log, self.medians, self.fail_at, self.turns = log, medians, fail_at, []
 
