@@ -2,33 +2,40 @@
 the same graph? One script, no ARM hardware.
 
 It sets up an arm64 Debian root (debootstrap + qemu-user-static through binfmt_misc; once,
-idempotent), installs the aarch64 wheels of this host's onnxruntime and numpy and the project
-itself into it, records a golden rollout of the fp32 graph on this host with the host's
-rollouts of the other graphs (`golden record --also`), and runs `golden check` of every graph
-inside the root under emulation. With --trace, each QDQ graph also gets the kernel-parity
-trace (e3dpsm/golden/kernel_report.py): which quantised activations depart, first and on
-their own. With --portable, each QDQ graph also gets its portable form
-(e3dpsm/golden/kernel_cut.py: activation quantisation kept only where every op before it
-computes to the bit on any ISA) and that is checked too.
+idempotent), installs the aarch64 wheels of this host's onnxruntime and numpy (and
+ai-edge-litert for .tflite artifacts) and the project itself into it, records a golden rollout
+of the fp32 graph on this host with the host's rollouts of the other graphs (`golden record
+--also`), and runs `golden check` of every graph inside the root under emulation, once per
+CPU model of --cpus (qemu's `max`, every feature it implements, by default). With --trace,
+each QDQ graph also gets the kernel-parity trace (e3dpsm/golden/kernel_report.py): which
+quantised activations depart, first and on their own. With --portable, each QDQ graph also
+gets its portable form (e3dpsm/golden/kernel_cut.py: activation quantisation kept only where
+every op before it computes to the bit on any ISA) and that is checked too.
 
     sudo apt-get install -y qemu-user-static binfmt-support debootstrap   # once, Debian/Ubuntu
-    python benchmarks/arm_emulation.py --graphs step.onnx step_int8.onnx --data PREP --steps 60 \
-        --trace --portable                 # -> benchmarks/results/arm_emulation.{json,md}
+    python benchmarks/arm_emulation.py --graphs step.onnx step_int8.onnx lt/step.tflite lt8/step.tflite \
+        --data PREP --steps 60 [--cpus max cortex-a72 neoverse-n1] [--qemu qemu-aarch64] [--trace --portable]
 
 Needs root (debootstrap, chroot). The host's /proc and /sys are NOT mounted into the root:
 ONNX Runtime's cpuinfo reads them and segfaults under emulation when they are the x86
-host's; without them it warns once and MLAS reads the emulated CPU's features from the
-auxiliary vector (as e3dpsm.utils.isa does). One core: OMP_NUM_THREADS=1, --threads 1.
+host's; the root gets its own one-core /proc/cpuinfo and CPU lists instead (describe_cpu),
+and MLAS and XNNPACK read the emulated CPU's features from the auxiliary vector (as
+e3dpsm.utils.isa does). One core: OMP_NUM_THREADS=1, --threads 1. qemu 7.2 (Debian 12's)
+emulates SME wrongly for XNNPACK's 8-bit kernels: on its `max` CPU an INT8 .tflite lands
+125 mm from the host; pass a newer qemu-aarch64 with --qemu (10.0 from bookworm-backports
+agrees to the bit) or `--cpus max,sme=off`.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import importlib.util
 import json
 import os
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,15 +98,44 @@ def setup_root(root: Path) -> dict:
     return info
 
 
-def install_packages(root: Path) -> None:
-    """The aarch64 wheels of this host's onnxruntime and numpy, and the project from this tree."""
+# The emulated CPU as the root's own /proc and /sys describe it: one core (the checks run one
+# thread) of no named implementer. cpuinfo (in ONNX Runtime and XNNPACK) parses these files;
+# without them it fails, and LiteRT then creates no XNNPACK delegate and runs its builtin
+# kernels instead of the ones a device runs. The ISA features still come from the auxiliary
+# vector qemu hands over (the `max` CPU's), as on a device; a part number of 0 names no core,
+# so XNNPACK picks its generic kernels for those features.
+EMULATED_CPU_FILES = {
+    "sys/devices/system/cpu/possible": "0\n",
+    "sys/devices/system/cpu/present": "0\n",
+    "proc/cpuinfo": ("processor\t: 0\nBogoMIPS\t: 2000.00\nFeatures\t: fp asimd\nCPU implementer\t: 0x00\n"
+                     "CPU architecture: 8\nCPU variant\t: 0x0\nCPU part\t: 0x000\nCPU revision\t: 0\n\n"),
+}
+
+
+def describe_cpu(root: Path) -> None:
+    """Write EMULATED_CPU_FILES into the root (plain files: the host's /proc and /sys are never
+    mounted there, see the module doc)."""
+    for relative, text in EMULATED_CPU_FILES.items():
+        path = root / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def install_packages(root: Path, litert: bool = False) -> None:
+    """The aarch64 wheels of this host's onnxruntime and numpy (and ai-edge-litert for .tflite
+    graphs), and the project from this tree."""
     import numpy
     import onnxruntime
 
     platforms = [a for p in WHEEL_PLATFORMS for a in ("--platform", p)]
     pins = [f"onnxruntime=={onnxruntime.__version__}", f"numpy=={numpy.__version__}", "tqdm"]
+    wanted = [f"onnxruntime-{onnxruntime.__version__}"]
+    if litert:  # the LiteRT runner imports no torch: the interpreter and numpy are all it needs
+        version = importlib.metadata.version("ai-edge-litert")
+        pins.append(f"ai-edge-litert=={version}")
+        wanted.append(f"ai_edge_litert-{version}")
     site = root / SITE
-    if not (site / f"onnxruntime-{onnxruntime.__version__}.dist-info").exists():
+    if not all((site / f"{name}.dist-info").exists() for name in wanted):
         run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", "--target", site, *platforms,
              "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *pins])
     wheels = root / "tmp" / "e3dpsm-wheel"
@@ -110,26 +146,73 @@ def install_packages(root: Path) -> None:
     run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", root / PROJECT, *wheels.glob("*.whl")])
 
 
-def emulated(root: Path, cmd: list[str]) -> str:
-    """Run `cmd` inside the root (chroot through binfmt's qemu), one thread; its stdout."""
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": f"/{PROJECT}:/{SITE}", "OMP_NUM_THREADS": "1", "HOME": "/root"}
-    done = subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()), *cmd],
-                          capture_output=True, text=True)
+@dataclass(frozen=True)
+class EmulatedCPU:
+    """Which CPU qemu emulates, and which qemu. `model` goes to qemu as QEMU_CPU (None: its
+    default, `max`: every feature it implements); `qemu`, a qemu-aarch64 binary inside the root
+    (copied there by --qemu) run instead of the one binfmt_misc registered: qemu 7.2's SME
+    emulation computes XNNPACK's 8-bit SME kernels wrongly (docs/edge.md), qemu 10's does not."""
+
+    model: str | None = None
+    qemu: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.model or "max"
+
+    def command(self, cmd: list[str]) -> list[str]:
+        if not self.qemu:
+            return cmd
+        return [self.qemu, cmd[0] if "/" in cmd[0] else f"/usr/bin/{cmd[0]}", *cmd[1:]]
+
+    def version(self, root: Path) -> str:
+        binary = str(root / self.qemu.lstrip("/")) if self.qemu else "qemu-aarch64-static"
+        out = subprocess.run([binary, "--version"], capture_output=True, text=True).stdout
+        return out.splitlines()[0] if out else "unknown"
+
+
+DEFAULT_CPU = EmulatedCPU()
+QEMU_IN_ROOT = "/opt/qemu-aarch64"
+
+
+def emulated(root: Path, cmd: list[str], cpu: EmulatedCPU = DEFAULT_CPU) -> str:
+    """Run `cmd` inside the root (chroot, through binfmt's qemu or `cpu.qemu`) on `cpu`, one
+    thread; its stdout."""
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": f"/{PROJECT}:/{SITE}", "OMP_NUM_THREADS": "1", "HOME": "/root",
+           **({"QEMU_CPU": cpu.model} if cpu.model else {})}
+    done = subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()),
+                           *cpu.command(cmd)], capture_output=True, text=True)
     quiet = "\n".join(line for line in done.stderr.splitlines() if not any(n in line for n in NOISE))
     if done.returncode:
         fail(f"under emulation, {' '.join(cmd[:4])} ... exited {done.returncode}: {quiet[-2000:]}")
     return done.stdout
 
 
-def emulated_machine(root: Path) -> dict:
+def emulated_machine(root: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> dict:
     """What the emulated CPU says about itself: ISA flags, versions, qemu."""
-    probe = ("import json, platform, numpy, onnxruntime; from e3dpsm.utils.isa import detect_isa; "
+    probe = ("import json, platform, importlib.metadata as m, numpy, onnxruntime; "
+             "from e3dpsm.utils.isa import detect_isa; "
+             "litert = [d.version for d in m.distributions() if d.metadata['Name'] == 'ai-edge-litert']; "
              "print(json.dumps({'machine': platform.machine(), 'python': platform.python_version(), "
-             "'isa': detect_isa().to_dict(), 'numpy': numpy.__version__, 'onnxruntime': onnxruntime.__version__}))")
-    info = json.loads(emulated(root, ["python3", "-c", probe]).strip().splitlines()[-1])
-    qemu = subprocess.run(["qemu-aarch64-static", "--version"], capture_output=True, text=True).stdout
-    info["qemu"] = qemu.splitlines()[0] if qemu else "unknown"
+             "'isa': detect_isa().to_dict(), 'numpy': numpy.__version__, 'onnxruntime': onnxruntime.__version__, "
+             "'ai_edge_litert': litert[0] if litert else None}))")
+    info = json.loads(emulated(root, ["python3", "-c", probe], cpu).strip().splitlines()[-1])
+    info.update(qemu=cpu.version(root), cpu=cpu.name)
     return info
+
+
+def emulated_delegation(root: Path, graphs: list[Path], cpu: EmulatedCPU = DEFAULT_CPU) -> dict[str, int]:
+    """How many XNNPACK partitions LiteRT's interpreter makes of each .tflite inside the root
+    (0: no delegate, LiteRT's builtin kernels run instead, not what a device runs)."""
+    partitions = {}
+    for graph in graphs:
+        if graph.suffix != ".tflite":
+            continue
+        probe = ("from ai_edge_litert.interpreter import Interpreter; "
+                 f"i = Interpreter(model_path={'/' + str(graph.relative_to(root))!r}, num_threads=1); "
+                 "i.allocate_tensors(); print(sum(d['op_name'] == 'DELEGATE' for d in i._get_ops_details()))")
+        partitions[graph.name] = int(emulated(root, ["python3", "-c", probe], cpu).strip().splitlines()[-1])
+    return partitions
 
 
 def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
@@ -141,7 +224,7 @@ def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
 
     made = []
     for graph in graphs:
-        if not quantized_activations(onnx.load(str(graph))):
+        if graph.suffix != ".onnx" or not quantized_activations(onnx.load(str(graph))):
             continue
         path = folder / f"{graph.stem}_portable.onnx"
         counts = write_portable(graph, path)
@@ -173,13 +256,13 @@ def host_golden(fp32: Path, others: list[Path], data: str, steps: int, work: Pat
     return golden
 
 
-def emulated_checks(root: Path, graphs: list[Path], work: Path) -> list[dict]:
-    """`golden check` of every graph inside the root; the verdicts of its summary.json."""
+def emulated_checks(root: Path, graphs: list[Path], work: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> list[dict]:
+    """`golden check` of every graph inside the root on `cpu`; the verdicts of its summary.json."""
     inside = lambda p: "/" + str(p.relative_to(root))  # noqa: E731
-    out = work / "checks"
+    out = work / f"checks-{_slug(cpu.name)}"
     shutil.rmtree(out, ignore_errors=True)
     emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *map(inside, graphs), "--golden",
-                    inside(work / "golden"), "--out", inside(out), "--threads", "1", "--exit-zero"])
+                    inside(work / "golden"), "--out", inside(out), "--threads", "1", "--exit-zero"], cpu)
     return collect_checks(root, graphs, out)
 
 
@@ -213,7 +296,11 @@ def _host_figures(report: dict) -> dict:
             for t in report["tensors"] if t["kind"] == "output" and t["measure"] == measure}
 
 
-def kernel_traces(root: Path, graphs: list[Path], work: Path, steps: int) -> dict:
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def kernel_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: EmulatedCPU = DEFAULT_CPU) -> dict:
     """The kernel-parity trace of every QDQ graph: host half here, device half emulated."""
     import onnx
 
@@ -222,12 +309,13 @@ def kernel_traces(root: Path, graphs: list[Path], work: Path, steps: int) -> dic
 
     traces = {}
     for graph in graphs:
-        if not quantized_activations(onnx.load(str(graph))):
+        if graph.suffix != ".onnx" or not quantized_activations(onnx.load(str(graph))):
             continue
-        folder = work / "traces" / graph.stem
+        folder = work / "traces" / _slug(cpu.name) / graph.stem
         shutil.rmtree(folder, ignore_errors=True)
         record_host(graph, work / "golden", folder, steps)
-        emulated(root, ["python3", "-m", "e3dpsm.golden.kernel_report", "device", "/" + str(folder.relative_to(root))])
+        emulated(root, ["python3", "-m", "e3dpsm.golden.kernel_report", "device", "/" + str(folder.relative_to(root))],
+                 cpu)
         report = json.loads(next(folder.glob("device-*.json")).read_text())
         (folder / "host.npz").unlink()  # large; the report keeps what it found
         traces[graph.name] = report
@@ -248,42 +336,73 @@ def arm_ready(check: dict, trace: dict | None) -> dict:
 
 
 def markdown(report: dict) -> str:
-    host, device = report["host"], report["emulated"]
+    host = report["host"]
     lines = [f"# golden check on emulated aarch64 ({report['steps']} steps)", "",
              f"Host: {host['isa']['kind']} ({' '.join(host['isa']['flags'])}), onnxruntime {host['onnxruntime']}, "
-             f"numpy {host['numpy']}. Emulated: {device['qemu']}, {device['machine']}, Python {device['python']}, "
-             f"ISA {device['isa']['kind']} ({' '.join(device['isa']['flags'])}), onnxruntime {device['onnxruntime']}, "
-             f"numpy {device['numpy']}. One thread each; load average at the start {report['load_average']}.", "",
-             "| graph | profile | output | measure | max | mean | limits (mean / step) | verdict | ARM-ready |",
-             "|---|---|---|---|---:|---:|---|---|---|"]
-    for check in report["checks"]:
-        name = Path(check["model"]).name
-        ready = check["arm_ready"]
-        for output, fig in check["host_rollout"].items():
-            limits = f"{fig['mean_limit'] or '-'} / {fig['step_limit']}"
-            lines.append(f"| {name} | {check['profile']} | {output} | {fig['measure']} | {fig['max']:.3g} | "
-                         f"{fig['mean']:.3g} | {limits} | {'ok' if fig['passed'] else '**over**'} | "
-                         f"{'yes' if ready['ready'] else '**no**'} |")
-    for name, trace in report["traces"].items():
-        lines += ["", f"## {name}: where the codes depart ({trace['codes']} quantised activations)", "",
-                  f"Propagated (each side its own rollout): first departures {', '.join(trace['first_departures']) or 'none'}; "
-                  f"{sum(1 for d in trace['propagated'] if d['first_step'] is not None)} activations depart by the end. "
-                  f"Isolated (each segment fed the host's codes): {trace['isolated_identical']} identical at every step, "
-                  f"{len(trace['isolated'])} depart on their own:", "",
-                  "| code | segment ops | first step | steps apart | codes apart / elements | max codes |",
-                  "|---|---|---:|---:|---:|---:|"]
-        for d in trace["isolated"]:
-            lines.append(f"| {d['name']} | {' '.join(d['segment']) or '(data movement)'} | {d['first_step']} | "
-                         f"{d['steps_apart']} | {d['apart']} / {d['elements']} | {d['max_codes']} |")
+             f"numpy {host['numpy']}. One thread each; load average at the start {report['load_average']}.", ""]
+    for run in report["runs"]:
+        device = run["emulated"]
+        litert = f", ai-edge-litert {device['ai_edge_litert']}" if device.get("ai_edge_litert") else ""
+        lines.append(f"- CPU `{run['cpu']}`: {device['qemu']}, {device['machine']}, Python {device['python']}, "
+                     f"ISA {device['isa']['kind']} ({' '.join(device['isa']['flags'])}), onnxruntime "
+                     f"{device['onnxruntime']}, numpy {device['numpy']}{litert}.")
+    lines += ["", "| CPU | graph | profile | output | measure | max | mean | limits (mean / step) | verdict | ARM-ready |",
+              "|---|---|---|---|---|---:|---:|---|---|---|"]
+    for run in report["runs"]:
+        for check in run["checks"]:
+            name = Path(check["model"]).name
+            ready = check["arm_ready"]
+            for output, fig in check["host_rollout"].items():
+                limits = f"{fig['mean_limit'] or '-'} / {fig['step_limit']}"
+                lines.append(f"| {run['cpu']} | {name} | {check['profile']} | {output} | {fig['measure']} | "
+                             f"{fig['max']:.3g} | {fig['mean']:.3g} | {limits} | {'ok' if fig['passed'] else '**over**'} | "
+                             f"{'yes' if ready['ready'] else '**no**'} |")
+    for run in report["runs"]:
+        partitions = {Path(c["model"]).name: c["xnnpack_partitions"] for c in run["checks"]
+                      if c.get("xnnpack_partitions") is not None}
+        if partitions:
+            lines += ["", f"XNNPACK partitions LiteRT made on `{run['cpu']}` (0 would mean its builtin kernels ran): "
+                      + ", ".join(f"{name} {count}" for name, count in partitions.items()) + "."]
+    for run in report["runs"]:
+        for name, trace in run["traces"].items():
+            lines += ["", f"## {name} on `{run['cpu']}`: where the codes depart ({trace['codes']} quantised activations)",
+                      "", f"Propagated (each side its own rollout): first departures "
+                      f"{', '.join(trace['first_departures']) or 'none'}; "
+                      f"{sum(1 for d in trace['propagated'] if d['first_step'] is not None)} activations depart by the "
+                      f"end. Isolated (each segment fed the host's codes): {trace['isolated_identical']} identical at "
+                      f"every step, {len(trace['isolated'])} depart on their own:", "",
+                      "| code | segment ops | first step | steps apart | codes apart / elements | max codes |",
+                      "|---|---|---:|---:|---:|---:|"]
+            for d in trace["isolated"]:
+                lines.append(f"| {d['name']} | {' '.join(d['segment']) or '(data movement)'} | {d['first_step']} | "
+                             f"{d['steps_apart']} | {d['apart']} / {d['elements']} | {d['max_codes']} |")
     return "\n".join(lines) + "\n"
+
+
+def install_qemu(root: Path, binary: Path | None) -> str | None:
+    """Copy `binary` (a static qemu-aarch64) into the root; its path there (None: binfmt's)."""
+    if binary is None:
+        return None
+    if not binary.is_file():
+        fail(f"--qemu: {binary} does not exist")
+    target = root / QEMU_IN_ROOT.lstrip("/")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(binary, target)
+    return QEMU_IN_ROOT
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--graphs", nargs="+", required=True, help="the fp32 step graph first, then INT8 graphs")
+    parser.add_argument("--graphs", nargs="+", required=True,
+                        help="the fp32 ONNX step graph first, then INT8 graphs and .tflite artifacts")
     parser.add_argument("--data", required=True, help="prepared folder the golden frames come from")
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--root", type=Path, default=default_root(), help=f"arm64 root (default {default_root()})")
+    parser.add_argument("--cpus", nargs="+", default=["max"],
+                        help="qemu CPU models to check on, each in turn (default max; e.g. cortex-a72 for NEON "
+                             "only, neoverse-n1 for dot products, max,sme=off)")
+    parser.add_argument("--qemu", type=Path, help="a static qemu-aarch64 to run instead of binfmt's (e.g. qemu 10: "
+                                                  "qemu 7.2's SME emulation is wrong, docs/edge.md)")
     parser.add_argument("--trace", action="store_true", help="kernel-parity trace of every QDQ graph")
     parser.add_argument("--portable", action="store_true", help="check each QDQ graph's portable form too")
     parser.add_argument("--out", type=Path, default=RESULTS / "arm_emulation", help="report stem (.json, .md)")
@@ -294,29 +413,45 @@ def main(argv: list[str] | None = None) -> int:
             fail(f"--graphs: {graph} does not exist")
     os.environ["OMP_NUM_THREADS"] = "1"
     load = os.getloadavg()[0]
+    if graphs[0].suffix != ".onnx":
+        fail(f"--graphs: the first graph is the golden's fp32 ONNX graph, not {graphs[0].name}")
+    unsupported = [g.name for g in graphs if g.suffix not in (".onnx", ".tflite")]
+    if unsupported:
+        fail(f"--graphs: {', '.join(unsupported)}: only .onnx and .tflite run in the emulated root (a .pte "
+             "needs torch there, and PyPI's aarch64 torch is the CUDA build)")
     setup_root(args.root)
-    install_packages(args.root)
+    describe_cpu(args.root)
+    install_packages(args.root, litert=any(g.suffix == ".tflite" for g in graphs))
+    qemu = install_qemu(args.root, args.qemu)
     work = args.root / WORK / "arm_emulation"
     staged = stage_graphs(graphs, work)
     if args.portable:
         staged += portable_graphs(staged[1:], work)
     host_golden(staged[0], staged[1:], args.data, args.steps, work)
-    checks = emulated_checks(args.root, staged, work)
-    traces = kernel_traces(args.root, staged[1:], work, args.steps) if args.trace else {}
+    runs = [check_on(args.root, staged, work, args.steps, EmulatedCPU(None if m == "max" else m, qemu), args.trace)
+            for m in args.cpus]
+    return write_report(args, runs, load)
+
+
+def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool) -> dict:
+    """Every staged graph's golden check on one emulated CPU (with the kernel traces if asked)."""
+    checks = emulated_checks(root, staged, work, cpu)
+    partitions = emulated_delegation(root, staged, cpu)
+    traces = kernel_traces(root, staged[1:], work, steps, cpu) if trace else {}
     for check in checks:
+        check["xnnpack_partitions"] = partitions.get(Path(check["model"]).name)
         check["arm_ready"] = arm_ready(check, traces.get(Path(check["model"]).name))
-    return write_report(args, checks, traces, load)
+    return {"cpu": cpu.name, "emulated": emulated_machine(root, cpu), "checks": checks, "traces": traces}
 
 
-def write_report(args: argparse.Namespace, checks: list[dict], traces: dict, load: float) -> int:
+def write_report(args: argparse.Namespace, runs: list[dict], load: float) -> int:
     import numpy
     import onnxruntime
 
     report = report_header("benchmarks/arm_emulation.py", {k: str(v) for k, v in vars(args).items()})
-    report.update(steps=args.steps, load_average=round(load, 2), checks=checks, traces=traces,
+    report.update(steps=args.steps, load_average=round(load, 2), runs=runs,
                   host={"isa": detect_isa().to_dict(), "onnxruntime": onnxruntime.__version__,
-                        "numpy": numpy.__version__},
-                  emulated=emulated_machine(args.root))
+                        "numpy": numpy.__version__})
     write_json_atomic(args.out.with_suffix(".json"), report)
     write_text_atomic(args.out.with_suffix(".md"), markdown(report))
     print(markdown(report))

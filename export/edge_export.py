@@ -84,6 +84,11 @@ def artifact_contract(model: E3DPSM, fmt: str, precision: str, attention_form: s
     """(the ONNX graph's metadata for batch 1, the artifact record) of one converted artifact."""
     spec = step_spec(model)
     meta = graph_metadata(model, {"attention_form": attention_form, "format": fmt}, EDGE_BATCH)
+    if precision != "fp32":
+        # Where `quantize` puts an ONNX graph's mode: golden check picks its tolerance profile
+        # (and an INT8 artifact's task budget) from it, as for a quantised ONNX graph.
+        budget = (extra or {}).get("budget")
+        meta = meta.with_quantization({"mode": precision, "format": fmt, **({"budget": budget} if budget else {})})
     record = {"format": fmt, "precision": precision, "attention_form": attention_form,
               "inputs": spec.input_names, "outputs": spec.output_names,
               "versions": converter_versions(*packages), **(extra or {})}

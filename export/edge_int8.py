@@ -12,7 +12,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from e3dpsm.budget import BudgetCheck, TaskBudget
 from e3dpsm.data.prepared import PreparedData
@@ -107,6 +107,31 @@ def search_float_groups(groups: Sequence[str], trial: Callable[[Sequence[str]], 
 
     return greedy_groups([(name, [name]) for name in groups], evaluate, max_rounds=options.search_rounds,
                          first="all-int8")
+
+
+def narrow_float_groups(kept: Sequence[str], units: Mapping[str, Sequence[str]],
+                        trial: Callable[[Sequence[str]], Stepper], search: HeldOut, options: EdgeInt8Options,
+                        runtime: str) -> tuple[list[str], list[dict[str, Any]]]:
+    """The search's unit is a block; one operator may be all a block needed float. For each
+    group the search kept float whose `units` (operators, largest weights first) number more
+    than one, each unit in turn goes back to 8 bits and stays there when the artifact is still
+    within budget on `search`. Returns (the names left float: units, and kept groups of fewer
+    than two units, whole; one record per trial). `trial(floats)` names units and groups alike."""
+    floats = [name for group in kept for name in (units[group] if len(units.get(group) or ()) > 1 else [group])]
+    trials: list[dict[str, Any]] = []
+    for group in kept:
+        if len(units.get(group) or ()) < 2:
+            continue
+        for unit in units[group]:
+            candidate = [name for name in floats if name != unit]
+            check = check_stepper(trial(candidate), search, options.budget)
+            log.info("INT8 narrowing (%s): %s in 8 bits: worst share %.3f%s", runtime, unit, check.worst_share,
+                     ", within" if check.within else "")
+            trials.append({"unit": unit, "group": group, "within": check.within,
+                           "worst_share": check.worst_share, "distance_pct": check.fidelity_pct})
+            if check.within:
+                floats = candidate
+    return floats, trials
 
 
 def search_record(placement: Placement, search: HeldOut, options: EdgeInt8Options, runtime: str) -> dict[str, Any]:

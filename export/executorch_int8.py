@@ -31,7 +31,7 @@ from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.export.delegation import DELEGATE_CALL, node_macs, op_name
 from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
-                                     search_float_groups, search_record, search_set)
+                                     narrow_float_groups, search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_export import quantized_module
 from e3dpsm.layers.fusion import PoseFusion
 from e3dpsm.layers.s5 import S5
@@ -155,14 +155,36 @@ class QuantizedModuleStepper:
                 {n: v.numpy() for n, v in zip(self.state_names, states)})
 
 
+SEARCH_RUNTIME = "PyTorch (PT2E)"
+
+
+def _trial(model: E3DPSM, program: Any, calibrate: Callable[[torch.nn.Module], None]) -> Callable[[Sequence[str]], Any]:
+    """trial(floats): the program converted with the module paths `floats` float, stepped in PyTorch."""
+    return lambda floats: QuantizedModuleStepper(quantized_module(program, xnnpack_int8_quantizer(floats), calibrate),
+                                                 model)
+
+
 def search_keep_float(model: E3DPSM, program: Any, calibrate: Callable[[torch.nn.Module], None],
                       search: HeldOut, options: EdgeInt8Options) -> Placement:
     """Which blocks stay float for the program to meet the budget on `search` (module doc):
     edge_int8.search_float_groups over search_groups, each trial a converted module run in PyTorch."""
-    return search_float_groups(
-        [name for name, _ in search_groups(model)],
-        lambda floats: QuantizedModuleStepper(quantized_module(program, xnnpack_int8_quantizer(floats), calibrate), model),
-        search, options, "PyTorch (PT2E)")
+    return search_float_groups([name for name, _ in search_groups(model)], _trial(model, program, calibrate),
+                               search, options, SEARCH_RUNTIME)
+
+
+def operator_units(model: E3DPSM, group: str, program: torch.export.ExportedProgram | None = None) -> list[str]:
+    """The module paths of the convolutions and linear layers of `group` that would take 8
+    bits (with `program`: only those its graph calls; the export folds some), largest weights
+    first: the units the narrowing returns to 8 bits one at a time
+    (edge_int8.narrow_float_groups; keep-float names are module paths, in_quantised_scope)."""
+    module = model.get_submodule(group.removeprefix("model."))
+    inside_kept = {id(m) for k in module.modules() if isinstance(k, KEEP_FLOAT_TYPES) for m in k.modules()}
+    computed = None if program is None else {_scope(n) for n in program.graph_module.graph.nodes
+                                              if n.op == "call_function"}
+    layers = [(f"{group}.{name}", m.weight.numel()) for name, m in module.named_modules()
+              if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) and id(m) not in inside_kept
+              and (computed is None or f"{group}.{name}" in computed)]
+    return [path for path, _ in sorted(layers, key=lambda layer: -layer[1])]
 
 
 def step_inputs(calibration: CalibrationSet, input_names: Sequence[str]) -> list[tuple[torch.Tensor, ...]]:
@@ -238,14 +260,23 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
     record: dict[str, Any] = {
         "keep_float": keep_float_record(),
         "calibration": {"split": options.split, "frames": len(calibration), "state_source":
-                        calibration.state_source, "seconds": round(calibration.seconds, 2)}}
+                        calibration.state_source, "seconds": round(calibration.seconds, 2)},
+        "budget": options.budget.to_dict()}
     keep_float: tuple[str, ...] = ()
     if options.search_rounds > 0:
         search = search_set(reference, data, options)
         with export_ready(model, program.attention_form):  # the graph the program will be lowered from
-            placement = search_keep_float(model, step_program(model, program), calibrate, search, options)
-        keep_float = placement.float_nodes
-        record["search"] = search_record(placement, search, options, "PyTorch (PT2E)")
+            traced = step_program(model, program)
+            placement = search_keep_float(model, traced, calibrate, search, options)
+            keep_float = placement.float_nodes
+            record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
+            if keep_float:
+                units = {group: operator_units(model, group, traced) for group in keep_float}
+                floats, narrowing = narrow_float_groups(keep_float, units, _trial(model, traced, calibrate), search,
+                                                        options, SEARCH_RUNTIME)
+                keep_float = tuple(floats)
+                record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
+                                        narrowing=narrowing)
         record["keep_float"]["searched"] = list(keep_float)
     result = convert_executorch(model, path, program, precision="int8",
                                 quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,

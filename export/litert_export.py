@@ -24,6 +24,7 @@ MAC_OPS = ("CONV_2D", "DEPTHWISE_CONV_2D", "FULLY_CONNECTED", "BATCH_MATMUL")
 @dataclass(frozen=True)
 class LiteRTOptions:
     attention_form: str = "gather"
+    keep_tensor_names: bool = False  # litert-torch's module-path names; short ones otherwise (write_litert)
 
 
 @dataclass
@@ -93,6 +94,10 @@ def write_litert(content: bytes, model: E3DPSM, path: str | os.PathLike, options
                  seconds: dict[str, float], extra_record: dict[str, Any] | None = None) -> LiteRTResult:
     """Write `content` to `path` (atomically) with the state layout inside; sizes, timings, ops."""
     started = time.perf_counter()
+    if not options.keep_tensor_names:
+        from e3dpsm.runtime.tflite_metadata import with_short_tensor_names
+
+        content = with_short_tensor_names(content)
     content, record = embed_contract(content, model, options, precision, extra_record)
     with atomic_path(path, suffix=".tflite") as tmp:
         tmp.write_bytes(content)

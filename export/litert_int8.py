@@ -25,7 +25,7 @@ import re
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
-                                     search_float_groups, search_record, search_set)
+                                     narrow_float_groups, search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
 from e3dpsm.models import E3DPSM
@@ -84,10 +84,15 @@ def group_patterns(model: E3DPSM) -> list[tuple[str, str]]:
     return groups
 
 
-def _mac_operators(content: bytes) -> list[tuple[str, str, tuple[str, ...]]]:
-    """(operator, scope, activations) of every QUANTISED_OPERATORS operator of the flatbuffer:
-    the scope as ai-edge-quantizer matches its recipe against it, the activations the names of
-    the tensors the recipe quantises around it (its input and its outputs)."""
+class MacOperator(NamedTuple):
+    name: str                  # CONV_2D or FULLY_CONNECTED
+    scope: str                 # as ai-edge-quantizer matches its recipe against it
+    tensors: tuple[str, ...]   # the activations the recipe quantises around it (input, outputs)
+    weights: int               # elements of its weight tensor
+
+
+def _mac_operators(content: bytes) -> list[MacOperator]:
+    """Every QUANTISED_OPERATORS operator of the flatbuffer, in graph order."""
     from ai_edge_quantizer.utils import tfl_flatbuffer_utils as tfl
 
     model = tfl.read_model(bytearray(content))
@@ -98,13 +103,34 @@ def _mac_operators(content: bytes) -> list[tuple[str, str, tuple[str, ...]]]:
         name = tfl.TFL_OP_CODE_TO_NAME.get(max(code.builtinCode, code.deprecatedBuiltinCode))
         if name in QUANTISED_OPERATORS:
             tensors = tuple(graph.tensors[i].name.decode() for i in (op.inputs[0], *op.outputs))
-            found.append((name, tfl.get_op_scope(op, graph.tensors), tensors))
+            weights = int(np.prod(graph.tensors[op.inputs[1]].shape))
+            found.append(MacOperator(name, tfl.get_op_scope(op, graph.tensors), tensors, weights))
     return found
+
+
+def operator_units(content: bytes, groups: Sequence[tuple[str, str]], group: str) -> list[tuple[str, str]]:
+    """(label, pattern) of each MAC operator of `group`, largest weights first: the units the
+    narrowing pass returns to 8 bits one at a time (edge_int8.narrow_float_groups). A label is
+    the group, the operator's place in the group (graph order), its type and the module path
+    below the group that litert-torch named its output after
+    (`model.attention.3/3:fully_connected(ff.proj_in)`); the pattern matches that operator's
+    scope alone."""
+    pattern = dict(groups)[group]
+    members = [op for op in _mac_operators(content) if _place(op.scope, groups) == ("group", group)]
+    units = []
+    for index, op in enumerate(members):
+        first = op.tensors[1].split(";")[0]
+        found = re.search(pattern, first)
+        below = first[found.end():].strip("/").split("/") if found else []
+        path = ".".join(part.rsplit(".", 1)[-1].split("_", 1)[-1] for part in below if part)
+        label = f"{group}/{index}:{op.name.lower()}" + (f"({path})" if path else "")
+        units.append((op.weights, index, label, "^" + re.escape(op.scope) + "$"))
+    return [(label, unit) for _, _, label, unit in sorted(units, key=lambda u: (-u[0], u[1]))]
 
 
 def mac_op_scopes(content: bytes) -> list[tuple[str, str]]:
     """(operator, scope) of every QUANTISED_OPERATORS operator of the flatbuffer."""
-    return [(name, scope) for name, scope, _ in _mac_operators(content)]
+    return [(op.name, op.scope) for op in _mac_operators(content)]
 
 
 def _place(scope: str, groups: Sequence[tuple[str, str]]) -> tuple[str, str | None]:
@@ -174,8 +200,8 @@ def quantised_content(float_content: bytes, qsvs: dict[str, Any], groups: Sequen
 def quantised_activations(content: bytes, groups: Sequence[tuple[str, str]]) -> list[str]:
     """Names of the activations a group's operators read and write (the tensors the 8-bit
     recipe quantises: each quantised operator is wrapped in QUANTIZE / DEQUANTIZE)."""
-    names = [tensor for _, scope, tensors in _mac_operators(content) if _place(scope, groups)[0] == "group"
-             for tensor in tensors]
+    names = [tensor for op in _mac_operators(content) if _place(op.scope, groups)[0] == "group"
+             for tensor in op.tensors]
     return list(dict.fromkeys(names))
 
 
@@ -246,13 +272,42 @@ def search_keep_float(model: E3DPSM, quantise: Callable[[Sequence[str]], bytes],
     """Which groups stay float for the artifact to meet the budget on `search`:
     edge_int8.search_float_groups over the groups, each trial a quantised flatbuffer run by
     LiteRT's interpreter, states carried."""
+    trial = _trial_opener(model, quantise, work, litert, options)
+    return search_float_groups([name for name, _ in groups], trial, search, options, SEARCH_RUNTIME)
+
+
+def narrow_keep_float(model: E3DPSM, float_content: bytes, qsvs: dict[str, Any], groups: Sequence[tuple[str, str]],
+                      kept: Sequence[str], search: HeldOut, options: EdgeInt8Options, work: Path,
+                      litert: LiteRTOptions) -> tuple[list[tuple[str, str]], tuple[str, ...], list[dict[str, Any]]]:
+    """The kept groups narrowed to the operators that need float (edge_int8.narrow_float_groups
+    over operator_units). litert-torch fuses the linears of a deformable block that read the
+    same input into one FULLY_CONNECTED with one per-tensor output range (the sampling offsets
+    beside the attention weights): that operator may need float where the block's feed-forward,
+    most of its weights, does not. Returns (the groups with each kept group replaced by its
+    units, the names left float, the trials)."""
+    units = {group: operator_units(float_content, groups, group) for group in kept}
+    split = {group: found for group, found in units.items() if len(found) > 1}  # one operator: the group is the unit
+    fine = [(name, pattern) for name, pattern in groups if name not in split] + [u for g in split for u in split[g]]
+
+    def quantise(floats: Sequence[str]) -> bytes:
+        return quantised_content(float_content, qsvs, fine, floats)
+
+    floats, trials = narrow_float_groups(kept, {g: [label for label, _ in us] for g, us in units.items()},
+                                         _trial_opener(model, quantise, work, litert, options), search, options,
+                                         SEARCH_RUNTIME)
+    return fine, tuple(floats), trials
+
+
+def _trial_opener(model: E3DPSM, quantise: Callable[[Sequence[str]], bytes], work: Path, litert: LiteRTOptions,
+                  options: EdgeInt8Options) -> Callable[[Sequence[str]], Any]:
+    """trial(floats): a stepper of the flatbuffer `quantise(floats)` on LiteRT."""
     trial_path = work / "trial.tflite"
 
     def trial(floats: Sequence[str]) -> Any:
         trial_path.write_bytes(embed_contract(quantise(floats), model, litert, "int8")[0])
         return open_stepper(trial_path, "litert", options.threads)
 
-    return search_float_groups([name for name, _ in groups], trial, search, options, SEARCH_RUNTIME)
+    return trial
 
 
 def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLike, options: EdgeInt8Options,
@@ -280,20 +335,26 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
         "operators": list(QUANTISED_OPERATORS), "groups": dict(groups), "coverage": coverage,
         "float_rules": [why for _, why in FLOAT_RULES],
         "calibration": {"split": options.split, "frames": len(calibration), "state_source": calibration.state_source,
-                        "ranges": ranges_rule, "seconds": round(calibration.seconds + calibrate_seconds, 2)}}
+                        "ranges": ranges_rule, "seconds": round(calibration.seconds + calibrate_seconds, 2)},
+        "budget": options.budget.to_dict()}
     keep_float: tuple[str, ...] = ()
     search_started = time.perf_counter()
     if options.search_rounds > 0:
         search = search_set(reference, data, options)
         with tempfile.TemporaryDirectory(prefix="e3dpsm-litert-search-", dir=work) as trials:
             placement = search_keep_float(model, quantise, search, options, groups, Path(trials), litert)
-        keep_float = placement.float_nodes
-        record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
+            keep_float = placement.float_nodes
+            record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
+            if keep_float:
+                groups, keep_float, narrowing = narrow_keep_float(model, float_content, qsvs, groups, keep_float,
+                                                                  search, options, Path(trials), litert)
+                record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
+                                        narrowing=narrowing)
     record["keep_float"] = list(keep_float)
-    record["int8_operators"] = sum(count for group, count in coverage["int8_candidates_by_group"].items()
-                                   if group not in keep_float)
+    record["int8_operators"] = sum(count for group, count in classify(mac_op_scopes(float_content), groups)
+                                   ["int8_candidates_by_group"].items() if group not in keep_float)
     started = time.perf_counter()
-    content = quantise(keep_float)
+    content = quantised_content(float_content, qsvs, groups, keep_float)
     seconds = {"convert": round(convert_seconds, 2), "calibrate": round(calibrate_seconds, 2),
                "search": round(started - search_started, 2), "quantize": round(time.perf_counter() - started, 2)}
     result = write_litert(content, model, path, litert, "int8", seconds, record)
@@ -302,4 +363,4 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
 
 
 __all__ = ["FLOAT_RULES", "QUANTISED_OPERATORS", "classify", "convert_litert_int8", "group_patterns", "mac_op_scopes",
-           "quantised_content"]
+           "narrow_keep_float", "operator_units", "quantised_content"]

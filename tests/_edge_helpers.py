@@ -52,10 +52,12 @@ def pte_path(tmp_path_factory, edge_model) -> Path:
 @pytest.fixture(scope="session")
 def tflite_path(tmp_path_factory, edge_model) -> Path:
     skip_without("litert_torch")
-    from e3dpsm.export.litert_export import convert_litert
+    from e3dpsm.export.litert_export import LiteRTOptions, convert_litert
 
+    # litert-torch's tensor names kept: the INT8 tests place 8 bits by them (module paths);
+    # test_litert_int8 checks the default short names change nothing else.
     path = tmp_path_factory.mktemp("edge_tflite") / "step.tflite"
-    convert_litert(edge_model, path)
+    convert_litert(edge_model, path, LiteRTOptions(keep_tensor_names=True))
     return path
 
 

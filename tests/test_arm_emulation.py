@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from _benchmark_scripts import load_benchmark
+from _edge_helpers import edge_model, tflite_path  # noqa: F401
 from _quantize_helpers import int8_dir, int8_test_budget, quant_data, trained_graph  # noqa: F401
 
-ROOT = Path(__file__).resolve().parents[1]
 ARM_ROOT = os.environ.get("E3DPSM_ARM_ROOT")
 STEPS = 20
 
@@ -20,10 +21,7 @@ pytestmark = pytest.mark.slow
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("arm_emulation", ROOT / "benchmarks" / "arm_emulation.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("arm_emulation")
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +36,8 @@ def arm_root() -> Path:
     if os.geteuid() != 0:
         pytest.skip("chroot into the arm64 root needs root")
     script.enable_binfmt()
-    script.install_packages(root)
+    script.describe_cpu(root)
+    script.install_packages(root, litert=importlib.util.find_spec("ai_edge_litert") is not None)
     return root
 
 
@@ -66,5 +65,24 @@ def test_tiny_checks_under_emulation(arm_root, trained_graph, int8_dir, quant_da
         from e3dpsm.golden.kernel_cut import integer_only
 
         assert not [d["name"] for d in trace["isolated"] if integer_only(d["segment"])]
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def test_tiny_tflite_under_emulation(arm_root, trained_graph, tflite_path, quant_data) -> None:  # noqa: F811
+    """The fp32 `.tflite` on emulated aarch64, through XNNPACK (the root's own /proc/cpuinfo and
+    CPU lists let cpuinfo start, so LiteRT creates the delegate: at least one partition), within
+    fp32 parity (0.01 mm) of this host's ONNX Runtime rollout at every step."""
+    script = _script()
+    work = arm_root / script.WORK / f"pytest-lt-{os.getpid()}"
+    try:
+        graphs = script.stage_graphs([trained_graph, tflite_path], work)
+        script.host_golden(graphs[0], graphs[1:], str(quant_data), STEPS, work)
+        checks = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}
+        partitions = script.emulated_delegation(arm_root, graphs)
+        assert list(partitions) == [graphs[1].name] and partitions[graphs[1].name] >= 1
+        tflite = checks[graphs[1].name]
+        assert tflite["status"] == "passed" and tflite["profile"] == "fp32"
+        assert all(0 < f["max"] <= 0.01 for f in tflite["host_rollout"].values())
     finally:
         shutil.rmtree(work, ignore_errors=True)

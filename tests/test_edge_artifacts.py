@@ -34,6 +34,34 @@ def test_golden_check_passes_against_the_onnx_graph(artifact, edge_golden, tmp_p
     assert "PASSED" in capsys.readouterr().out
 
 
+def test_an_int8_artifact_is_checked_against_the_hosts_rollout_of_it(tflite_path, edge_model, edge_golden,
+                                                                       tmp_path) -> None:
+    """A converted INT8 artifact says so in its metadata, as a quantised ONNX graph does: golden
+    check holds it to the int8 profile (the task budget), and asks whether this device computes
+    what the host computed for it, from the host rollout `golden record --also` keeps under the
+    artifact's own runtime (not under onnxruntime, where the check would never find it)."""
+    from e3dpsm.export.litert_export import LiteRTOptions, embed_contract
+    from e3dpsm.golden.host import record_host_rollouts
+    from e3dpsm.golden.verify import verify_graph
+
+    content, _ = embed_contract(tflite_path.read_bytes(), edge_model, LiteRTOptions(), "int8",
+                                {"budget": {"mpjpe_pct": 2.0}})
+    path = tmp_path / "step_int8.tflite"
+    path.write_bytes(content)
+    meta = open_stepper(path, threads=1).meta
+    assert meta.quantization == {"mode": "int8", "format": "litert", "budget": {"mpjpe_pct": 2.0}}
+    golden = tmp_path / "golden"
+    shutil.copytree(edge_golden, golden)
+    entries = record_host_rollouts(golden, [path], ["onnxruntime", "openvino"], threads=1)
+    assert [e["runtime"] for e in entries] == ["litert"]
+    result, report = verify_graph(path, golden, threads=1)
+    assert report["profile"]["name"] == "int8" and report["runtime"] == "litert"
+    assert result.questions["same_as_host"] is True  # the same file, the same kernels
+    assert report["model"]["quantization"]["budget"]["mpjpe_pct"] == 2.0
+    fp32 = open_stepper(tflite_path, threads=1).meta
+    assert fp32.quantization is None  # an fp32 artifact keeps the fp32 profile
+
+
 class _Offset:
     """An artifact's runner whose fused pose is shifted by `offset_mm`: a known error."""
 

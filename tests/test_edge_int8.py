@@ -68,7 +68,12 @@ def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
     search = report["artifact"]["search"]
     assert search["split"] == "val" and search["frames"] == 50 and search["within"]
     assert search["trials"][0]["label"] == "all-int8" and not search["trials"][0]["within"]
-    assert 1 <= len(search["kept_float"]) <= 4 and report["artifact"]["keep_float"]["searched"] == search["kept_float"]
+    assert 1 <= len(search["blocks_kept_float"]) <= 4 and report["artifact"]["keep_float"]["searched"] == search["kept_float"]
+    # The narrowing left float only layers of the blocks the search kept (or those blocks whole).
+    assert search["kept_float"] and all(any(path == block or path.startswith(block + ".") for block in
+                                            search["blocks_kept_float"]) for path in search["kept_float"])
+    assert [t["unit"] for t in search["narrowing"] if not t["within"]] == [
+        path for path in search["kept_float"] if path not in search["blocks_kept_float"]]
     assert int8_run["code"] == 0 and budget["within"], budget["metrics"]
     assert budget["frames"] == 50 and budget["data"].endswith("/test")
     assert report["artifact"]["calibration"] == {**report["artifact"]["calibration"], "split": "train",

@@ -118,3 +118,59 @@ def test_a_trial_with_every_block_float_is_the_float_step(trial_steppers, edge_m
         np.testing.assert_allclose(got_state[name], value, atol=1e-4, err_msg=name)
     eight_bit, _ = _rollout(trial_steppers["none"], frames)
     assert np.abs(eight_bit - want).max() > 0.1  # the same frames through 8 bits do move
+
+
+class _Judged:
+    """What check_stepper returns, as far as the narrowing reads it."""
+
+    def __init__(self, within: bool, worst_share: float) -> None:
+        self.within, self.worst_share, self.fidelity_pct = within, worst_share, 1.0
+
+
+def test_narrowing_returns_a_kept_blocks_operators_to_8_bits_one_at_a_time(monkeypatch) -> None:
+    """A kept block of three units of which only `b` needs float: the narrowing tries each unit
+    in 8 bits in the order given, keeps the two that hold the budget there and leaves `b`
+    float; a kept block of one unit is not narrowed (its unit is the block), and the trials
+    record every try with its verdict."""
+    from e3dpsm.export import edge_int8
+
+    tried = []
+
+    def judged(floats, _search, _budget):
+        tried.append(tuple(floats))
+        return _Judged("blk/b" in floats, 0.5 if "blk/b" in floats else 2.0)
+
+    monkeypatch.setattr(edge_int8, "check_stepper", judged)
+    units = {"blk": ["blk/a", "blk/b", "blk/c"], "one": ["one/x"]}
+    floats, trials = edge_int8.narrow_float_groups(["blk", "one", "whole"], units, lambda floats: floats, None,
+                                                   edge_int8.EdgeInt8Options(), "fake")
+    assert floats == ["blk/b", "one", "whole"]
+    assert tried == [("blk/b", "blk/c", "one", "whole"), ("blk/c", "one", "whole"), ("blk/b", "one", "whole")]
+    assert [(t["unit"], t["within"]) for t in trials] == [("blk/a", True), ("blk/b", False), ("blk/c", True)]
+    assert all(t["group"] == "blk" for t in trials)
+
+
+def test_a_pte_blocks_units_are_its_8_bit_layers_largest_first(edge_model) -> None:
+    """The `.pte` narrowing's units: every convolution and linear layer of the block that would
+    take 8 bits (none of an S5 layer's), largest weights first; given the traced program, only
+    the layers its graph calls (the attention export folds some projections into others)."""
+    skip_without("executorch")
+    from e3dpsm.export.edge_export import export_ready
+    from e3dpsm.export.executorch_export import ExecuTorchOptions, step_program
+    from e3dpsm.export.executorch_int8 import _scope, operator_units
+
+    units = operator_units(edge_model, "model.attention.3")
+    layers = [edge_model.get_submodule(u.removeprefix("model.")) for u in units]
+    assert layers and all(isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) for m in layers)
+    sizes = [m.weight.numel() for m in layers]
+    assert sizes == sorted(sizes, reverse=True)
+    block = edge_model.get_submodule("attention.3")
+    assert len(units) == sum(isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) for m in block.modules())
+    with export_ready(edge_model, ExecuTorchOptions().attention_form):
+        program = step_program(edge_model, ExecuTorchOptions())
+        called = operator_units(edge_model, "model.attention.3", program)
+    scopes = {_scope(n) for n in program.graph_module.graph.nodes if n.op == "call_function"}
+    assert called and set(called) < set(units) and all(u in scopes for u in called)
+    assert [u for u in units if u in called] == called  # the order kept
+    ssm = operator_units(edge_model, "model.ssm")
+    assert ssm and not any(".s5" in u or "Projection" in u for u in ssm)

@@ -123,6 +123,80 @@ def test_every_mac_operator_has_a_place(float_content, edge_model) -> None:
     assert total == len(_weight_types(float_content))
 
 
+def test_a_groups_operator_units_name_one_operator_each(float_content, edge_model, ranges) -> None:
+    """The narrowing's units: one per MAC operator of the group (as many as classify counts),
+    each pattern matching that operator's scope and no other, largest weights first (read from
+    the flatbuffer with the schema), labelled by the module path below the group; a unit kept
+    float keeps exactly its operator's weights float."""
+    import re
+
+    from e3dpsm.export.litert_int8 import classify, group_patterns, mac_op_scopes, operator_units, quantised_content
+
+    groups = group_patterns(edge_model)
+    units = operator_units(float_content, groups, "model.attention.3")
+    scopes = [scope for _, scope in mac_op_scopes(float_content)]
+    assert len(units) == classify(mac_op_scopes(float_content), groups)["int8_candidates_by_group"]["model.attention.3"]
+    matched = [[scope for scope in scopes if re.search(pattern, scope)] for _, pattern in units]
+    assert all(len(m) == 1 for m in matched) and len({m[0] for m in matched}) == len(units)
+    sizes = _weight_sizes(float_content)
+    assert [sizes[m[0]] for m in matched] == sorted((sizes[m[0]] for m in matched), reverse=True)
+    labels = [label for label, _ in units]
+    assert all(label.startswith("model.attention.3/") for label in labels)
+    assert {"fully_connected(ff.proj_in)", "fully_connected(ff.proj_out)", "conv_2d(proj_in)",
+            "conv_2d(proj_out)"} <= {label.split(":", 1)[1] for label in labels}
+    fine = [(n, p) for n, p in groups if n != "model.attention.3"] + units
+    kept = units[0]
+    ops = _weight_types(quantised_content(float_content, ranges, fine, (kept[0],)))
+    assert [f"{scope};" for _, scope, q in ops if not q and "Block_3" in scope] == matched[0]
+
+
+def _weight_sizes(content: bytes) -> dict[str, int]:
+    """scope -> elements of the weight tensor of every CONV_2D / FULLY_CONNECTED."""
+    from ai_edge_litert import schema_py_generated as schema
+
+    model = schema.Model.GetRootAs(content, 0)
+    graph = model.Subgraphs(0)
+    sizes = {}
+    for i in range(graph.OperatorsLength()):
+        op = graph.Operators(i)
+        if op.InputsLength() > 1 and op.Inputs(1) >= 0:
+            scope = "".join(graph.Tensors(op.Outputs(j)).Name().decode() + ";" for j in range(op.OutputsLength()))
+            sizes[scope] = int(np.prod(graph.Tensors(op.Inputs(1)).ShapeAsNumpy()))  # the quantizer's scope form
+    return sizes
+
+
+def test_short_tensor_names_change_nothing_but_names_and_size(float_content, tmp_path) -> None:
+    """What `convert litert` writes by default: every tensor renamed s<subgraph>t<index>, the
+    signature's names, the metadata and the outputs (to the bit, over steps with the states
+    carried) unchanged, the file smaller by at least half of what the old names weighed."""
+    from ai_edge_litert import schema_py_generated as schema
+
+    from e3dpsm.runtime.litert_session import LiteRTStepSession
+    from e3dpsm.runtime.tflite_metadata import read_metadata, with_short_tensor_names
+
+    short = with_short_tensor_names(float_content)
+    graphs = {name: schema.ModelT.InitFromPackedBuf(bytearray(c), 0) for name, c in
+              (("long", float_content), ("short", short))}
+    names = {k: [t.name.decode() for t in m.subgraphs[0].tensors] for k, m in graphs.items()}
+    assert names["short"] == [f"s0t{i}" for i in range(len(names["long"]))]
+    assert len(float_content) - len(short) > 0.5 * (sum(map(len, names["long"])) - sum(map(len, names["short"])))
+    signature = {k: [(t.name, t.tensorIndex) for t in m.signatureDefs[0].inputs + m.signatureDefs[0].outputs]
+                 for k, m in graphs.items()}
+    assert signature["long"] == signature["short"]
+    assert read_metadata(short) == read_metadata(float_content)
+    rollouts = {}
+    for name, content in (("long", float_content), ("short", short)):
+        (tmp_path / f"{name}.tflite").write_bytes(content)
+        session = LiteRTStepSession(tmp_path / f"{name}.tflite", threads=1)
+        state, frames = session.init_state(1), np.random.default_rng(0).random((4, 1, *session.meta.frame_input["shape"][1:]))
+        poses = []
+        for frame in frames.astype(np.float32):
+            out, state = session.step(frame, state, 20.0)
+            poses.append(out["pose"])
+        rollouts[name] = np.stack(poses)
+    assert np.array_equal(rollouts["long"], rollouts["short"])
+
+
 def test_overlapping_group_patterns_are_refused() -> None:
     from e3dpsm.errors import ConfigError
     from e3dpsm.export.litert_int8 import classify
@@ -213,6 +287,7 @@ def test_cli_writes_a_judged_int8_tflite(tmp_path, quant_data, capsys) -> None:
     weights = _weight_types((out / "step.tflite").read_bytes())
     assert report["artifact"]["int8_operators"] == sum(q for *_, q in weights) > 0
     assert "held-out frames" in capsys.readouterr().out
+    assert all(scope.startswith("s0t") for _, scope, _ in weights)  # the default short tensor names
 
 
 def _with_external_buffer(content: bytes) -> bytes:

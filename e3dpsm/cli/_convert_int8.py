@@ -72,7 +72,7 @@ def run_litert_int8(args: argparse.Namespace) -> int:
     from e3dpsm.export.litert_export import LiteRTOptions
     from e3dpsm.export.litert_int8 import convert_litert_int8
 
-    litert = LiteRTOptions(attention_form=args.attention_form)
+    litert = LiteRTOptions(attention_form=args.attention_form, keep_tensor_names=args.keep_tensor_names)
 
     def coverage(result: Any) -> str:
         return (f"{result.artifact['int8_operators']} of {sum(result.ops['mac_ops'].values())} "
@@ -114,8 +114,10 @@ def _run_edge_int8(args: argparse.Namespace, fmt: str, name: str, modules: tuple
     search = report["artifact"].get("search")  # absent with --search-rounds 0
     if search:
         kept = search["kept_float"]
-        print(f"search on {search['frames']} {search['split']} frames, {len(search['trials'])} trial(s): "
-              + (f"kept float {', '.join(kept)}" if kept else "every block in 8 bits")
+        narrowed = search.get("narrowing")
+        print(f"search on {search['frames']} {search['split']} frames, {len(search['trials'])} trial(s)"
+              + (f" and {len(narrowed)} narrowing {', '.join(search['blocks_kept_float'])} to operators" if narrowed else "")
+              + ": " + (f"kept float {', '.join(kept)}" if kept else "every block in 8 bits")
               + ("" if search["within"] else " (still over budget there)"))
     print(budget_line(check))
     return 0 if check.within else 1

@@ -64,6 +64,7 @@ def record_host_rollouts(golden_dir: str | os.PathLike, models: Sequence[str | o
     and runtime). Returns the new entries."""
     from e3dpsm.golden.record import sha256_file
     from e3dpsm.golden.verify import open_runner
+    from e3dpsm.runtime.stepping import artifact_runtime
     from e3dpsm.utils.isa import detect_isa
 
     golden = load_golden(golden_dir)
@@ -72,7 +73,10 @@ def record_host_rollouts(golden_dir: str | os.PathLike, models: Sequence[str | o
     entries = []
     for model in models:
         digest = sha256_file(model)
-        for runtime in runtimes:
+        # A .tflite or .pte runs on its own runtime whatever `runtimes` says, and `golden
+        # check` looks its rollout up under that name.
+        own = artifact_runtime(model)
+        for runtime in (runtimes if own == "onnxruntime" else [own]):
             runner = open_runner(model, runtime, threads=threads)
             outputs = _rollout(runner, golden)
             name = f"{Path(model).stem}-{digest[:12]}-{runtime}.npz"
