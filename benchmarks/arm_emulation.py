@@ -8,7 +8,8 @@ of the fp32 graph on this host with the host's rollouts of the other graphs (`go
 --also`), and runs `golden check` of every graph inside the root under emulation, once per
 CPU model of --cpus (qemu's `max`, every feature it implements, by default). With --trace,
 each QDQ graph also gets the kernel-parity trace (e3dpsm/golden/kernel_report.py): which
-quantised activations depart, first and on their own. With --portable, each QDQ graph also
+quantised activations depart, first and on their own; each INT8 .tflite the code trace
+(e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's. With --portable, each QDQ graph also
 gets its portable form (e3dpsm/golden/kernel_cut.py: activation quantisation kept only where
 every op before it computes to the bit on any ISA) and that is checked too.
 
@@ -322,13 +323,40 @@ def kernel_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: E
     return traces
 
 
+def tflite_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: EmulatedCPU = DEFAULT_CPU) -> dict:
+    """Where every INT8 .tflite's codes part from the host's (e3dpsm/golden/tflite_trace.py):
+    digests of each code tensor at each step recorded here and emulated, compared here."""
+    from e3dpsm.golden.tflite_trace import compare, record
+    from e3dpsm.runtime.litert_session import read_tflite, tflite_metadata
+
+    traces = {}
+    for graph in graphs:
+        if graph.suffix != ".tflite" or tflite_metadata(graph, read_tflite(graph))[1].get("precision") != "int8":
+            continue
+        folder = work / "traces" / _slug(cpu.name) / graph.stem
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        host = record(graph, work / "golden", steps)
+        device = folder / "device.json"
+        inside = lambda p: "/" + str(p.relative_to(root))  # noqa: E731
+        emulated(root, ["python3", "-m", "e3dpsm.golden.tflite_trace", "record", inside(graph), inside(work / "golden"),
+                        inside(device), "--steps", str(steps)], cpu)
+        traces[graph.name] = compare(host, json.loads(device.read_text()))
+    return traces
+
+
 def arm_ready(check: dict, trace: dict | None) -> dict:
     """An INT8 graph is ARM-ready when the emulated rollout computes what the host computed
     (question (a) of `golden check`); where not, the trace names the quantised activations
     that depart on their own and the ops of their segments."""
     same = check.get("same_as_host")
     ready = {"ready": bool(same) if same is not None else check["status"] == "passed"}
-    if trace and not ready["ready"]:
+    if trace and not ready["ready"] and "per_code" in trace:  # a .tflite's trace (tflite_trace.compare)
+        from e3dpsm.golden.tflite_trace import describe
+
+        ready["departs_first"] = [describe(c) for c in trace["first_departures"][:3]]
+        ready["first_step"] = trace["first_step"]
+    elif trace and not ready["ready"]:
         ready["departs_first"] = trace["first_departures"][:3]
         ready["responsible"] = [{"code": d["name"], "segment": d["segment"], "first_step": d["first_step"],
                                  "codes_apart": d["apart"], "max_codes": d["max_codes"]} for d in trace["isolated"]]
@@ -365,6 +393,16 @@ def markdown(report: dict) -> str:
                       + ", ".join(f"{name} {count}" for name, count in partitions.items()) + "."]
     for run in report["runs"]:
         for name, trace in run["traces"].items():
+            if "per_code" not in trace:
+                continue
+            from e3dpsm.golden.tflite_trace import summary
+
+            lines += ["", f"## {name} on `{run['cpu']}`: where the codes part ({trace['codes']} code tensors)", "",
+                      summary(trace) + "."]
+    for run in report["runs"]:
+        for name, trace in run["traces"].items():
+            if "per_code" in trace:
+                continue
             lines += ["", f"## {name} on `{run['cpu']}`: where the codes depart ({trace['codes']} quantised activations)",
                       "", f"Propagated (each side its own rollout): first departures "
                       f"{', '.join(trace['first_departures']) or 'none'}; "
@@ -403,7 +441,9 @@ def main(argv: list[str] | None = None) -> int:
                              "only, neoverse-n1 for dot products, max,sme=off)")
     parser.add_argument("--qemu", type=Path, help="a static qemu-aarch64 to run instead of binfmt's (e.g. qemu 10: "
                                                   "qemu 7.2's SME emulation is wrong, docs/edge.md)")
-    parser.add_argument("--trace", action="store_true", help="kernel-parity trace of every QDQ graph")
+    parser.add_argument("--trace", action="store_true",
+                        help="where the codes part: the kernel-parity trace of every QDQ graph, the code trace of "
+                             "every INT8 .tflite")
     parser.add_argument("--portable", action="store_true", help="check each QDQ graph's portable form too")
     parser.add_argument("--out", type=Path, default=RESULTS / "arm_emulation", help="report stem (.json, .md)")
     args = parser.parse_args(argv)
@@ -437,7 +477,8 @@ def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: Emulat
     """Every staged graph's golden check on one emulated CPU (with the kernel traces if asked)."""
     checks = emulated_checks(root, staged, work, cpu)
     partitions = emulated_delegation(root, staged, cpu)
-    traces = kernel_traces(root, staged[1:], work, steps, cpu) if trace else {}
+    traces = {**kernel_traces(root, staged[1:], work, steps, cpu), **tflite_traces(root, staged[1:], work, steps, cpu)
+              } if trace else {}
     for check in checks:
         check["xnnpack_partitions"] = partitions.get(Path(check["model"]).name)
         check["arm_ready"] = arm_ready(check, traces.get(Path(check["model"]).name))

@@ -197,6 +197,70 @@ def test_short_tensor_names_change_nothing_but_names_and_size(float_content, tmp
     assert np.array_equal(rollouts["long"], rollouts["short"])
 
 
+def test_the_code_trace_exposes_every_quantize_and_names_where_codes_part(float_content, edge_model, ranges,
+                                                                           edge_golden, tmp_path) -> None:
+    """e3dpsm/golden/tflite_trace.py: the copy that hands out every QUANTIZE output computes
+    the same poses to the bit; two records of it on one machine never part; a device record
+    with one code tensor's digest changed from step 2 on is named as the first to part, at
+    step 2 (and a later one at a later step is not); traces of two graphs are refused."""
+    from ai_edge_litert import schema_py_generated as schema
+
+    from e3dpsm.export.litert_export import LiteRTOptions, embed_contract
+    from e3dpsm.export.litert_int8 import group_patterns, quantised_content
+    from e3dpsm.golden import tflite_trace
+    from e3dpsm.golden.store import load_golden
+    from e3dpsm.runtime.litert_session import LiteRTStepSession
+
+    content, _ = embed_contract(quantised_content(float_content, ranges, group_patterns(edge_model)), edge_model,
+                                LiteRTOptions(), "int8")
+    exposed, codes = tflite_trace.with_exposed_codes(content)
+    model = schema.ModelT.InitFromPackedBuf(bytearray(content), 0)
+    names = {v: k for k, v in vars(schema.BuiltinOperator).items() if not k.startswith("_")}
+    quantize = [i for i, op in enumerate(model.subgraphs[0].operators)
+                if names[max(model.operatorCodes[op.opcodeIndex].builtinCode,
+                              model.operatorCodes[op.opcodeIndex].deprecatedBuiltinCode)] == "QUANTIZE"]
+    assert [c["operator"] for c in codes] == quantize and quantize
+    assert all(set(c["read_by"]) <= {"CONV_2D", "FULLY_CONNECTED", "BATCH_MATMUL"} and c["read_by"] for c in codes)
+    golden = load_golden(edge_golden)
+    poses = {}
+    for name, data in (("original", content), ("exposed", exposed)):
+        (tmp_path / f"{name}.tflite").write_bytes(data)
+        session = LiteRTStepSession(tmp_path / f"{name}.tflite", threads=1)
+        state, out = session.init_state(1), []
+        for step in range(6):
+            result, state = session.step(golden.frame(step), state, golden.window_ms(step))
+            out.append(result["pose"])
+        poses[name] = np.stack(out)
+    assert np.array_equal(poses["original"], poses["exposed"])
+    (tmp_path / "step_int8.tflite").write_bytes(content)
+    host = tflite_trace.record(tmp_path / "step_int8.tflite", edge_golden, steps=6)
+    assert host["steps"] == 6 and len(host["digests"]) == 6 and len(host["digests"][0]) == len(codes)
+    same = tflite_trace.compare(host, tflite_trace.record(tmp_path / "step_int8.tflite", edge_golden, steps=6))
+    assert same["first_step"] is None and same["apart_by_end"] == 0 and "same at every one" in tflite_trace.summary(same)
+    device = json.loads(json.dumps(host))
+    for step in range(2, 6):
+        device["digests"][step][3] = "0" * 16
+    for step in range(4, 6):
+        device["digests"][step][1] = "0" * 16
+    apart = tflite_trace.compare(host, device)
+    assert apart["first_step"] == 2 and [c["name"] for c in apart["first_departures"]] == [codes[3]["name"]]
+    assert apart["apart_by_end"] == 2 and apart["per_code"][1]["first_step"] == 4
+    assert f"step 2, most upstream {codes[3]['name']} (operator {codes[3]['operator']}" in tflite_trace.summary(apart)
+    with pytest.raises(ValueError, match="different graphs"):
+        tflite_trace.compare(host, {**device, "codes": device["codes"][1:]})
+
+
+def test_the_code_trace_command_refuses_bad_input_in_one_line(tmp_path, capsys) -> None:
+    from e3dpsm.golden.tflite_trace import main
+
+    assert main(["compare", str(tmp_path / "host.json"), str(tmp_path / "device.json")]) == 2
+    (tmp_path / "not.tflite").write_bytes(b"not a flatbuffer")
+    assert main(["record", str(tmp_path / "not.tflite"), str(tmp_path), str(tmp_path / "out.json")]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 2 and all(e.startswith("tflite_trace: error: ") for e in errors)
+    assert "TFL3" in errors[1] and not (tmp_path / "out.json").exists()
+
+
 def test_overlapping_group_patterns_are_refused() -> None:
     from e3dpsm.errors import ConfigError
     from e3dpsm.export.litert_int8 import classify
