@@ -8,6 +8,8 @@ numbers, and each of a compressed graph's two questions fails on its own.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -40,6 +42,11 @@ def _golden_state(step: int) -> np.ndarray:
 
 
 def make_golden(steps: int = STEPS) -> GoldenRecord:
+    writer, manifest = _golden_writer(steps)
+    return GoldenRecord(manifest, writer.arrays())
+
+
+def _golden_writer(steps: int) -> tuple[GoldenWriter, dict]:
     writer = GoldenWriter(FRAME, ["pose"], {STATE: STATE_SHAPE}, steps)
     rng = np.random.default_rng(0)
     for step in range(steps):
@@ -49,7 +56,7 @@ def make_golden(steps: int = STEPS) -> GoldenRecord:
     manifest = {"steps": steps, "frame_shape": list(FRAME), "outputs": ["pose"],
                 "states": [{"name": STATE, "shape": [-1, *STATE_SHAPE]}],
                 "source": {"variant": "fake"}, "mpjpe_scale_mm": GT_OFFSET_MM}
-    return GoldenRecord(manifest, writer.arrays())
+    return writer, manifest
 
 
 class FakeRunner:
@@ -365,6 +372,80 @@ def test_the_host_rollout_is_the_one_of_this_graph_and_runtime(tmp_path):
     assert host_rollout_for(in_memory, "abc", "onnxruntime") is None
 
 
+class RecordingRunner(FakeRunner):
+    """FakeRunner that keeps what it was given: the batch, each frame, window and state."""
+
+    def __init__(self, shift_mm: float) -> None:
+        super().__init__(np.full(STEPS, shift_mm), np.zeros(STEPS))
+        self.batches, self.calls = [], []
+
+    def init_state(self, batch: int = 1):
+        self.batches.append(batch)
+        return super().init_state(batch)
+
+    def step(self, lnes, state, window_ms):
+        self.calls.append((np.array(lnes), float(window_ms), np.array(state[STATE])))
+        return super().step(lnes, state, window_ms)
+
+
+def test_record_host_rollouts_keeps_each_graph_on_each_runtime_and_replaces_a_rerecord(tmp_path, monkeypatch):
+    """golden/host.record_host_rollouts, with the runners faked: an ONNX graph once per runtime
+    asked, a .tflite once on its own runtime (litert) whatever was asked; every golden frame and
+    window stepped once from batch-1 initial states, each state carried into the next step; the
+    outputs of every step kept (`out.<name>`, [steps, J, 3]) under `<stem>-<sha256[:12]>-<runtime>`;
+    the manifest lists them with this host's ISA and the threads; recording one graph and
+    runtime again replaces its entry and keeps the others."""
+    import hashlib
+
+    from e3dpsm.golden import verify
+    from e3dpsm.golden.host import record_host_rollouts
+    from e3dpsm.golden.store import load_golden
+    from e3dpsm.utils.isa import detect_isa
+
+    writer, manifest = _golden_writer(STEPS)
+    writer.write(tmp_path / "golden", {**manifest, "joints": [f"j{i}" for i in range(J)]})
+    golden = load_golden(tmp_path / "golden")
+    graph, artifact = tmp_path / "q.onnx", tmp_path / "q8.tflite"
+    graph.write_bytes(b"onnx bytes")
+    artifact.write_bytes(b"tflite bytes")
+    shifts = {("q.onnx", "onnxruntime"): 1.0, ("q.onnx", "openvino"): 2.0, ("q8.tflite", "litert"): 3.0}
+    runners = []
+
+    def open_runner(model, runtime="onnxruntime", *, threads=None, providers=None):
+        runners.append((Path(model).name, runtime, threads, RecordingRunner(shifts[(Path(model).name, runtime)])))
+        return runners[-1][3]
+
+    monkeypatch.setattr(verify, "open_runner", open_runner)
+    entries = record_host_rollouts(tmp_path / "golden", [graph, artifact], ["onnxruntime", "openvino"], threads=3)
+    assert [(name, runtime, threads) for name, runtime, threads, _ in runners] == [
+        ("q.onnx", "onnxruntime", 3), ("q.onnx", "openvino", 3), ("q8.tflite", "litert", 3)]
+    for *_, runner in runners:
+        assert runner.batches == [1] and len(runner.calls) == STEPS
+        for step, (frame, window, state) in enumerate(runner.calls):
+            assert np.array_equal(frame, golden.frame(step)) and window == golden.window_ms(step)
+            expected = np.zeros(STATE_SHAPE) if step == 0 else _golden_state(step - 1)
+            assert np.allclose(state[0], expected), step
+    digest = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (graph, artifact)}
+    assert [e["file"] for e in entries] == [f"host/q-{digest['q.onnx'][:12]}-onnxruntime.npz",
+                                            f"host/q-{digest['q.onnx'][:12]}-openvino.npz",
+                                            f"host/q8-{digest['q8.tflite'][:12]}-litert.npz"]
+    assert [(e["graph"], e["sha256"], e["runtime"], e["threads"]) for e in entries] == [
+        ("q.onnx", digest["q.onnx"], "onnxruntime", 3), ("q.onnx", digest["q.onnx"], "openvino", 3),
+        ("q8.tflite", digest["q8.tflite"], "litert", 3)]
+    assert all(e["isa"] == detect_isa().to_dict() for e in entries)
+    for entry, (*_, runner) in zip(entries, runners):
+        with np.load(tmp_path / "golden" / entry["file"]) as saved:
+            assert list(saved) == ["out.pose"] and saved["out.pose"].shape == (STEPS, J, 3)
+            shift = runner.pose_mm[0]
+            want = np.stack([_golden_pose(k) + np.float32([shift, 0, 0]) for k in range(STEPS)])
+            assert np.allclose(saved["out.pose"], want)
+    reloaded = load_golden(tmp_path / "golden")
+    assert reloaded.manifest["host_rollouts"] == entries and reloaded.manifest["steps"] == STEPS
+    again = record_host_rollouts(tmp_path / "golden", [graph], ["openvino"], threads=1)
+    listed = load_golden(tmp_path / "golden").manifest["host_rollouts"]
+    assert listed == [entries[0], entries[2], *again] and again[0]["threads"] == 1
+
+
 @pytest.mark.parametrize("arrays, message", [
     ({}, r"^\S+g-onnxruntime.npz: the host rollout the manifest lists is missing; record it again with golden "
          r"record --also$"),
@@ -385,3 +466,19 @@ def test_one_step_over_the_same_kind_step_limit_fails(step_shift, passed):
     result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="vnni")
     host = next(t for t in result.tensors if t.measure == HOST_MEASURE)
     assert host.mean_passed and result.passed is passed and host.first_failing_step == (None if passed else 9)
+
+
+def test_a_damaged_host_rollout_file_is_named_as_such(tmp_path):
+    golden = _golden_with_host(tmp_path, [_entry()])
+    (tmp_path / "host" / "g-onnxruntime.npz").write_bytes(b"PK\x03\x04 not a zip archive")
+    with pytest.raises(DataError, match=r"g-onnxruntime.npz: cannot read the host rollout \(truncated or corrupted"):
+        host_rollout_for(golden, "abc", "onnxruntime")
+
+
+def test_the_tolerance_and_a_host_rollout_are_frozen():
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        KernelParity().other_kind_mean_mm = 5.0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        HostRollout({}, {}).entry = {"isa": {"kind": "vnni"}}
