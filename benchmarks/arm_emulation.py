@@ -9,9 +9,10 @@ of the fp32 graph on this host with the host's rollouts of the other graphs (`go
 CPU model of --cpus (qemu's `max`, every feature it implements, by default). With --trace,
 each QDQ graph also gets the kernel-parity trace (e3dpsm/golden/kernel_report.py): which
 quantised activations depart, first and on their own; each INT8 .tflite the code trace
-(e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's. With --portable, each QDQ graph also
-gets its portable form (e3dpsm/golden/kernel_cut.py: activation quantisation kept only where
-every op before it computes to the bit on any ISA) and that is checked too.
+(e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's. With
+--portable, each QDQ graph also gets its portable form (e3dpsm/golden/kernel_cut.py:
+activation quantisation kept only where every op before it computes to the bit on any ISA)
+and that is checked too.
 
     sudo apt-get install -y qemu-user-static binfmt-support debootstrap   # once, Debian/Ubuntu
     python benchmarks/arm_emulation.py --graphs step.onnx step_int8.onnx lt/step.tflite lt8/step.tflite \
@@ -23,7 +24,7 @@ host's; the root gets its own one-core /proc/cpuinfo and CPU lists instead (desc
 and MLAS and XNNPACK read the emulated CPU's features from the auxiliary vector (as
 e3dpsm.utils.isa does). One core: OMP_NUM_THREADS=1, --threads 1. qemu 7.2 (Debian 12's)
 emulates SME wrongly for XNNPACK's 8-bit kernels: on its `max` CPU an INT8 .tflite lands
-125 mm from the host; pass a newer qemu-aarch64 with --qemu (10.0 from bookworm-backports
+169 mm (mean) from the host; pass a newer qemu-aarch64 with --qemu (10.0 from bookworm-backports
 agrees to the bit) or `--cpus max,sme=off`.
 """
 from __future__ import annotations
@@ -202,6 +203,11 @@ def emulated_machine(root: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> dict:
     return info
 
 
+def _inside(root: Path, path: Path) -> str:
+    """`path` (under the root) as the emulated system sees it."""
+    return "/" + str(path.relative_to(root))
+
+
 def emulated_delegation(root: Path, graphs: list[Path], cpu: EmulatedCPU = DEFAULT_CPU) -> dict[str, int]:
     """How many XNNPACK partitions LiteRT's interpreter makes of each .tflite inside the root
     (0: no delegate, LiteRT's builtin kernels run instead, not what a device runs)."""
@@ -210,7 +216,7 @@ def emulated_delegation(root: Path, graphs: list[Path], cpu: EmulatedCPU = DEFAU
         if graph.suffix != ".tflite":
             continue
         probe = ("from ai_edge_litert.interpreter import Interpreter; "
-                 f"i = Interpreter(model_path={'/' + str(graph.relative_to(root))!r}, num_threads=1); "
+                 f"i = Interpreter(model_path={_inside(root, graph)!r}, num_threads=1); "
                  "i.allocate_tensors(); print(sum(d['op_name'] == 'DELEGATE' for d in i._get_ops_details()))")
         partitions[graph.name] = int(emulated(root, ["python3", "-c", probe], cpu).strip().splitlines()[-1])
     return partitions
@@ -259,11 +265,11 @@ def host_golden(fp32: Path, others: list[Path], data: str, steps: int, work: Pat
 
 def emulated_checks(root: Path, graphs: list[Path], work: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> list[dict]:
     """`golden check` of every graph inside the root on `cpu`; the verdicts of its summary.json."""
-    inside = lambda p: "/" + str(p.relative_to(root))  # noqa: E731
     out = work / f"checks-{_slug(cpu.name)}"
     shutil.rmtree(out, ignore_errors=True)
-    emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *map(inside, graphs), "--golden",
-                    inside(work / "golden"), "--out", inside(out), "--threads", "1", "--exit-zero"], cpu)
+    emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *(_inside(root, g) for g in graphs),
+                    "--golden", _inside(root, work / "golden"), "--out", _inside(root, out), "--threads", "1",
+                    "--exit-zero"], cpu)
     return collect_checks(root, graphs, out)
 
 
@@ -315,8 +321,7 @@ def kernel_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: E
         folder = work / "traces" / _slug(cpu.name) / graph.stem
         shutil.rmtree(folder, ignore_errors=True)
         record_host(graph, work / "golden", folder, steps)
-        emulated(root, ["python3", "-m", "e3dpsm.golden.kernel_report", "device", "/" + str(folder.relative_to(root))],
-                 cpu)
+        emulated(root, ["python3", "-m", "e3dpsm.golden.kernel_report", "device", _inside(root, folder)], cpu)
         report = json.loads(next(folder.glob("device-*.json")).read_text())
         (folder / "host.npz").unlink()  # large; the report keeps what it found
         traces[graph.name] = report
@@ -338,24 +343,24 @@ def tflite_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: E
         folder.mkdir(parents=True)
         host = record(graph, work / "golden", steps)
         device = folder / "device.json"
-        inside = lambda p: "/" + str(p.relative_to(root))  # noqa: E731
-        emulated(root, ["python3", "-m", "e3dpsm.golden.tflite_trace", "record", inside(graph), inside(work / "golden"),
-                        inside(device), "--steps", str(steps)], cpu)
+        emulated(root, ["python3", "-m", "e3dpsm.golden.tflite_trace", "record", _inside(root, graph),
+                        _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)], cpu)
         traces[graph.name] = compare(host, json.loads(device.read_text()))
     return traces
 
 
-def arm_ready(check: dict, trace: dict | None) -> dict:
+def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -> dict:
     """An INT8 graph is ARM-ready when the emulated rollout computes what the host computed
     (question (a) of `golden check`); where not, the trace names the quantised activations
-    that depart on their own and the ops of their segments."""
+    that depart on their own and the ops of their segments (an ONNX graph's kernel trace), or
+    the code tensors that part first (a .tflite's code trace, tflite_trace.compare)."""
     same = check.get("same_as_host")
     ready = {"ready": bool(same) if same is not None else check["status"] == "passed"}
-    if trace and not ready["ready"] and "per_code" in trace:  # a .tflite's trace (tflite_trace.compare)
+    if code_trace and not ready["ready"]:
         from e3dpsm.golden.tflite_trace import describe
 
-        ready["departs_first"] = [describe(c) for c in trace["first_departures"][:3]]
-        ready["first_step"] = trace["first_step"]
+        ready["departs_first"] = [describe(c) for c in code_trace["first_departures"][:3]]
+        ready["first_step"] = code_trace["first_step"]
     elif trace and not ready["ready"]:
         ready["departs_first"] = trace["first_departures"][:3]
         ready["responsible"] = [{"code": d["name"], "segment": d["segment"], "first_step": d["first_step"],
@@ -392,17 +397,13 @@ def markdown(report: dict) -> str:
             lines += ["", f"XNNPACK partitions LiteRT made on `{run['cpu']}` (0 would mean its builtin kernels ran): "
                       + ", ".join(f"{name} {count}" for name, count in partitions.items()) + "."]
     for run in report["runs"]:
-        for name, trace in run["traces"].items():
-            if "per_code" not in trace:
-                continue
+        for name, trace in run.get("code_traces", {}).items():
             from e3dpsm.golden.tflite_trace import summary
 
             lines += ["", f"## {name} on `{run['cpu']}`: where the codes part ({trace['codes']} code tensors)", "",
                       summary(trace) + "."]
     for run in report["runs"]:
         for name, trace in run["traces"].items():
-            if "per_code" in trace:
-                continue
             lines += ["", f"## {name} on `{run['cpu']}`: where the codes depart ({trace['codes']} quantised activations)",
                       "", f"Propagated (each side its own rollout): first departures "
                       f"{', '.join(trace['first_departures']) or 'none'}; "
@@ -474,15 +475,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool) -> dict:
-    """Every staged graph's golden check on one emulated CPU (with the kernel traces if asked)."""
+    """Every staged graph's golden check on one emulated CPU (with the traces if asked: the
+    kernel trace of each QDQ graph, the code trace of each INT8 .tflite)."""
     checks = emulated_checks(root, staged, work, cpu)
     partitions = emulated_delegation(root, staged, cpu)
-    traces = {**kernel_traces(root, staged[1:], work, steps, cpu), **tflite_traces(root, staged[1:], work, steps, cpu)
-              } if trace else {}
+    traces = kernel_traces(root, staged[1:], work, steps, cpu) if trace else {}
+    code_traces = tflite_traces(root, staged[1:], work, steps, cpu) if trace else {}
     for check in checks:
-        check["xnnpack_partitions"] = partitions.get(Path(check["model"]).name)
-        check["arm_ready"] = arm_ready(check, traces.get(Path(check["model"]).name))
-    return {"cpu": cpu.name, "emulated": emulated_machine(root, cpu), "checks": checks, "traces": traces}
+        name = Path(check["model"]).name
+        check["xnnpack_partitions"] = partitions.get(name)
+        check["arm_ready"] = arm_ready(check, traces.get(name), code_traces.get(name))
+    return {"cpu": cpu.name, "emulated": emulated_machine(root, cpu), "checks": checks, "traces": traces,
+            "code_traces": code_traces}
 
 
 def write_report(args: argparse.Namespace, runs: list[dict], load: float) -> int:

@@ -117,12 +117,11 @@ def narrow_float_groups(kept: Sequence[str], units: Mapping[str, Sequence[str]],
     than one, each unit in turn goes back to 8 bits and stays there when the artifact is still
     within budget on `search`. Returns (the names left float: units, and kept groups of fewer
     than two units, whole; one record per trial). `trial(floats)` names units and groups alike."""
-    floats = [name for group in kept for name in (units[group] if len(units.get(group) or ()) > 1 else [group])]
+    split = {group: list(units[group]) for group in kept if len(units.get(group) or ()) > 1}
+    floats = [name for group in kept for name in split.get(group, [group])]
     trials: list[dict[str, Any]] = []
-    for group in kept:
-        if len(units.get(group) or ()) < 2:
-            continue
-        for unit in units[group]:
+    for group, members in split.items():
+        for unit in members:
             candidate = [name for name in floats if name != unit]
             check = check_stepper(trial(candidate), search, options.budget)
             log.info("INT8 narrowing (%s): %s in 8 bits: worst share %.3f%s", runtime, unit, check.worst_share,

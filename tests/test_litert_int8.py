@@ -172,13 +172,15 @@ def test_short_tensor_names_change_nothing_but_names_and_size(float_content, tmp
     from ai_edge_litert import schema_py_generated as schema
 
     from e3dpsm.runtime.litert_session import LiteRTStepSession
-    from e3dpsm.runtime.tflite_metadata import read_metadata, with_short_tensor_names
+    from e3dpsm.runtime.tflite_metadata import is_short_tensor_name, read_metadata, with_short_tensor_names
 
     short = with_short_tensor_names(float_content)
     graphs = {name: schema.ModelT.InitFromPackedBuf(bytearray(c), 0) for name, c in
               (("long", float_content), ("short", short))}
     names = {k: [t.name.decode() for t in m.subgraphs[0].tensors] for k, m in graphs.items()}
     assert names["short"] == [f"s0t{i}" for i in range(len(names["long"]))]
+    assert all(map(is_short_tensor_name, names["short"])) and not any(map(is_short_tensor_name, names["long"]))
+    assert not is_short_tensor_name("s0t12_quantized")
     assert len(float_content) - len(short) > 0.5 * (sum(map(len, names["long"])) - sum(map(len, names["short"])))
     signature = {k: [(t.name, t.tensorIndex) for t in m.signatureDefs[0].inputs + m.signatureDefs[0].outputs]
                  for k, m in graphs.items()}
@@ -246,6 +248,12 @@ def test_the_code_trace_exposes_every_quantize_and_names_where_codes_part(float_
     assert apart["first_step"] == 2 and [c["name"] for c in apart["first_departures"]] == [codes[3]["name"]]
     assert apart["apart_by_end"] == 2 and apart["per_code"][1]["first_step"] == 4
     assert f"step 2, most upstream {codes[3]['name']} (operator {codes[3]['operator']}" in tflite_trace.summary(apart)
+    # A kept module-path name is shown (its first scope, tail); a short one says nothing more.
+    code = {**codes[3], "tensor_name": "a/b.Block_0/Linear_proj;12_quantized", "fed_by": "ADD",
+            "read_by": ["FULLY_CONNECTED"]}
+    assert tflite_trace.describe(code) == (f"{code['name']} (operator {code['operator']}: ADD -> QUANTIZE -> "
+                                           "FULLY_CONNECTED, a/b.Block_0/Linear_proj)")
+    assert tflite_trace.describe({**code, "tensor_name": "s0t1521"}).endswith("-> FULLY_CONNECTED)")
     with pytest.raises(ValueError, match="different graphs"):
         tflite_trace.compare(host, {**device, "codes": device["codes"][1:]})
 

@@ -125,8 +125,10 @@ def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
 def describe(code: dict[str, Any]) -> str:
     """`e3dpsm_code_11 (operator 412: ADD -> QUANTIZE -> FULLY_CONNECTED)`, with the tensor's
     name where the artifact kept litert-torch's (`convert litert --keep-tensor-names`)."""
+    from e3dpsm.runtime.tflite_metadata import is_short_tensor_name
+
     name = code["tensor_name"]
-    kept = "" if name.startswith("s0t") else f", {name.split(';')[0][-80:]}"
+    kept = "" if is_short_tensor_name(name) else f", {name.split(';')[0][-80:]}"
     return (f"{code['name']} (operator {code['operator']}: {code['fed_by']} -> QUANTIZE -> "
             f"{'/'.join(code['read_by']) or 'output'}{kept})")
 

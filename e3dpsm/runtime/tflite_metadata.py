@@ -3,6 +3,7 @@ a name and the index of a buffer holding its bytes), read and written with the s
 module ai-edge-litert ships. Torch-free: the LiteRT runner reads the state layout here."""
 from __future__ import annotations
 
+import re
 from typing import Any, Callable
 
 TFLITE_IDENTIFIER = b"TFL3"
@@ -71,6 +72,15 @@ def with_metadata(content: bytes, name: str, data: bytes) -> bytes:
     return rewrite_model(content, edit)
 
 
+def short_tensor_name(subgraph: int, tensor: int) -> str:
+    return f"s{subgraph}t{tensor}"
+
+
+def is_short_tensor_name(name: str) -> bool:
+    """Whether `name` is one with_short_tensor_names wrote (not a converter's module path)."""
+    return re.fullmatch(r"s\d+t\d+", name) is not None
+
+
 def with_short_tensor_names(content: bytes) -> bytes:
     """The flatbuffer with every tensor named by its subgraph and index (`s0t12`). litert-torch
     names each tensor by its full module path (about 170 bytes each, 0.25-0.28 MB of `small`'s
@@ -80,6 +90,6 @@ def with_short_tensor_names(content: bytes) -> bytes:
     def edit(model: Any) -> None:
         for g, graph in enumerate(model.subgraphs or []):
             for t, tensor in enumerate(graph.tensors or []):
-                tensor.name = f"s{g}t{t}"
+                tensor.name = short_tensor_name(g, t)
 
     return rewrite_model(content, edit)

@@ -1,0 +1,47 @@
+"""benchmarks/arm_emulation.py's verdicts and report, on hand-made checks and traces (no arm64
+root needed): which trace names what departs, and where each kind lands in the report."""
+from __future__ import annotations
+
+from _benchmark_scripts import load_benchmark
+
+SCRIPT = load_benchmark("arm_emulation")
+CODE = {"name": "e3dpsm_code_11", "tensor_name": "s0t1521", "operator": 182, "fed_by": "ADD",
+        "read_by": ["FULLY_CONNECTED"], "first_step": 9}
+CODE_TRACE = {"steps": 60, "codes": 71, "apart_by_end": 58, "first_step": 9, "first_departures": [CODE],
+              "per_code": [CODE]}
+KERNEL_TRACE = {"codes": 149, "first_departures": ["q28"], "propagated": [{"first_step": 3}], "isolated_identical": 148,
+                "isolated": [{"name": "q28", "segment": ["LayerNormalization"], "first_step": 3, "steps_apart": 3,
+                              "apart": 3, "elements": 12288, "max_codes": 1}]}
+
+
+def _check(model: str, same: bool | None) -> dict:
+    return {"model": model, "status": "failed", "same_as_host": same, "profile": "int8", "host_rollout": {
+        "pose": {"measure": "host_distance_mm", "max": 2.4, "mean": 1.34, "passed": False, "mean_limit": 0.5,
+                 "step_limit": 5.0}}}
+
+
+def test_a_tflite_is_named_by_its_code_trace_an_onnx_graph_by_its_kernel_trace():
+    tflite = SCRIPT.arm_ready(_check("lt8.tflite", False), None, CODE_TRACE)
+    assert tflite == {"ready": False, "first_step": 9,
+                      "departs_first": ["e3dpsm_code_11 (operator 182: ADD -> QUANTIZE -> FULLY_CONNECTED)"]}
+    onnx = SCRIPT.arm_ready(_check("q.onnx", False), KERNEL_TRACE)
+    assert onnx["departs_first"] == ["q28"] and onnx["responsible"][0]["segment"] == ["LayerNormalization"]
+    assert SCRIPT.arm_ready(_check("lt8.tflite", True), None, CODE_TRACE) == {"ready": True}
+
+
+def test_the_report_gives_each_trace_kind_its_section():
+    machine = {"qemu": "qemu 10", "machine": "aarch64", "python": "3.11", "isa": {"kind": "neon", "flags": ["asimd"]},
+               "onnxruntime": "1.31.1", "numpy": "2.4.6", "ai_edge_litert": "2.3.0"}
+    checks = [{**_check("q.onnx", False), "arm_ready": {"ready": False}},
+              {**_check("lt8.tflite", False), "arm_ready": {"ready": False}, "xnnpack_partitions": 6}]
+    report = {"steps": 60, "load_average": 0.5, "host": {"isa": {"kind": "vnni", "flags": ["avx2"]},
+                                                         "onnxruntime": "1.31.1", "numpy": "2.4.6"},
+              "runs": [{"cpu": "cortex-a72", "emulated": machine, "checks": checks,
+                        "traces": {"q.onnx": KERNEL_TRACE}, "code_traces": {"lt8.tflite": CODE_TRACE}}]}
+    text = SCRIPT.markdown(report)
+    assert "## lt8.tflite on `cortex-a72`: where the codes part (71 code tensors)" in text
+    assert "codes part first at step 9, most upstream e3dpsm_code_11" in text
+    assert "## q.onnx on `cortex-a72`: where the codes depart (149 quantised activations)" in text
+    assert "| q28 | LayerNormalization | 3 | 3 | 3 / 12288 | 1 |" in text
+    assert "XNNPACK partitions LiteRT made on `cortex-a72` (0 would mean its builtin kernels ran): lt8.tflite 6." in text
+    assert "| cortex-a72 | lt8.tflite | int8 | pose | host_distance_mm | 2.4 | 1.34 | 0.5 / 5.0 | **over** | **no** |" in text
