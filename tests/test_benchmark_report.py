@@ -19,3 +19,13 @@ def test_an_unserialisable_report_leaves_no_file(tmp_path) -> None:
     with pytest.raises(TypeError, match="not JSON serialisable"):
         write_benchmark_report(tmp_path / "bench_y", {"isa": {"kind": "vnni"}, "bad": object()}, "# y\n")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_prefix_that_names_its_kind_or_holds_a_dot_is_kept_whole(tmp_path) -> None:
+    """A results file's own name passed back as the prefix is not suffixed twice, and a dot in
+    the name (a version) is not taken for a suffix to replace."""
+    report = {"isa": {"kind": "vnni"}}
+    assert write_benchmark_report(tmp_path / "edge_int8_vnni", report, "# a\n") == tmp_path / "edge_int8_vnni.md"
+    assert write_benchmark_report(tmp_path / "run_v1.2", report, "# b\n") == tmp_path / "run_v1.2_vnni.md"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["edge_int8_vnni.json", "edge_int8_vnni.md",
+                                                          "run_v1.2_vnni.json", "run_v1.2_vnni.md"]

@@ -53,11 +53,13 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
 def write_benchmark_report(prefix: str | os.PathLike, report: dict[str, Any], markdown: str) -> Path:
     """PREFIX_<ISA kind>.json and .md (each atomically; folders made): a benchmark's report,
     named by the kind of CPU it ran on (report["isa"]["kind"]) so that hosts do not overwrite
-    each other's figures. Returns the .md path."""
-    stem = Path(f"{prefix}_{report['isa']['kind']}")
+    each other's figures; a PREFIX that already ends in _<kind> (a results file's name, passed
+    back to rewrite it) is not suffixed twice. Returns the .md path."""
+    prefix, suffix = Path(prefix), f"_{report['isa']['kind']}"
+    stem = prefix if prefix.name.endswith(suffix) else prefix.with_name(prefix.name + suffix)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(stem.with_suffix(".json"), report)
-    return write_text_atomic(stem.with_suffix(".md"), markdown)
+    write_json_atomic(stem.with_name(stem.name + ".json"), report)
+    return write_text_atomic(stem.with_name(stem.name + ".md"), markdown)
 
 
 def _json_default(obj: Any) -> Any:
