@@ -35,6 +35,7 @@ class EdgeInt8Options:
     search_split: str = "val"         # where the return-to-float search judges its trials
     search_frames: int = 0            # per search sequence (0: all)
     search_rounds: int = 4            # blocks the search may return to float (0: no search)
+    narrow_trials: int | None = None  # narrowing trials at most (None: every unit; 0: no narrowing)
     threads: int | None = None
     budget: TaskBudget = field(default_factory=TaskBudget)
 
@@ -44,8 +45,8 @@ class EdgeInt8Options:
         if self.search_rounds and self.search_split in (self.split, self.holdout_split):
             raise ConfigError(f"the search split ({self.search_split!r}) must differ from the calibration and "
                               "held-out splits: the budget must hold on frames the search never saw")
-        for name in ("holdout_frames", "search_frames", "search_rounds"):
-            if getattr(self, name) < 0:
+        for name in ("holdout_frames", "search_frames", "search_rounds", "narrow_trials"):
+            if (getattr(self, name) or 0) < 0:
                 raise ConfigError(f"--{name.replace('_', '-')} must be 0 or positive, got {getattr(self, name)}")
 
     def to_dict(self) -> dict[str, Any]:
@@ -109,28 +110,39 @@ def search_float_groups(groups: Sequence[str], trial: Callable[[Sequence[str]], 
                          first="all-int8")
 
 
+@dataclass(frozen=True)
+class Narrowing:
+    """What the narrowing left float (units, and kept groups of fewer than two units, whole),
+    one record per trial, and the units it never tried (past --narrow-trials: they stay float)."""
+    floats: list[str]
+    trials: list[dict[str, Any]]
+    untried: list[str]
+
+
 def narrow_float_groups(kept: Sequence[str], units: Mapping[str, Sequence[str]],
                         trial: Callable[[Sequence[str]], Stepper], search: HeldOut, options: EdgeInt8Options,
-                        runtime: str) -> tuple[list[str], list[dict[str, Any]]]:
+                        runtime: str) -> Narrowing:
     """The search's unit is a block; one operator may be all a block needed float. For each
     group the search kept float whose `units` (operators, largest weights first) number more
     than one, each unit in turn goes back to 8 bits and stays there when the artifact is still
-    within budget on `search`. Returns (the names left float: units, and kept groups of fewer
-    than two units, whole; one record per trial). `trial(floats)` names units and groups alike."""
+    within budget on `search`, until `options.narrow_trials` trials have run (each streams the
+    search frames, minutes on a large program): the units past the cap stay float.
+    `trial(floats)` names units and groups alike."""
     split = {group: list(units[group]) for group in kept if len(units.get(group) or ()) > 1}
     floats = [name for group in kept for name in split.get(group, [group])]
+    queue = [(group, unit) for group, members in split.items() for unit in members]
+    cap = len(queue) if options.narrow_trials is None else options.narrow_trials
     trials: list[dict[str, Any]] = []
-    for group, members in split.items():
-        for unit in members:
-            candidate = [name for name in floats if name != unit]
-            check = check_stepper(trial(candidate), search, options.budget)
-            log.info("INT8 narrowing (%s): %s in 8 bits: worst share %.3f%s", runtime, unit, check.worst_share,
-                     ", within" if check.within else "")
-            trials.append({"unit": unit, "group": group, "within": check.within,
-                           "worst_share": check.worst_share, "distance_pct": check.fidelity_pct})
-            if check.within:
-                floats = candidate
-    return floats, trials
+    for group, unit in queue[:cap]:
+        candidate = [name for name in floats if name != unit]
+        check = check_stepper(trial(candidate), search, options.budget)
+        log.info("INT8 narrowing (%s): %s in 8 bits: worst share %.3f%s", runtime, unit, check.worst_share,
+                 ", within" if check.within else "")
+        trials.append({"unit": unit, "group": group, "within": check.within,
+                       "worst_share": check.worst_share, "distance_pct": check.fidelity_pct})
+        if check.within:
+            floats = candidate
+    return Narrowing(floats, trials, [unit for _, unit in queue[cap:]])
 
 
 def search_record(placement: Placement, search: HeldOut, options: EdgeInt8Options, runtime: str) -> dict[str, Any]:

@@ -270,13 +270,13 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
             placement = search_keep_float(model, traced, calibrate, search, options)
             keep_float = placement.float_nodes
             record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
-            if keep_float:
+            if keep_float and options.narrow_trials != 0:  # --narrow-trials 0: the blocks stay float whole
                 units = {group: operator_units(model, group, traced) for group in keep_float}
-                floats, narrowing = narrow_float_groups(keep_float, units, _trial(model, traced, calibrate), search,
-                                                        options, SEARCH_RUNTIME)
-                keep_float = tuple(floats)
+                narrowing = narrow_float_groups(keep_float, units, _trial(model, traced, calibrate), search,
+                                                options, SEARCH_RUNTIME)
+                keep_float = tuple(narrowing.floats)
                 record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
-                                        narrowing=narrowing)
+                                        narrowing=narrowing.trials, narrowing_untried=narrowing.untried)
         record["keep_float"]["searched"] = list(keep_float)
     result = convert_executorch(model, path, program, precision="int8",
                                 quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,

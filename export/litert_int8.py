@@ -33,8 +33,9 @@ import torch
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
-from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
-                                     narrow_float_groups, search_float_groups, search_record, search_set)
+from e3dpsm.export.edge_int8 import (EdgeInt8Options, Narrowing, calibration_set, check_artifact, fp32_reference,
+                                     held_out_set, narrow_float_groups, search_float_groups, search_record,
+                                     search_set)
 from e3dpsm.export.executorch_int8 import KEEP_FLOAT_TYPES, search_groups
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, embed_contract, litert_content, write_litert
 from e3dpsm.models import E3DPSM
@@ -278,13 +279,13 @@ def search_keep_float(model: E3DPSM, quantise: Callable[[Sequence[str]], bytes],
 
 def narrow_keep_float(model: E3DPSM, float_content: bytes, qsvs: dict[str, Any], groups: Sequence[tuple[str, str]],
                       kept: Sequence[str], search: HeldOut, options: EdgeInt8Options, work: Path,
-                      litert: LiteRTOptions) -> tuple[list[tuple[str, str]], tuple[str, ...], list[dict[str, Any]]]:
+                      litert: LiteRTOptions) -> tuple[list[tuple[str, str]], Narrowing]:
     """The kept groups narrowed to the operators that need float (edge_int8.narrow_float_groups
     over operator_units). litert-torch fuses the linears of a deformable block that read the
     same input into one FULLY_CONNECTED with one per-tensor output range (the sampling offsets
     beside the attention weights): that operator may need float where the block's feed-forward,
     most of its weights, does not. Returns (the groups with each kept group replaced by its
-    units, the names left float, the trials)."""
+    units, the narrowing)."""
     units = {group: operator_units(float_content, groups, group) for group in kept}
     split = {group: found for group, found in units.items() if len(found) > 1}  # one operator: the group is the unit
     fine = [(name, pattern) for name, pattern in groups if name not in split] + [u for g in split for u in split[g]]
@@ -292,10 +293,9 @@ def narrow_keep_float(model: E3DPSM, float_content: bytes, qsvs: dict[str, Any],
     def quantise(floats: Sequence[str]) -> bytes:
         return quantised_content(float_content, qsvs, fine, floats)
 
-    floats, trials = narrow_float_groups(kept, {g: [label for label, _ in us] for g, us in units.items()},
-                                         _trial_opener(model, quantise, work, litert, options), search, options,
-                                         SEARCH_RUNTIME)
-    return fine, tuple(floats), trials
+    return fine, narrow_float_groups(kept, {g: [label for label, _ in us] for g, us in units.items()},
+                                     _trial_opener(model, quantise, work, litert, options), search, options,
+                                     SEARCH_RUNTIME)
 
 
 def _trial_opener(model: E3DPSM, quantise: Callable[[Sequence[str]], bytes], work: Path, litert: LiteRTOptions,
@@ -345,11 +345,12 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
             placement = search_keep_float(model, quantise, search, options, groups, Path(trials), litert)
             keep_float = placement.float_nodes
             record["search"] = search_record(placement, search, options, SEARCH_RUNTIME)
-            if keep_float:
-                groups, keep_float, narrowing = narrow_keep_float(model, float_content, qsvs, groups, keep_float,
-                                                                  search, options, Path(trials), litert)
+            if keep_float and options.narrow_trials != 0:  # --narrow-trials 0: the blocks stay float whole
+                groups, narrowing = narrow_keep_float(model, float_content, qsvs, groups, keep_float, search,
+                                                      options, Path(trials), litert)
+                keep_float = tuple(narrowing.floats)
                 record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
-                                        narrowing=narrowing)
+                                        narrowing=narrowing.trials, narrowing_untried=narrowing.untried)
     record["keep_float"] = list(keep_float)
     record["int8_operators"] = sum(count for group, count in classify(mac_op_scopes(float_content), groups)
                                    ["int8_candidates_by_group"].items() if group not in keep_float)

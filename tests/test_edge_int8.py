@@ -72,6 +72,7 @@ def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
     # The narrowing left float only layers of the blocks the search kept (or those blocks whole).
     assert search["kept_float"] and all(any(path == block or path.startswith(block + ".") for block in
                                             search["blocks_kept_float"]) for path in search["kept_float"])
+    assert search["narrowing_untried"] == []  # no --narrow-trials: every unit tried
     assert [t["unit"] for t in search["narrowing"] if not t["within"]] == [
         path for path in search["kept_float"] if path not in search["blocks_kept_float"]]
     assert int8_run["code"] == 0 and budget["within"], budget["metrics"]
@@ -159,11 +160,12 @@ def test_quantize_without_data(capsys, tmp_path) -> None:
     assert not out.exists()
 
 
-def test_a_negative_search_is_refused(capsys, tmp_path, quant_data) -> None:
+@pytest.mark.parametrize("flag", ["--search-rounds", "--search-frames", "--narrow-trials"])
+def test_a_negative_search_is_refused(capsys, tmp_path, quant_data, flag) -> None:
     skip_without("executorch")
     out = tmp_path / "et"
     _fails(capsys, ["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize",
-                    "int8", "--data", str(quant_data), "--search-rounds", "-1"], "--search-rounds must be 0 or positive")
+                    "int8", "--data", str(quant_data), flag, "-1"], f"{flag} must be 0 or positive, got -1")
     assert not out.exists()
 
 

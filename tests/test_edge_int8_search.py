@@ -142,12 +142,40 @@ def test_narrowing_returns_a_kept_blocks_operators_to_8_bits_one_at_a_time(monke
 
     monkeypatch.setattr(edge_int8, "check_stepper", judged)
     units = {"blk": ["blk/a", "blk/b", "blk/c"], "one": ["one/x"]}
-    floats, trials = edge_int8.narrow_float_groups(["blk", "one", "whole"], units, lambda floats: floats, None,
-                                                   edge_int8.EdgeInt8Options(), "fake")
-    assert floats == ["blk/b", "one", "whole"]
+    narrowing = edge_int8.narrow_float_groups(["blk", "one", "whole"], units, lambda floats: floats, None,
+                                              edge_int8.EdgeInt8Options(), "fake")
+    assert narrowing.floats == ["blk/b", "one", "whole"] and narrowing.untried == []
     assert tried == [("blk/b", "blk/c", "one", "whole"), ("blk/c", "one", "whole"), ("blk/b", "one", "whole")]
-    assert [(t["unit"], t["within"]) for t in trials] == [("blk/a", True), ("blk/b", False), ("blk/c", True)]
-    assert all(t["group"] == "blk" for t in trials)
+    assert [(t["unit"], t["within"]) for t in narrowing.trials] == [("blk/a", True), ("blk/b", False),
+                                                                    ("blk/c", True)]
+    assert all(t["group"] == "blk" for t in narrowing.trials)
+
+
+@pytest.mark.parametrize("cap, tried_units, floats", [
+    (0, [], ["blk/a", "blk/b", "blk/c", "two/x", "two/y"]),
+    (2, ["blk/a", "blk/b"], ["blk/b", "blk/c", "two/x", "two/y"]),
+    (4, ["blk/a", "blk/b", "blk/c", "two/x"], ["blk/b", "two/y"]),
+    (5, ["blk/a", "blk/b", "blk/c", "two/x", "two/y"], ["blk/b"]),
+    (9, ["blk/a", "blk/b", "blk/c", "two/x", "two/y"], ["blk/b"]),
+])
+def test_narrowing_stops_after_its_trial_cap_and_leaves_the_rest_float(monkeypatch, cap, tried_units,
+                                                                       floats) -> None:
+    """--narrow-trials N: the first N units in order (block by block, largest first within
+    each) are tried; the units past the cap stay float and are named as untried."""
+    from e3dpsm.export import edge_int8
+
+    monkeypatch.setattr(edge_int8, "check_stepper", lambda floats, _s, _b: _Judged("blk/b" in floats, 0.5))
+    units = {"blk": ["blk/a", "blk/b", "blk/c"], "two": ["two/x", "two/y"]}
+    narrowing = edge_int8.narrow_float_groups(["blk", "two"], units, lambda floats: floats, None,
+                                              edge_int8.EdgeInt8Options(narrow_trials=cap), "fake")
+    assert [t["unit"] for t in narrowing.trials] == tried_units
+    assert narrowing.floats == floats
+    assert narrowing.untried == [u for u in ["blk/a", "blk/b", "blk/c", "two/x", "two/y"] if u not in tried_units]
+
+
+def test_a_negative_narrowing_cap_is_refused() -> None:
+    with pytest.raises(ConfigError, match="--narrow-trials must be 0 or positive, got -1"):
+        __import__("e3dpsm.export.edge_int8", fromlist=["x"]).EdgeInt8Options(narrow_trials=-1)
 
 
 def test_a_pte_blocks_units_are_its_8_bit_layers_largest_first(edge_model) -> None:

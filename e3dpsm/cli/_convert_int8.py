@@ -28,6 +28,12 @@ def add_int8_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--search-rounds", type=int, default=4,
                        help="blocks the return-to-float search may keep float when the 8-bit program is over "
                             "budget on the val split (default 4; 0: no search, everything quantisable in 8 bits)")
+    group.add_argument("--search-frames", type=int, default=0,
+                       help="frames per val sequence each search and narrowing trial streams (default 0: all); "
+                            "fewer trade the trials' precision for time")
+    group.add_argument("--narrow-trials", type=int, default=None,
+                       help="narrowing trials at most, largest operators first (default: every operator of the "
+                            "blocks the search kept float; 0: keep those blocks float whole); the untried stay float")
     group.add_argument("--budget-pct", type=positive_float, default=1.0,
                        help="allowed rise of MPJPE and PA-MPJPE over fp32, %% (default 1)")
     add_threads(group)
@@ -49,7 +55,7 @@ def options_from_args(args: argparse.Namespace) -> Any:
     from e3dpsm.export.edge_int8 import EdgeInt8Options
 
     return EdgeInt8Options(frames=args.frames, holdout_frames=args.holdout_frames, search_rounds=args.search_rounds,
-                           threads=args.threads,
+                           search_frames=args.search_frames, narrow_trials=args.narrow_trials, threads=args.threads,
                            budget=TaskBudget(mpjpe_pct=args.budget_pct, pa_mpjpe_pct=args.budget_pct))
 
 
@@ -117,6 +123,8 @@ def _run_edge_int8(args: argparse.Namespace, fmt: str, name: str, modules: tuple
         narrowed = search.get("narrowing")
         print(f"search on {search['frames']} {search['split']} frames, {len(search['trials'])} trial(s)"
               + (f" and {len(narrowed)} narrowing {', '.join(search['blocks_kept_float'])} to operators" if narrowed else "")
+              + (f" ({len(search['narrowing_untried'])} operator(s) past --narrow-trials left float)"
+                 if search.get("narrowing_untried") else "")
               + ": " + (f"kept float {', '.join(kept)}" if kept else "every block in 8 bits")
               + ("" if search["within"] else " (still over budget there)"))
     print(budget_line(check))
