@@ -27,8 +27,9 @@ SIDECAR_SUFFIX = ".json"
 
 
 def encode(meta: GraphMetadata, artifact: Mapping[str, Any]) -> str:
-    """The metadata and the artifact record as one JSON object of strings."""
-    return json.dumps({**meta.to_props(), KEY_ARTIFACT: json.dumps(dict(artifact))}, sort_keys=True)
+    """The metadata and the artifact record as one JSON object of strings, keys sorted at both
+    levels: the same contract gives the same bytes, whatever order a converter built it in."""
+    return json.dumps({**meta.to_props(), KEY_ARTIFACT: json.dumps(dict(artifact), sort_keys=True)}, sort_keys=True)
 
 
 def decode(text: str | bytes, source: str) -> tuple[GraphMetadata, dict[str, Any]]:
