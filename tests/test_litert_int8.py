@@ -10,6 +10,7 @@ fp32 conversion alone takes over a minute on two cores."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -197,6 +198,52 @@ def test_short_tensor_names_change_nothing_but_names_and_size(float_content, tmp
             poses.append(out["pose"])
         rollouts[name] = np.stack(poses)
     assert np.array_equal(rollouts["long"], rollouts["short"])
+
+
+def test_narrowing_a_kept_group_within_its_trial_cap(float_content, edge_model, ranges, tmp_path,
+                                                     monkeypatch) -> None:
+    """narrow_keep_float on the tiny's attention 3 with --narrow-trials 2 and a judge that
+    wants only its second-largest operator float: the two largest are tried (the first goes
+    back to 8 bits, the second stays float), the rest stay float untried; the flatbuffer
+    quantised with what is left float has exactly those operators' weights float (read from
+    the file), and every other operator of the group in 8 bits."""
+    import re
+
+    from e3dpsm.export import edge_int8, litert_int8
+    from e3dpsm.export.litert_export import LiteRTOptions
+
+    groups = litert_int8.group_patterns(edge_model)
+    units = litert_int8.operator_units(float_content, groups, "model.attention.3")
+    assert len(units) >= 4
+
+    def float_ops(content: bytes) -> set[str]:
+        """The units whose operator keeps float weights in `content` (weight types read with
+        the TFLite schema, scopes as the quantizer names them, both in graph order)."""
+        scopes = [op.scope for op in litert_int8._mac_operators(content) if op.name in ("CONV_2D", "FULLY_CONNECTED")]
+        weights = _weight_types(content)
+        assert len(scopes) == len(weights)
+        return {label for label, pattern in units for scope, (_, _, int8) in zip(scopes, weights)
+                if not int8 and re.match(pattern, scope)}
+
+    monkeypatch.setattr(litert_int8, "open_stepper", lambda path, _runtime, _threads: Path(path).read_bytes())
+    monkeypatch.setattr(edge_int8, "check_stepper",
+                        lambda content, _search, _budget: _Judged(units[1][0] in float_ops(content)))
+    fine, narrowing = litert_int8.narrow_keep_float(
+        edge_model, float_content, ranges, groups, ["model.attention.3"], None,
+        edge_int8.EdgeInt8Options(narrow_trials=2), tmp_path, LiteRTOptions(keep_tensor_names=True))  # judged by scope
+    labels = [label for label, _ in units]
+    assert [(t["unit"], t["within"]) for t in narrowing.trials] == [(labels[0], True), (labels[1], False)]
+    assert narrowing.floats == labels[1:] and narrowing.untried == labels[2:]
+    assert "model.attention.3" not in dict(fine) and set(labels) <= set(dict(fine))
+    written = litert_int8.quantised_content(float_content, ranges, fine, narrowing.floats)
+    assert float_ops(written) == set(labels[1:])
+    assert sum(int8 for *_, int8 in _weight_types(written)) == sum(int8 for *_, int8 in _weight_types(
+        litert_int8.quantised_content(float_content, ranges, groups, ()))) - (len(labels) - 1)
+
+
+class _Judged:
+    def __init__(self, within: bool) -> None:
+        self.within, self.worst_share, self.fidelity_pct = within, 0.5 if within else 2.0, 1.0
 
 
 def test_the_code_trace_exposes_every_quantize_and_names_where_codes_part(float_content, edge_model, ranges,
