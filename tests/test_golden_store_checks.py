@@ -20,15 +20,16 @@ FIX = "record the golden again"
 STEPS, FRAME, SNAPSHOTS = 3, [2, 2, 5], [0, 2]  # frames of 20 values: 3 mask bytes, 4 pad bits
 
 
-def _manifest() -> dict:
-    return {"steps": STEPS, "frame_shape": list(FRAME), "outputs": ["pose", "pose_direct"], "joints": ["a", "b"],
+def _manifest(steps: int = STEPS, frame: list[int] = FRAME) -> dict:
+    return {"steps": steps, "frame_shape": list(frame), "outputs": ["pose", "pose_direct"], "joints": ["a", "b"],
             "states": [{"name": "s5", "shape": [1, 4]}, {"name": "scalar", "shape": [1]}],
             "source": {"variant": "tiny"}, "mpjpe_scale_mm": 1000.0,
             "tolerances": {"fp32": tolerances.PROFILES["fp32"].to_dict(), "int8": tolerances.PROFILES["int8"].to_dict()},
             "host_rollouts": [{"file": "host/step-onnxruntime.npz", "sha256": "ab", "runtime": "onnxruntime"}]}
 
 
-def _arrays() -> dict[str, np.ndarray]:
+def _arrays(steps: int = STEPS, frame: list[int] = FRAME, snapshots: list[int] = SNAPSHOTS) -> dict[str, np.ndarray]:
+    STEPS, FRAME, SNAPSHOTS = steps, frame, snapshots  # noqa: N806 (the module's defaults, overridden)
     rng = np.random.default_rng(0)
     marked = rng.random((STEPS, math.prod(FRAME))) < 0.3
     arrays = {"lnes.mask": np.packbits(marked, axis=1), "lnes.nnz": marked.sum(axis=1).astype(np.int32),
@@ -219,12 +220,37 @@ def test_frame_masks_must_agree_with_their_counts_and_the_stored_values() -> Non
 
 
 def test_a_frame_of_whole_bytes_has_no_pad_bits() -> None:
-    manifest = {**_manifest(), "frame_shape": [2, 2, 4]}
-    arrays = _arrays()
-    marked = np.ones((STEPS, 16), bool)
-    arrays.update({"lnes.mask": np.packbits(marked, axis=1), "lnes.nnz": np.full(STEPS, 16, np.int32),
-                   "lnes.values": np.ones(16 * STEPS, np.float32)})
+    """72 values: 9 mask bytes (ceil(72 / 8)), none of them padding."""
+    manifest, arrays = _manifest(frame=[2, 6, 6]), _arrays(frame=[2, 6, 6])
+    marked = np.ones((STEPS, 72), bool)
+    arrays.update({"lnes.mask": np.packbits(marked, axis=1), "lnes.nnz": np.full(STEPS, 72, np.int32),
+                   "lnes.values": np.ones(72 * STEPS, np.float32)})
+    assert arrays["lnes.mask"].shape == (STEPS, 9)
     check_arrays(manifest, arrays, PATH)
+
+
+def test_the_smallest_valid_numbers_pass() -> None:
+    """One step of a one-value frame, a state of one element, a 0.5 ms window and an mpjpe
+    scale under 1 mm are all valid."""
+    manifest = {**_manifest(steps=1, frame=[1, 1, 1]), "mpjpe_scale_mm": 0.5}
+    manifest["states"] = [{"name": "s5", "shape": [1, 1]}, {"name": "scalar", "shape": [1]}]
+    arrays = _arrays(steps=1, frame=[1, 1, 1], snapshots=[0])
+    arrays.update({"window_ms": np.array([0.5], np.float32), "snapshot.s5": np.zeros((1, 1), np.float32),
+                   "state_index.s5": np.array([0]), "state_sample.s5": np.zeros((1, 1), np.float32)})
+    check_manifest(manifest, PATH)
+    check_arrays(manifest, arrays, PATH)
+
+
+def test_snapshot_steps_are_checked_at_their_last_and_shown_eight_at_most() -> None:
+    manifest = _manifest(steps=12)
+    late = _arrays(steps=12, snapshots=[0, 5, 12])
+    with pytest.raises(DataError) as info:
+        check_arrays(manifest, late, PATH)
+    assert str(info.value) == f"{PATH}: snapshot_steps [0, 5, 12] are not increasing steps of 0..11; {FIX}"
+    many = _arrays(steps=12, snapshots=[0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
+    with pytest.raises(DataError) as info:
+        check_arrays(manifest, many, PATH)
+    assert str(info.value) == f"{PATH}: snapshot_steps [0, 1, 2, 3, 4, 5, 6, 7] are not increasing steps of 0..11; {FIX}"
 
 
 # ---- tolerances.py ---------------------------------------------------------------------------------------
