@@ -141,7 +141,7 @@ class LatencyReport:
     out_of_order: int  # poses whose seq was not above the previous one, so far
 
 
-def _number(message: dict[str, Any], key: str, *, required: bool = True) -> float | None:
+def _number(message: dict[str, Any], key: str, *, required: bool) -> float | None:
     value = message.get(key)
     if value is None and not required:
         return None
