@@ -196,7 +196,7 @@ def test_evt3_time_high_wraps_forward_and_a_repeat_is_no_fall(tmp_path) -> None:
 @pytest.mark.parametrize("fall", [1, 1500, 2048])
 def test_evt3_time_high_falling_by_half_its_range_or_less_is_damage(tmp_path, fall) -> None:
     """Word k starts at byte 10 + 2 k (the header "% evt 3.0\\n" is 10 bytes)."""
-    words = [_w3(HIGH, 3000), _w3(Y, 0), _w3(X, 1), _w3(HIGH, 3000 - fall)]
+    words = [_w3(HIGH, 3000), _w3(Y, 0), _w3(X, 1), _w3(HIGH, 3000 - fall), _w3(X, 2), _w3(HIGH, 3005 - fall)]
     with pytest.raises(DataError) as info:
         _read(tmp_path, "k.raw", _raw3(*words))
     assert str(info.value).endswith(f"k.raw: corrupted EVT 3.0 data: time-high goes back from 3000 to "
@@ -206,6 +206,13 @@ def test_evt3_time_high_falling_by_half_its_range_or_less_is_damage(tmp_path, fa
 def test_evt3_a_fall_just_over_half_the_range_is_a_wrap(tmp_path) -> None:
     events, _ = _read(tmp_path, "l.raw", _raw3(_w3(HIGH, 3000), _w3(HIGH, 3000 - 2049), _w3(Y, 0), _w3(X, 1)))
     assert events == [((1 << 24) + ((3000 - 2049) << 12), 1, 0, 0)]
+
+
+def test_evt3_truncated_names_its_byte(tmp_path) -> None:
+    with pytest.raises(DataError) as info:
+        _read(tmp_path, "n.raw", _raw3(_w3(HIGH, 1), _w3(Y, 0)) + b"\x02")
+    assert str(info.value).endswith("n.raw: truncated: the EVT 3.0 record at byte 14 needs 2 bytes, the file ends at "
+                                    "byte 15")
 
 
 def test_evt3_unknown_word_names_its_byte(tmp_path) -> None:
