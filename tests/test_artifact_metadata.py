@@ -28,10 +28,22 @@ def test_the_contract_round_trips_and_its_text_does_not_depend_on_key_order() ->
     assert artifact_metadata.decode(text.encode("utf-8"), "x") == (META, ARTIFACT)
     assert artifact_metadata.encode(META, dict(reversed(list(ARTIFACT.items())))) == text
     props = json.loads(text)
+    assert list(props) == sorted(props)
     assert json.loads(props[artifact_metadata.KEY_ARTIFACT]) == ARTIFACT and props["e3dpsm.artifact"]
     assert all(isinstance(value, str) for value in props.values())  # as an ONNX graph's metadata_props
     without = {k: v for k, v in props.items() if k != "e3dpsm.artifact"}
     assert artifact_metadata.decode(json.dumps(without), "x") == (META, {})  # written before the record existed
+
+
+def test_the_places_a_runtime_reads_are_the_documented_ones() -> None:
+    """docs/edge.md's table of where each format keeps the contract: what runners on other
+    machines (and other people's tools) look for."""
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "edge.md").read_text(encoding="utf-8")
+    assert f"| `.pte` | a constant method `{artifact_metadata.PTE_METHOD}` returning the JSON" in doc
+    assert f"| `.tflite` | a model metadata buffer named `{artifact_metadata.EMBEDDED_NAME}`" in doc
+    assert (artifact_metadata.PTE_METHOD, artifact_metadata.EMBEDDED_NAME) == ("e3dpsm_metadata", "e3dpsm")
 
 
 @pytest.mark.parametrize("text, why", [
@@ -63,7 +75,7 @@ def test_a_sidecar_sits_beside_its_artifact(tmp_path) -> None:
 
 
 # ---- tflite_metadata.py ---------------------------------------------------------------------------------
-def _flatbuffer(tensors: int = 3, outside: bytes = b"") -> bytes:
+def _flatbuffer(tensors: int = 3, outside: bytes = b"", placeholder_offset: bool = False) -> bytes:
     """A TFLite model of one subgraph with `tensors` named tensors and, with `outside`, one
     buffer whose bytes lie past the flatbuffer (offset, size), named as metadata `outside`."""
     import flatbuffers
@@ -84,6 +96,8 @@ def _flatbuffer(tensors: int = 3, outside: bytes = b"") -> bytes:
     metadata.name, metadata.buffer = "min_runtime_version", 1
     first = schema.BufferT()
     first.data = np.frombuffer(b"1.5.0\0", np.uint8)
+    if placeholder_offset:
+        first.offset, first.size = 1, 1
     model.buffers.append(first)
     model.metadata = [metadata]
 
@@ -117,8 +131,21 @@ def test_metadata_entries_are_set_replaced_and_read_by_name() -> None:
     twice = tflite_metadata.with_metadata(once, "e3dpsm", b"")
     assert tflite_metadata.read_metadata(twice) == {"min_runtime_version": b"1.5.0\0", "e3dpsm": b""}
     assert twice[4:8] == b"TFL3"
-    with pytest.raises(ValueError, match="not a TFLite flatbuffer"):
+    with pytest.raises(ValueError) as info:
         tflite_metadata.read_metadata(b"\0" * 4 + b"TFL2" + content[8:])
+    assert str(info.value) == "not a TFLite flatbuffer (no TFL3 identifier)"
+
+
+def test_a_buffer_whose_offset_is_one_keeps_its_data_inside() -> None:
+    """The TFLite schema (schema.fbs, Buffer): data lies outside the flatbuffer only "if offset
+    > 1"; an offset of 1 is a placeholder and the buffer's own data counts."""
+    skip_without("ai_edge_litert")
+    from e3dpsm.runtime import tflite_metadata
+
+    content = _flatbuffer(placeholder_offset=True)
+    assert tflite_metadata.read_metadata(content) == {"min_runtime_version": b"1.5.0\0"}
+    rewritten = tflite_metadata.with_metadata(content, "e3dpsm", b"y")
+    assert tflite_metadata.read_metadata(rewritten) == {"min_runtime_version": b"1.5.0\0", "e3dpsm": b"y"}
 
 
 def test_a_buffer_past_the_flatbuffer_is_read_there_and_moved_inside_on_a_rewrite() -> None:
