@@ -95,6 +95,14 @@ def test_a_width_outside_a_units_range_or_an_unknown_unit_is_refused(widths, err
     assert str(info.value.args[0]).startswith(message)
 
 
+def test_the_narrowest_widths_are_still_units() -> None:
+    """One channel is a width: a residual block or a feed-forward cut to 1 is still there (and
+    may be cut again); only 0 removes."""
+    cfg = config_with_widths(TINY, {"stages.0.block1": 1, "attention.0.ff": 1, "ssm.3.s5": 1})
+    widths = {u.name: u.width for u in prunable_units(cfg)}
+    assert (widths["stages.0.block1"], widths["attention.0.ff"], widths["ssm.3.s5"]) == (1, 1, 1)
+
+
 def test_a_unit_is_a_frozen_record_of_its_scopes() -> None:
     unit = Unit("decoder.ffn", DECODER_FFN, None, None, 8, False, "/a/", ("/b/", "/c/"))
     assert unit.scopes == ("/a/", "/b/", "/c/")
