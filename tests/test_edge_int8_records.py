@@ -4,12 +4,13 @@ No conversion runs here (the converters end to end: test_edge_int8.py, test_lite
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
 from e3dpsm.budget import BudgetCheck, MetricChange, TaskBudget
-from e3dpsm.errors import ConfigError
+from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.export import edge_int8
 from e3dpsm.quantize.holdout import HeldOut
 from e3dpsm.quantize.place import Placement, Trial
@@ -111,3 +112,68 @@ def test_options_without_a_search_need_no_split_of_their_own_and_record_every_fi
                                  "narrow_trials": None, "threads": None, "budget": TaskBudget().to_dict()}
     with pytest.raises(dataclasses.FrozenInstanceError):
         options.frames = 1
+
+
+def test_the_trials_are_logged_and_recorded_as_the_cli_shows_them(monkeypatch, caplog) -> None:
+    """Each search and narrowing trial is one INFO line (the CLI prints them as the conversion
+    goes) and one record in convert.json; the Narrowing is a frozen record. The worst share is
+    the largest upper end over its limit: jitter's 3.0 of 5 where MPJPE's is 0.5 of 1."""
+    import logging
+
+    monkeypatch.setattr(edge_int8, "check_stepper",
+                        lambda floats, _s, _b: _check(mpjpe_upper=0.5 if "g/b" in floats else 1.5))
+    options = edge_int8.EdgeInt8Options(search_rounds=1)
+    with caplog.at_level(logging.INFO, logger="e3dpsm.export.edge_int8"):
+        edge_int8.search_float_groups(["g"], tuple, None, options, "fake")
+        narrowing = edge_int8.narrow_float_groups(["g"], {"g": ["g/a", "g/b"]}, list, None, options, "fake")
+    assert [r.getMessage() for r in caplog.records] == [
+        "INT8 search (fake): all-int8 (0 group(s) float): worst share 1.500",
+        "INT8 search (fake): g (1 group(s) float): worst share 1.500",
+        "INT8 narrowing (fake): g/a in 8 bits: worst share 0.600, within",
+        "INT8 narrowing (fake): g/b in 8 bits: worst share 1.500"]
+    assert narrowing.trials == [
+        {"unit": "g/a", "group": "g", "within": True, "worst_share": 0.6, "distance_pct": pytest.approx(2.5)},
+        {"unit": "g/b", "group": "g", "within": False, "worst_share": 1.5, "distance_pct": pytest.approx(2.5)}]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        narrowing.untried = []
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    """Four short synthetic sequences at the tiny's size (2 train, 1 val, 1 test)."""
+    from _quantize_helpers import make_prepared
+
+    return make_prepared(tmp_path_factory.mktemp("edge_int8_records"), seconds=0.4)
+
+
+def test_the_reference_graph_and_the_held_out_and_search_frames(prepared, tmp_path) -> None:
+    """open_data checks the folder against the model before anything converts; the fp32
+    reference is the step graph in the work folder; the held-out and search sets are the test
+    and val splits, named by folder and split, all frames or the first N of each sequence."""
+    import shutil
+
+    import e3dpsm
+    from e3dpsm.data.prepared import PreparedData
+
+    model = e3dpsm.create_model("tiny").eval()
+    options = edge_int8.EdgeInt8Options(threads=1)
+    data = edge_int8.open_data(prepared, model, options)
+    reference = edge_int8.fp32_reference(model, tmp_path)
+    assert reference == tmp_path / "fp32.onnx" and reference.is_file()
+    held = edge_int8.held_out_set(reference, data, options)
+    search = edge_int8.search_set(reference, data, edge_int8.EdgeInt8Options(threads=1, search_frames=7))
+    assert (held.name, search.name) == ("prepared/test", "prepared/val")
+    assert held.frames == sum(len(s.j3d_mm) for s in PreparedData.open(prepared).split("test"))
+    assert search.frames == 7 * len(PreparedData.open(prepared).split("val"))
+    no_val = tmp_path / "no_val"
+    shutil.copytree(prepared, no_val)
+    meta = json.loads((no_val / "meta.json").read_text())
+    meta["sequences"] = [s for s in meta["sequences"] if s["split"] != "val"]
+    (no_val / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError) as info:
+        edge_int8.open_data(no_val, model, options)
+    assert str(info.value).endswith(": the return-to-float search judges its trials there (--search-rounds 0 "
+                                    "converts without it)")
+    assert edge_int8.open_data(no_val, model, edge_int8.EdgeInt8Options(search_rounds=0)).root == no_val
+    with pytest.raises((DataError, ConfigError)):
+        edge_int8.open_data(prepared, e3dpsm.create_model("tiny", height=96, width=128), options)
