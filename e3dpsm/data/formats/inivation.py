@@ -126,19 +126,19 @@ def _zstd(payload: bytes | memoryview, limit: int) -> tuple[bytes, int]:
     """(decompressed, bytes left over), reading at most `limit` bytes out."""
     zstd = require("zstandard", "reading a Zstd-compressed AEDAT4 stream")
     size = zstd.get_frame_parameters(payload).content_size
-    if size != zstd.CONTENTSIZE_UNKNOWN:  # the frame's size is checked by the decoder too
-        if size > limit:
-            raise ValueError(f"its Zstd frame claims more than {MAX_EXPANSION}x its size")
-        stream = zstd.ZstdDecompressor().decompressobj()
-        out = stream.decompress(payload)
-        return out, len(stream.unused_data)
-    reader, parts, total = zstd.ZstdDecompressor().stream_reader(payload, read_across_frames=False), [], 0
-    while total <= limit and (part := reader.read(1 << 20)):  # at most limit / 1 MiB + 2 reads
-        parts.append(part)
-        total += len(part)
-    if total > limit:
-        raise ValueError(f"it expands more than {MAX_EXPANSION}x")
-    return b"".join(parts), 0
+    if size == zstd.CONTENTSIZE_UNKNOWN:  # measured by reading, in bounded steps
+        reader, total = zstd.ZstdDecompressor().stream_reader(payload, read_across_frames=False), 0
+        while total <= limit and (part := reader.read(1 << 20)):  # at most limit / 1 MiB + 2 reads
+            total += len(part)
+        if total > limit:
+            raise ValueError(f"it expands more than {MAX_EXPANSION}x")
+    elif size > limit:  # the frame's own size, which the decoder holds it to
+        raise ValueError(f"its Zstd frame claims more than {MAX_EXPANSION}x its size")
+    # Now known to fit: decoded whole, so that bytes after the frame are counted (the
+    # streaming reader stops at the frame's end without saying what follows).
+    stream = zstd.ZstdDecompressor().decompressobj()
+    out = stream.decompress(payload)
+    return out, len(stream.unused_data)
 
 
 def decode_event_packet(payload: bytes | memoryview, compression: str) -> np.ndarray:
