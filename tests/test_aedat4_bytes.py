@@ -127,6 +127,8 @@ def test_the_lowest_numbered_event_stream_and_its_sensor(info, expected) -> None
                                                             "positive integers"),
     (_xml(("3", "EVTS", {"sizeX": "a lot", "sizeY": "2"})), "event stream 3 states sensor size a lot x 2, expected "
                                                             "positive integers"),
+    (_xml(("3", "EVTS", {"sizeX": "", "sizeY": "260"})), "event stream 3 states sensor size  x 260, expected "
+                                                         "positive integers"),
     (_xml(("7", "IMUS", {})), "no event stream (no 'EVTS' output in the IO header's stream description)"),
     (b"", "the IO header at byte 18 holds no valid stream description (XML: no element found: line 1, column 0)"),
 ])
@@ -320,3 +322,62 @@ def test_a_missing_decompressor_is_one_line_naming_the_extra(monkeypatch, compre
 def test_an_uncompressed_payload_is_passed_through() -> None:
     payload = memoryview(event_packet(EVENTS))
     assert inivation.decompress(payload, "none") is payload
+
+
+def test_a_second_unsized_zstd_frame_counts_against_the_bound() -> None:
+    """The bounded reader goes on into a frame that follows an unsized one: a second frame of
+    8 MB of zeros, far past the payload's bound, is refused by the bound after at most one
+    step of 1 MiB past it, not decoded whole."""
+    zstd = pytest.importorskip("zstandard")
+    first = zstd.ZstdCompressor(write_content_size=False).compress(event_packet(EVENTS))
+    second = zstd.ZstdCompressor(write_content_size=False).compress(bytes(8 << 20))
+    assert (8 << 20) > inivation.MAX_EXPANSION * len(first + second) + 4096
+    with pytest.raises(ValueError) as info:
+        inivation.decompress(first + second, "zstd")
+    assert str(info.value) == "it expands more than 1024x"
+
+
+# xxHash32 (github.com/Cyan4973/xxHash, doc/xxhash_spec.md) for inputs under 16 bytes: what an
+# LZ4 frame header's checksum byte is made of (the LZ4 frame format, doc/lz4_Frame_format.md:
+# the second byte of xxh32 of the descriptor, seed 0). Checked below against lz4's own header.
+_P1, _P2, _P3, _P4, _P5 = 2654435761, 2246822519, 3266489917, 668265263, 374761393
+
+
+def _xxh32_short(data: bytes) -> int:
+    def rotl(x: int, r: int) -> int:
+        return ((x << r) | (x >> (32 - r))) & 0xFFFFFFFF
+
+    h = (_P5 + len(data)) & 0xFFFFFFFF
+    whole = len(data) - len(data) % 4
+    for i in range(0, whole, 4):
+        h = rotl((h + int.from_bytes(data[i:i + 4], "little") * _P3) & 0xFFFFFFFF, 17) * _P4 & 0xFFFFFFFF
+    for byte in data[whole:]:
+        h = rotl((h + byte * _P5) & 0xFFFFFFFF, 11) * _P1 & 0xFFFFFFFF
+    h = ((h ^ (h >> 15)) * _P2) & 0xFFFFFFFF
+    h = ((h ^ (h >> 13)) * _P3) & 0xFFFFFFFF
+    return h ^ (h >> 16)
+
+
+def _lz4_claiming(lz4, claimed: int) -> bytes:
+    """An LZ4 frame of a real packet whose header claims `claimed` bytes of content (header:
+    magic, FLG, BD, 8-byte content size, checksum byte), its checksum made to match."""
+    frame = bytearray(lz4.compress(event_packet(EVENTS), store_size=True))
+    assert frame[14] == (_xxh32_short(bytes(frame[4:14])) >> 8) & 0xFF  # the checksum as lz4 wrote it
+    struct.pack_into("<Q", frame, 6, claimed)
+    frame[14] = (_xxh32_short(bytes(frame[4:14])) >> 8) & 0xFF
+    assert lz4.get_frame_info(bytes(frame))["content_size"] == claimed
+    return bytes(frame)
+
+
+def test_an_lz4_frame_claiming_more_than_the_bound_is_refused_before_decoding() -> None:
+    """LZ4 cannot expand past about 255x; a header claiming more is damage, refused on its
+    claim. At exactly the bound the claim passes, and the decoder finds the content short."""
+    lz4 = pytest.importorskip("lz4.frame")
+    length = len(_lz4_claiming(lz4, 1))
+    bound = inivation.MAX_EXPANSION * length + 4096
+    with pytest.raises(ValueError) as over:
+        inivation.decompress(_lz4_claiming(lz4, bound + 1), "lz4")
+    assert str(over.value) == "its LZ4 frame claims more than 1024x its size"
+    with pytest.raises(ValueError) as at_bound:
+        inivation.decompress(_lz4_claiming(lz4, bound), "lz4")
+    assert str(at_bound.value).startswith("the lz4 data does not decompress (")
