@@ -46,6 +46,8 @@ def test_growth_needs_twenty_steps_and_a_first_quarter_above_zero() -> None:
     assert _state([0.0] * 5 + [7.0] * 10 + [0.0] * 5).growth == 1.0  # nothing early, nothing late
     assert _state([0.0] * 5 + [7.0] * 10 + [1e-6] * 5).growth == math.inf
     assert _state([1e-13] * 5 + [7.0] * 10 + [1e-13] * 5).growth == 1.0  # both below 1e-12: zero
+    assert _state([1e-12] * 5 + [7.0] * 10 + [2e-12] * 5).growth == math.inf  # 1e-12 itself counts as zero
+    assert _state([0.0] * 5 + [7.0] * 10 + [1e-12] * 5).growth == 1.0
 
 
 @pytest.mark.parametrize("growth_limit, passed", [(None, True), (3.0, True), (2.999, False)])
@@ -65,9 +67,11 @@ def _first_over_growth(errors, limit):
 
 
 def test_a_growth_failure_starts_at_the_first_late_step_over_the_bound() -> None:
-    errors = np.array([1.0] * 6 + [2.0] * 12 + [3.0, 5.0, 4.5, 6.0, 4.0, 7.0])  # n 24, quarters of 6
+    """n 24, quarters of 6: the first quarter's median is 2 (not the 1 of its first four), the
+    bound 4.2 x 2 = 8.4; a late step exactly at the bound is not over it."""
+    errors = np.array([1.0, 1.0, 1.0, 3.0, 3.0, 3.0] + [2.0] * 12 + [6.0, 8.4, 9.0, 10.0, 9.5, 12.0])
     check = _state(errors, growth_limit=4.2)
-    assert not check.growth_passed and check.first_failing_step == _first_over_growth(errors, 4.2) == 19
+    assert not check.growth_passed and check.first_failing_step == _first_over_growth(errors, 4.2) == 20
     all_late = _state([1.0] * 5 + [2.0] * 10 + [9.0] * 5, growth_limit=4.0)
     assert all_late.first_failing_step == 15
     with_step = _state([1.0] * 5 + [2.0] * 10 + [9.0] * 5, growth_limit=4.0, step_limit=1.5)
@@ -139,6 +143,30 @@ def _budget(answer: str, frames: int = 200):
 
 def _golden_check(tensors, budget=None, steps=200, seconds=0.5) -> GoldenCheck:
     return GoldenCheck(PROFILES["int8"], 1000.0, tensors, steps, seconds, budget, {"runtime": "onnxruntime"})
+
+
+def test_a_line_with_both_a_mean_budget_and_a_growth_bound() -> None:
+    check = TensorCheck("pose", "output", HOST_MEASURE, np.ones(20), 5.0, mean_limit=2.0, growth_limit=4.0)
+    assert check.line() == ("output pose                   max 1.000e+00 mm (step limit 5.00e+00) mean 1.000e+00 mm "
+                            "(limit 2.00e+00) growth x1.00 (limit x4)  ok")
+
+
+def test_a_check_without_a_budget_or_host_rollout() -> None:
+    check = GoldenCheck(PROFILES["fp32"], None, [_state(np.ones(20))], 20, 0.1)
+    assert check.budget is None and check.host is None and check.passed
+    assert check.to_dict()["budget"] is None and check.to_dict()["host_rollout"] is None
+
+
+def test_the_worst_metric_is_the_one_furthest_over_its_own_limit() -> None:
+    """MPJPE at 1.2 of its limit of 1% is worse than jitter at 5.5% of 5% (1.1 of its limit),
+    though 5.5 is the larger figure."""
+    metrics = (SimpleNamespace(name="mpjpe", change_pct=0.8, upper_pct=1.2, limit_pct=1.0),
+               SimpleNamespace(name="jitter", change_pct=4.0, upper_pct=5.5, limit_pct=5.0))
+    for answer, start in (("over", "FAILED: over its accuracy budget, mpjpe +0.80%"),
+                          ("undecided", "PASSED: 200 steps within the int8 profile; budget undecided on 200 frames "
+                                        "(mpjpe +0.80%")):
+        budget = SimpleNamespace(answer=answer, metrics=metrics, frames=200)
+        assert _golden_check([_state(np.ones(20))], budget).summary().startswith(start)
 
 
 def test_a_check_passes_on_its_tensors_and_a_budget_not_surely_over() -> None:
@@ -253,3 +281,20 @@ def test_a_states_error_by_hand() -> None:
     assert _state_error(record, "s", 0, nan, 0, exact=False) == math.inf
     empty = _Record(ref[None], np.zeros(0, int), np.zeros((1, 0)), np.array([8.0]))
     assert _state_error(empty, "s", 0, state, None, exact=True) == 0.0
+
+
+def test_a_state_whose_golden_norm_is_exactly_tiny_counts_as_zero() -> None:
+    """The relative RMS error divides by the golden's norm only above 1e-12; at 1e-12 the state
+    is zero, and a difference of at most 1e-12 from it is none."""
+    record = _Record(np.array([[[1e-12, 0.0, 0.0, 0.0]]]), np.array([0]), np.zeros((1, 1)), np.ones(1))
+    assert _state_error(record, "s", 0, np.zeros((1, 1, 4)), 0, exact=False) == 0.0
+
+
+def test_a_compressed_graph_needs_a_golden_with_ground_truth() -> None:
+    from e3dpsm.golden.check import check_golden
+
+    runner = SimpleNamespace(meta=_meta())
+    with pytest.raises(DataError) as info:
+        check_golden(runner, SimpleNamespace(**vars(_golden()), gt_mm=None), PROFILES["int8"])
+    assert str(info.value) == ("the golden has no ground truth, so no accuracy budget for a compressed graph; "
+                               "record it from prepared data or check with --profile fp32")
