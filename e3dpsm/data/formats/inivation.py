@@ -134,8 +134,8 @@ def _zstd(payload: bytes | memoryview, limit: int) -> tuple[bytes, int]:
             raise ValueError(f"it expands more than {MAX_EXPANSION}x")
     elif size > limit:  # the frame's own size, which the decoder holds it to
         raise ValueError(f"its Zstd frame claims more than {MAX_EXPANSION}x its size")
-    # Now known to fit: decoded whole, so that bytes after the frame are counted (the
-    # streaming reader stops at the frame's end without saying what follows).
+    # Now known to fit: decoded by a decoder that stops at the frame's end and keeps what
+    # follows, so that it is counted (the measuring reader goes on into a next frame).
     stream = zstd.ZstdDecompressor().decompressobj()
     out = stream.decompress(payload)
     return out, len(stream.unused_data)
