@@ -118,6 +118,11 @@ class Narrowing:
     trials: list[dict[str, Any]]
     untried: list[str]
 
+    def search_fields(self, blocks: Sequence[str]) -> dict[str, Any]:
+        """Its entries in convert.json's `artifact.search`, beside the `blocks` the search kept."""
+        return {"kept_float": list(self.floats), "blocks_kept_float": list(blocks), "narrowing": self.trials,
+                "narrowing_untried": self.untried}
+
 
 def narrow_float_groups(kept: Sequence[str], units: Mapping[str, Sequence[str]],
                         trial: Callable[[Sequence[str]], Stepper], search: HeldOut, options: EdgeInt8Options,

@@ -275,8 +275,7 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
                 narrowing = narrow_float_groups(keep_float, units, _trial(model, traced, calibrate), search,
                                                 options, SEARCH_RUNTIME)
                 keep_float = tuple(narrowing.floats)
-                record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
-                                        narrowing=narrowing.trials, narrowing_untried=narrowing.untried)
+                record["search"].update(narrowing.search_fields(placement.float_nodes))
         record["keep_float"]["searched"] = list(keep_float)
     result = convert_executorch(model, path, program, precision="int8",
                                 quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,

@@ -349,8 +349,7 @@ def convert_litert_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLi
                 groups, narrowing = narrow_keep_float(model, float_content, qsvs, groups, keep_float, search,
                                                       options, Path(trials), litert)
                 keep_float = tuple(narrowing.floats)
-                record["search"].update(kept_float=list(keep_float), blocks_kept_float=list(placement.float_nodes),
-                                        narrowing=narrowing.trials, narrowing_untried=narrowing.untried)
+                record["search"].update(narrowing.search_fields(placement.float_nodes))
     record["keep_float"] = list(keep_float)
     record["int8_operators"] = sum(count for group, count in classify(mac_op_scopes(float_content), groups)
                                    ["int8_candidates_by_group"].items() if group not in keep_float)

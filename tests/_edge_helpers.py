@@ -12,6 +12,15 @@ from _quantize_helpers import TRAINED_TINY
 GOLDEN_STEPS = 30
 
 
+class Judged:
+    """What check_stepper returns, as far as the INT8 search and narrowing read it: a fake
+    judge's verdict (worst share 0.5 within budget, 2.0 over, unless given)."""
+
+    def __init__(self, within: bool, worst_share: float | None = None) -> None:
+        self.within, self.fidelity_pct = within, 1.0
+        self.worst_share = (0.5 if within else 2.0) if worst_share is None else worst_share
+
+
 def skip_without(module: str) -> None:
     from e3dpsm.utils.extras import missing_reason
 

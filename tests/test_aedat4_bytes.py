@@ -1,7 +1,7 @@
 """e3dpsm/data/formats/inivation.py on AEDAT 4.0 files laid out byte by byte after the format's
 documentation (docs.inivation.com, "AEDAT 4.0": magic, int32 IO header size, IOHeader
 FlatBuffer, packets of int32 stream id, int32 size, payload, an optional data table), with the
-FlatBuffers built by Google's own Builder (tests/test_flatbuffer.py's helpers). Each boundary
+FlatBuffers built by Google's own Builder (tests/_flatbuffer_builders.py). Each boundary
 is met exactly, then missed by one byte, and every refusal is compared whole: a message test
 by pattern would pass a message wrapped in anything. (Files by dv-processing's own writer:
 tests/test_formats.py.)"""
@@ -18,7 +18,7 @@ from e3dpsm.data.formats import inivation
 from e3dpsm.errors import DataError
 
 pytest.importorskip("flatbuffers")
-from test_flatbuffer import EVENTS, event_packet, io_header  # noqa: E402  (needs flatbuffers)
+from _flatbuffer_builders import EVENTS, event_packet, io_header  # noqa: E402  (needs flatbuffers)
 
 MAGIC = b"#!AER-DAT4.0\r\n"  # 14 bytes: the IO header's size is at byte 14, the header at 18
 

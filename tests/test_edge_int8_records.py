@@ -134,6 +134,8 @@ def test_the_trials_are_logged_and_recorded_as_the_cli_shows_them(monkeypatch, c
     assert narrowing.trials == [
         {"unit": "g/a", "group": "g", "within": True, "worst_share": 0.6, "distance_pct": pytest.approx(2.5)},
         {"unit": "g/b", "group": "g", "within": False, "worst_share": 1.5, "distance_pct": pytest.approx(2.5)}]
+    assert narrowing.search_fields(("g",)) == {"kept_float": ["g/b"], "blocks_kept_float": ["g"],
+                                               "narrowing": narrowing.trials, "narrowing_untried": []}
     with pytest.raises(dataclasses.FrozenInstanceError):
         narrowing.untried = []
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from _edge_helpers import skip_without
+from _edge_helpers import Judged, skip_without
 from e3dpsm.errors import ConfigError
 
 TINY_GROUPS = ["model.stem", "model.stages.0", "model.stages.1", "model.stages.2", "model.stages.3",
@@ -120,13 +120,6 @@ def test_a_trial_with_every_block_float_is_the_float_step(trial_steppers, edge_m
     assert np.abs(eight_bit - want).max() > 0.1  # the same frames through 8 bits do move
 
 
-class _Judged:
-    """What check_stepper returns, as far as the narrowing reads it."""
-
-    def __init__(self, within: bool, worst_share: float) -> None:
-        self.within, self.worst_share, self.fidelity_pct = within, worst_share, 1.0
-
-
 def test_narrowing_returns_a_kept_blocks_operators_to_8_bits_one_at_a_time(monkeypatch) -> None:
     """A kept block of three units of which only `b` needs float: the narrowing tries each unit
     in 8 bits in the order given, keeps the two that hold the budget there and leaves `b`
@@ -138,7 +131,7 @@ def test_narrowing_returns_a_kept_blocks_operators_to_8_bits_one_at_a_time(monke
 
     def judged(floats, _search, _budget):
         tried.append(tuple(floats))
-        return _Judged("blk/b" in floats, 0.5 if "blk/b" in floats else 2.0)
+        return Judged("blk/b" in floats, 0.5 if "blk/b" in floats else 2.0)
 
     monkeypatch.setattr(edge_int8, "check_stepper", judged)
     units = {"blk": ["blk/a", "blk/b", "blk/c"], "one": ["one/x"]}
@@ -164,7 +157,7 @@ def test_narrowing_stops_after_its_trial_cap_and_leaves_the_rest_float(monkeypat
     each) are tried; the units past the cap stay float and are named as untried."""
     from e3dpsm.export import edge_int8
 
-    monkeypatch.setattr(edge_int8, "check_stepper", lambda floats, _s, _b: _Judged("blk/b" in floats, 0.5))
+    monkeypatch.setattr(edge_int8, "check_stepper", lambda floats, _s, _b: Judged("blk/b" in floats, 0.5))
     units = {"blk": ["blk/a", "blk/b", "blk/c"], "two": ["two/x", "two/y"]}
     narrowing = edge_int8.narrow_float_groups(["blk", "two"], units, lambda floats: floats, None,
                                               edge_int8.EdgeInt8Options(narrow_trials=cap), "fake")

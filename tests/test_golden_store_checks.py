@@ -29,21 +29,20 @@ def _manifest(steps: int = STEPS, frame: list[int] = FRAME) -> dict:
 
 
 def _arrays(steps: int = STEPS, frame: list[int] = FRAME, snapshots: list[int] = SNAPSHOTS) -> dict[str, np.ndarray]:
-    STEPS, FRAME, SNAPSHOTS = steps, frame, snapshots  # noqa: N806 (the module's defaults, overridden)
     rng = np.random.default_rng(0)
-    marked = rng.random((STEPS, math.prod(FRAME))) < 0.3
+    marked = rng.random((steps, math.prod(frame))) < 0.3
     arrays = {"lnes.mask": np.packbits(marked, axis=1), "lnes.nnz": marked.sum(axis=1).astype(np.int32),
               "lnes.values": rng.random(int(marked.sum())).astype(np.float32),
-              "window_ms": np.full(STEPS, 20.0, np.float32), "snapshot_steps": np.array(SNAPSHOTS, np.int64),
-              "gt_mm": np.zeros((STEPS, 2, 3), np.float32)}
+              "window_ms": np.full(steps, 20.0, np.float32), "snapshot_steps": np.array(snapshots, np.int64),
+              "gt_mm": np.zeros((steps, 2, 3), np.float32)}
     for name in ("pose", "pose_direct"):
-        arrays[f"out.{name}"] = np.zeros((STEPS, 2, 3), np.float32)
-    for name, elements, samples in (("s5", 4, 2), ("scalar", 1, 0)):
-        arrays.update({f"state_absmax.{name}": np.ones(STEPS, np.float32),
+        arrays[f"out.{name}"] = np.zeros((steps, 2, 3), np.float32)
+    for name, dims, samples in (("s5", (4,), 2), ("scalar", (), 0)):
+        elements = math.prod(dims)
+        arrays.update({f"state_absmax.{name}": np.ones(steps, np.float32),
                        f"state_index.{name}": np.arange(samples, dtype=np.int64) * (elements - 1),
-                       f"state_sample.{name}": np.zeros((STEPS, samples), np.float32),
-                       f"snapshot.{name}": np.zeros((len(SNAPSHOTS), *([elements] if name == "s5" else [])),
-                                                    np.float32)})
+                       f"state_sample.{name}": np.zeros((steps, samples), np.float32),
+                       f"snapshot.{name}": np.zeros((len(snapshots), *dims), np.float32)})
     return arrays
 
 

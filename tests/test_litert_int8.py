@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from _edge_helpers import skip_without
+from _edge_helpers import Judged, skip_without
 
 TINY_GROUPS = ["model.stem", "model.stages.0", "model.stages.1", "model.stages.2", "model.stages.3",
                "model.attention.0", "model.attention.1", "model.attention.2", "model.attention.3",
@@ -227,7 +227,7 @@ def test_narrowing_a_kept_group_within_its_trial_cap(float_content, edge_model, 
 
     monkeypatch.setattr(litert_int8, "open_stepper", lambda path, _runtime, _threads: Path(path).read_bytes())
     monkeypatch.setattr(edge_int8, "check_stepper",
-                        lambda content, _search, _budget: _Judged(units[1][0] in float_ops(content)))
+                        lambda content, _search, _budget: Judged(units[1][0] in float_ops(content)))
     fine, narrowing = litert_int8.narrow_keep_float(
         edge_model, float_content, ranges, groups, ["model.attention.3"], None,
         edge_int8.EdgeInt8Options(narrow_trials=2), tmp_path, LiteRTOptions(keep_tensor_names=True))  # judged by scope
@@ -239,11 +239,6 @@ def test_narrowing_a_kept_group_within_its_trial_cap(float_content, edge_model, 
     assert float_ops(written) == set(labels[1:])
     assert sum(int8 for *_, int8 in _weight_types(written)) == sum(int8 for *_, int8 in _weight_types(
         litert_int8.quantised_content(float_content, ranges, groups, ()))) - (len(labels) - 1)
-
-
-class _Judged:
-    def __init__(self, within: bool) -> None:
-        self.within, self.worst_share, self.fidelity_pct = within, 0.5 if within else 2.0, 1.0
 
 
 def test_the_code_trace_exposes_every_quantize_and_names_where_codes_part(float_content, edge_model, ranges,

@@ -135,7 +135,8 @@ def _zstd(payload: bytes | memoryview, limit: int) -> tuple[bytes, int]:
     elif size > limit:  # the frame's own size, which the decoder holds it to
         raise ValueError(f"its Zstd frame claims more than {MAX_EXPANSION}x its size")
     # Now known to fit: decoded by a decoder that stops at the frame's end and keeps what
-    # follows, so that it is counted (the measuring reader goes on into a next frame).
+    # follows, so that it is counted (the measuring reader goes on into a next frame). An
+    # unsized frame is thus decoded twice; dv-processing writes the size, so its files are not.
     stream = zstd.ZstdDecompressor().decompressobj()
     out = stream.decompress(payload)
     return out, len(stream.unused_data)
