@@ -50,6 +50,16 @@ from e3dpsm.utils.isa import detect_isa  # noqa: E402
 RESULTS = ROOT / "benchmarks" / "results"
 SUITE, MIRROR = "bookworm", "http://deb.debian.org/debian"
 SITE, PROJECT, WORK = "opt/site", "opt/e3dpsm", "work"  # inside the root
+# ExecuTorch's Python runtime links torch's libraries. PyPI's aarch64 torch since 2.11 is a CUDA
+# build whose CUDA wheels the registry lacks for aarch64; 2.10.0 is the newest CPU build, and
+# ExecuTorch 1.1.0 the release built against it. Its runtime loads the programs this host's
+# release writes (checked: ET12 programs of 1.5.1, fp32 and INT8); the checks run them with
+# E3DPSM_EXECUTORCH_OTHER_RELEASE=1 and the report names both releases. Kept apart from SITE so
+# that nothing else in the root finds torch.
+EXECUTORCH_SITE = "opt/site-executorch"
+EXECUTORCH_PINS = ("torch==2.10.0", "executorch==1.1.0")
+EXECUTORCH_PURE = ("filelock", "typing-extensions", "sympy", "mpmath", "networkx", "jinja2", "markupsafe", "fsspec",
+                   "ruamel.yaml", "pyyaml", "tabulate")  # what `import torch` and executorch.runtime import
 WHEEL_PLATFORMS = ("manylinux_2_28_aarch64", "manylinux_2_27_aarch64", "manylinux2014_aarch64")
 STAMP = ".e3dpsm-arm-root.json"
 NOISE = ("Error in cpuinfo", "cpuinfo_initialize failed", "W:onnxruntime")  # the emulated root's expected warnings
@@ -123,9 +133,9 @@ def describe_cpu(root: Path) -> None:
         path.write_text(text)
 
 
-def install_packages(root: Path, litert: bool = False) -> None:
-    """The aarch64 wheels of this host's onnxruntime and numpy (and ai-edge-litert for .tflite
-    graphs), and the project from this tree."""
+def install_packages(root: Path, litert: bool = False, executorch: bool = False) -> None:
+    """The aarch64 wheels of this host's onnxruntime and numpy (ai-edge-litert for .tflite
+    graphs, EXECUTORCH_PINS for .pte programs), and the project from this tree."""
     import numpy
     import onnxruntime
 
@@ -140,6 +150,8 @@ def install_packages(root: Path, litert: bool = False) -> None:
     if not all((site / f"{name}.dist-info").exists() for name in wanted):
         run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", "--target", site, *platforms,
              "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *pins])
+    if executorch:
+        install_executorch(root)
     wheels = root / "tmp" / "e3dpsm-wheel"
     shutil.rmtree(wheels, ignore_errors=True)
     build = [] if importlib.util.find_spec("setuptools") is None else ["--no-build-isolation"]  # minutes saved
@@ -177,11 +189,13 @@ DEFAULT_CPU = EmulatedCPU()
 QEMU_IN_ROOT = "/opt/qemu-aarch64"
 
 
-def emulated(root: Path, cmd: list[str], cpu: EmulatedCPU = DEFAULT_CPU) -> str:
+def emulated(root: Path, cmd: list[str], cpu: EmulatedCPU = DEFAULT_CPU, executorch: bool = False) -> str:
     """Run `cmd` inside the root (chroot, through binfmt's qemu or `cpu.qemu`) on `cpu`, one
-    thread; its stdout."""
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": f"/{PROJECT}:/{SITE}", "OMP_NUM_THREADS": "1", "HOME": "/root",
-           **({"QEMU_CPU": cpu.model} if cpu.model else {})}
+    thread; its stdout. `executorch`: with torch and ExecuTorch's runtime importable."""
+    path = f"/{PROJECT}:/{SITE}" + (f":/{EXECUTORCH_SITE}" if executorch else "")
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": path, "OMP_NUM_THREADS": "1", "HOME": "/root",
+           **({"QEMU_CPU": cpu.model} if cpu.model else {}),
+           **({"E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if executorch else {})}
     done = subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()),
                            *cpu.command(cmd)], capture_output=True, text=True)
     quiet = "\n".join(line for line in done.stderr.splitlines() if not any(n in line for n in NOISE))
@@ -190,15 +204,15 @@ def emulated(root: Path, cmd: list[str], cpu: EmulatedCPU = DEFAULT_CPU) -> str:
     return done.stdout
 
 
-def emulated_machine(root: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> dict:
+def emulated_machine(root: Path, cpu: EmulatedCPU = DEFAULT_CPU, executorch: bool = False) -> dict:
     """What the emulated CPU says about itself: ISA flags, versions, qemu."""
     probe = ("import json, platform, importlib.metadata as m, numpy, onnxruntime; "
              "from e3dpsm.utils.isa import detect_isa; "
-             "litert = [d.version for d in m.distributions() if d.metadata['Name'] == 'ai-edge-litert']; "
+             "v = {d.metadata['Name']: d.version for d in m.distributions()}; "
              "print(json.dumps({'machine': platform.machine(), 'python': platform.python_version(), "
              "'isa': detect_isa().to_dict(), 'numpy': numpy.__version__, 'onnxruntime': onnxruntime.__version__, "
-             "'ai_edge_litert': litert[0] if litert else None}))")
-    info = json.loads(emulated(root, ["python3", "-c", probe], cpu).strip().splitlines()[-1])
+             "'ai_edge_litert': v.get('ai-edge-litert'), 'executorch': v.get('executorch'), 'torch': v.get('torch')}))")
+    info = json.loads(emulated(root, ["python3", "-c", probe], cpu, executorch).strip().splitlines()[-1])
     info.update(qemu=cpu.version(root), cpu=cpu.name)
     return info
 
@@ -220,6 +234,18 @@ def emulated_delegation(root: Path, graphs: list[Path], cpu: EmulatedCPU = DEFAU
                  "i.allocate_tensors(); print(sum(d['op_name'] == 'DELEGATE' for d in i._get_ops_details()))")
         partitions[graph.name] = int(emulated(root, ["python3", "-c", probe], cpu).strip().splitlines()[-1])
     return partitions
+
+
+def install_executorch(root: Path) -> None:
+    """EXECUTORCH_PINS without their dependencies (torch's would pull CUDA wheels), and the pure
+    Python packages their imports need, into EXECUTORCH_SITE."""
+    platforms = [a for p in WHEEL_PLATFORMS for a in ("--platform", p)]
+    site = root / EXECUTORCH_SITE
+    if all(any(site.glob(f"{pin.replace('==', '-')}*.dist-info")) for pin in EXECUTORCH_PINS):
+        return
+    run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", "--no-deps", "--target", site, *platforms,
+         "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *EXECUTORCH_PINS,
+         *EXECUTORCH_PURE])
 
 
 def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
@@ -269,7 +295,7 @@ def emulated_checks(root: Path, graphs: list[Path], work: Path, cpu: EmulatedCPU
     shutil.rmtree(out, ignore_errors=True)
     emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *(_inside(root, g) for g in graphs),
                     "--golden", _inside(root, work / "golden"), "--out", _inside(root, out), "--threads", "1",
-                    "--exit-zero"], cpu)
+                    "--exit-zero"], cpu, executorch=any(g.suffix == ".pte" for g in graphs))
     return collect_checks(root, graphs, out)
 
 
@@ -376,6 +402,9 @@ def markdown(report: dict) -> str:
     for run in report["runs"]:
         device = run["emulated"]
         litert = f", ai-edge-litert {device['ai_edge_litert']}" if device.get("ai_edge_litert") else ""
+        if device.get("executorch"):
+            litert += (f", executorch {device['executorch']} with torch {device['torch']} (the .pte programs "
+                       f"were written by executorch {host.get('executorch')}; E3DPSM_EXECUTORCH_OTHER_RELEASE=1)")
         lines.append(f"- CPU `{run['cpu']}`: {device['qemu']}, {device['machine']}, Python {device['python']}, "
                      f"ISA {device['isa']['kind']} ({' '.join(device['isa']['flags'])}), onnxruntime "
                      f"{device['onnxruntime']}, numpy {device['numpy']}{litert}.")
@@ -456,13 +485,13 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0]
     if graphs[0].suffix != ".onnx":
         fail(f"--graphs: the first graph is the golden's fp32 ONNX graph, not {graphs[0].name}")
-    unsupported = [g.name for g in graphs if g.suffix not in (".onnx", ".tflite")]
+    unsupported = [g.name for g in graphs if g.suffix not in (".onnx", ".tflite", ".pte")]
     if unsupported:
-        fail(f"--graphs: {', '.join(unsupported)}: only .onnx and .tflite run in the emulated root (a .pte "
-             "needs torch there, and PyPI's aarch64 torch is the CUDA build)")
+        fail(f"--graphs: {', '.join(unsupported)}: only .onnx, .tflite and .pte run in the emulated root")
     setup_root(args.root)
     describe_cpu(args.root)
-    install_packages(args.root, litert=any(g.suffix == ".tflite" for g in graphs))
+    install_packages(args.root, litert=any(g.suffix == ".tflite" for g in graphs),
+                     executorch=any(g.suffix == ".pte" for g in graphs))
     qemu = install_qemu(args.root, args.qemu)
     work = args.root / WORK / "arm_emulation"
     staged = stage_graphs(graphs, work)
@@ -485,7 +514,8 @@ def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: Emulat
         name = Path(check["model"]).name
         check["xnnpack_partitions"] = partitions.get(name)
         check["arm_ready"] = arm_ready(check, traces.get(name), code_traces.get(name))
-    return {"cpu": cpu.name, "emulated": emulated_machine(root, cpu), "checks": checks, "traces": traces,
+    machine = emulated_machine(root, cpu, executorch=any(g.suffix == ".pte" for g in staged))
+    return {"cpu": cpu.name, "emulated": machine, "checks": checks, "traces": traces,
             "code_traces": code_traces}
 
 
@@ -496,11 +526,18 @@ def write_report(args: argparse.Namespace, runs: list[dict], load: float) -> int
     report = report_header("benchmarks/arm_emulation.py", {k: str(v) for k, v in vars(args).items()})
     report.update(steps=args.steps, load_average=round(load, 2), runs=runs,
                   host={"isa": detect_isa().to_dict(), "onnxruntime": onnxruntime.__version__,
-                        "numpy": numpy.__version__})
+                        "numpy": numpy.__version__, "executorch": _version("executorch")})
     write_json_atomic(args.out.with_suffix(".json"), report)
     write_text_atomic(args.out.with_suffix(".md"), markdown(report))
     print(markdown(report))
     return 0
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from _benchmark_scripts import load_benchmark
-from _edge_helpers import edge_model, tflite_path  # noqa: F401
+from _edge_helpers import edge_model, pte_path, tflite_path  # noqa: F401
 from _quantize_helpers import int8_dir, int8_test_budget, quant_data, trained_graph  # noqa: F401
 
 ARM_ROOT = os.environ.get("E3DPSM_ARM_ROOT")
@@ -84,5 +84,25 @@ def test_tiny_tflite_under_emulation(arm_root, trained_graph, tflite_path, quant
         tflite = checks[graphs[1].name]
         assert tflite["status"] == "passed" and tflite["profile"] == "fp32"
         assert all(0 < f["max"] <= 0.01 for f in tflite["host_rollout"].values())
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def test_tiny_pte_under_emulation(arm_root, trained_graph, pte_path, quant_data) -> None:  # noqa: F811
+    """The fp32 `.pte` on emulated aarch64 (ExecuTorch 1.1's runtime there, EXECUTORCH_PINS:
+    the newest with a CPU build of torch for aarch64 on PyPI), within fp32 parity (0.01 mm) of
+    this host's ONNX Runtime rollout at every step."""
+    script = _script()
+    script.install_executorch(arm_root)
+    work = arm_root / script.WORK / f"pytest-et-{os.getpid()}"
+    try:
+        graphs = script.stage_graphs([trained_graph, pte_path], work)
+        script.host_golden(graphs[0], graphs[1:], str(quant_data), STEPS, work)
+        checks = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}
+        machine = script.emulated_machine(arm_root, executorch=True)
+        assert machine["executorch"] == script.EXECUTORCH_PINS[1].split("==")[1]
+        pte = checks[graphs[1].name]
+        assert pte["status"] == "passed" and pte["profile"] == "fp32"
+        assert all(0 < f["max"] <= 0.01 for f in pte["host_rollout"].values())
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from e3dpsm.cli import main
+from e3dpsm.errors import DataError
 from e3dpsm.golden.check import check_golden
 from e3dpsm.golden.store import load_golden
 from e3dpsm.golden.tolerances import PROFILES
@@ -170,6 +171,25 @@ def test_a_pte_from_another_executorch_version(pte_path, edge_golden, tmp_path, 
     _fails_with(capsys, ["golden", "check", "--model", str(schema), "--golden", str(edge_golden), "--out",
                          str(tmp_path / "chk")], "cannot load", "ET99")
     assert not (tmp_path / "chk").exists()
+
+
+def test_a_pte_of_another_release_runs_when_asked(pte_path, tmp_path, monkeypatch) -> None:
+    """E3DPSM_EXECUTORCH_OTHER_RELEASE=1 (the emulated aarch64 root's runtime is an older
+    release): the same program, relabelled as written by 0.9.9, is read instead of refused."""
+    from e3dpsm.runtime.executorch_session import OTHER_RELEASE_ENV, executorch_version, load_program, program_metadata
+
+    recorded = f'\\"executorch\\": \\"{executorch_version()}\\"'.encode()
+    other = tmp_path / "other_version.pte"
+    other.write_bytes(pte_path.read_bytes().replace(recorded, recorded.replace(executorch_version().encode(), b"0.9.9")))
+    monkeypatch.setenv(OTHER_RELEASE_ENV, "1")
+    meta, artifact = program_metadata(other, load_program(other))
+    assert artifact["versions"]["executorch"] == "0.9.9"
+    assert meta == program_metadata(pte_path, load_program(pte_path))[0]
+    monkeypatch.setenv(OTHER_RELEASE_ENV, "0")  # only "1" lets it through
+    with pytest.raises(DataError) as refused:
+        program_metadata(other, load_program(other))
+    assert str(refused.value) == (f"{other} was written by ExecuTorch 0.9.9, this runtime is {executorch_version()}; "
+                                  "convert it again here, or run it with executorch==0.9.9")
 
 
 def _without_metadata(content: bytes, name: str) -> bytes:

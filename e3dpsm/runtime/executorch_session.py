@@ -5,7 +5,8 @@ links the C++ runtime instead).
 
 The state layout is the program's own constant method `e3dpsm_metadata`
 (runtime/artifact_metadata.py), with the input and output order it was written in and the
-ExecuTorch version that wrote it: a program from another version is refused before it runs."""
+ExecuTorch version that wrote it: a program from another release is refused before it runs
+(unless OTHER_RELEASE_ENV says to run it anyway)."""
 from __future__ import annotations
 
 import contextlib
@@ -24,6 +25,10 @@ from e3dpsm.runtime.artifact_session import ArtifactSession
 from e3dpsm.utils.extras import require
 
 FORMAT = "executorch"
+# "1": run a program written by another ExecuTorch release instead of refusing it. For checks
+# across releases only, e.g. benchmarks/arm_emulation.py, whose aarch64 root has the newest
+# runtime PyPI pairs with a CPU build of torch for aarch64, not the release that wrote the program.
+OTHER_RELEASE_ENV = "E3DPSM_EXECUTORCH_OTHER_RELEASE"
 PTE_IDENTIFIER_AT = slice(4, 8)  # the flatbuffer file identifier ("ET12" for ExecuTorch 1.x)
 
 
@@ -73,7 +78,7 @@ def program_metadata(path: str | os.PathLike, program: Any):
                             "write it with `e3dpsm convert executorch`")
     meta, artifact = decode(program.load_method(PTE_METHOD).execute([])[0], str(path))
     written_by = str(artifact.get("versions", {}).get("executorch"))
-    if not same_release(written_by, executorch_version()):
+    if not same_release(written_by, executorch_version()) and os.environ.get(OTHER_RELEASE_ENV) != "1":
         raise DataError(f"{path} was written by ExecuTorch {written_by}, this runtime is {executorch_version()}; "
                         f"convert it again here, or run it with executorch=={written_by}")
     return meta, artifact
