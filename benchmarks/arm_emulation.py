@@ -192,16 +192,32 @@ QEMU_IN_ROOT = "/opt/qemu-aarch64"
 def emulated(root: Path, cmd: list[str], cpu: EmulatedCPU = DEFAULT_CPU, executorch: bool = False) -> str:
     """Run `cmd` inside the root (chroot, through binfmt's qemu or `cpu.qemu`) on `cpu`, one
     thread; its stdout. `executorch`: with torch and ExecuTorch's runtime importable."""
-    path = f"/{PROJECT}:/{SITE}" + (f":/{EXECUTORCH_SITE}" if executorch else "")
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": path, "OMP_NUM_THREADS": "1", "HOME": "/root",
-           **({"QEMU_CPU": cpu.model} if cpu.model else {}),
-           **({"E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if executorch else {})}
-    done = subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()),
-                           *cpu.command(cmd)], capture_output=True, text=True)
+    done = _emulated_process(root, cmd, cpu, executorch)
     quiet = "\n".join(line for line in done.stderr.splitlines() if not any(n in line for n in NOISE))
     if done.returncode:
         fail(f"under emulation, {' '.join(cmd[:4])} ... exited {done.returncode}: {quiet[-2000:]}")
     return done.stdout
+
+
+def _emulated_process(root: Path, cmd: list[str], cpu: EmulatedCPU, executorch: bool) -> subprocess.CompletedProcess:
+    path = f"/{PROJECT}:/{SITE}" + (f":/{EXECUTORCH_SITE}" if executorch else "")
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": path, "OMP_NUM_THREADS": "1", "HOME": "/root",
+           **({"QEMU_CPU": cpu.model} if cpu.model else {}),
+           **({"E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if executorch else {})}
+    return subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()),
+                           *cpu.command(cmd)], capture_output=True, text=True)
+
+
+def executorch_refusal(root: Path, cpu: EmulatedCPU) -> str | None:
+    """Why .pte programs cannot run on `cpu` in the root (None: they can). PyPI's aarch64 torch
+    is built for ARMv8.2 and later: on an ARMv8.0 core (cortex-a72) its import dies of SIGILL.
+    That is the Python harness, not ExecuTorch: a device app links the C++ runtime, no torch."""
+    done = _emulated_process(root, ["python3", "-c", "import torch, executorch.runtime"], cpu, True)
+    if done.returncode == 0:
+        return None
+    if done.returncode == -4 or "Illegal instruction" in done.stderr:
+        return f"torch {EXECUTORCH_PINS[0].split('==')[1]} for aarch64 dies of an illegal instruction on `{cpu.name}`"
+    return f"`import torch, executorch.runtime` exited {done.returncode} on `{cpu.name}`"
 
 
 def emulated_machine(root: Path, cpu: EmulatedCPU = DEFAULT_CPU, executorch: bool = False) -> dict:
@@ -280,13 +296,24 @@ def stage_graphs(graphs: list[Path], work: Path) -> list[Path]:
     return staged
 
 
-def host_golden(fp32: Path, others: list[Path], data: str, steps: int, work: Path) -> Path:
-    """The fp32 graph's golden rollout on this host, with this host's rollouts of `others`."""
+def host_golden(fp32: Path, others: list[Path], data: str, steps: int, work: Path,
+                python: str = sys.executable) -> Path:
+    """The fp32 graph's golden rollout on this host, with this host's rollouts of `others`, made
+    by `python` (another environment: e.g. one with the root's ExecuTorch release, so that a
+    .pte's comparison differs in the ISA alone)."""
     golden = work / "golden"
-    run([sys.executable, "-m", "e3dpsm", "golden", "record", "--model", fp32, "--data", data, "--steps", steps,
+    env = {**os.environ, "E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if python != sys.executable else None
+    run([python, "-m", "e3dpsm", "golden", "record", "--model", fp32, "--data", data, "--steps", steps,
          "--threads", 1, "--out", golden, "--force", *(["--also", *others] if others else [])],
-        stdout=subprocess.DEVNULL)
+        stdout=subprocess.DEVNULL, env=env)
     return golden
+
+
+def host_executorch(python: str) -> str | None:
+    """The ExecuTorch release `python` runs (None: not installed)."""
+    probe = "import importlib.metadata as m; print(m.version('executorch'))"
+    done = subprocess.run([python, "-c", probe], capture_output=True, text=True)
+    return done.stdout.strip() or None if done.returncode == 0 else None
 
 
 def emulated_checks(root: Path, graphs: list[Path], work: Path, cpu: EmulatedCPU = DEFAULT_CPU) -> list[dict]:
@@ -403,8 +430,8 @@ def markdown(report: dict) -> str:
         device = run["emulated"]
         litert = f", ai-edge-litert {device['ai_edge_litert']}" if device.get("ai_edge_litert") else ""
         if device.get("executorch"):
-            litert += (f", executorch {device['executorch']} with torch {device['torch']} (the .pte programs "
-                       f"were written by executorch {host.get('executorch')}; E3DPSM_EXECUTORCH_OTHER_RELEASE=1)")
+            litert += (f", executorch {device['executorch']} with torch {device['torch']} (the host's rollouts "
+                       f"by executorch {host.get('executorch')}; E3DPSM_EXECUTORCH_OTHER_RELEASE=1)")
         lines.append(f"- CPU `{run['cpu']}`: {device['qemu']}, {device['machine']}, Python {device['python']}, "
                      f"ISA {device['isa']['kind']} ({' '.join(device['isa']['flags'])}), onnxruntime "
                      f"{device['onnxruntime']}, numpy {device['numpy']}{litert}.")
@@ -419,6 +446,9 @@ def markdown(report: dict) -> str:
                 lines.append(f"| {run['cpu']} | {name} | {check['profile']} | {output} | {fig['measure']} | "
                              f"{fig['max']:.3g} | {fig['mean']:.3g} | {limits} | {'ok' if fig['passed'] else '**over**'} | "
                              f"{'yes' if ready['ready'] else '**no**'} |")
+    for run in report["runs"]:
+        if run.get("pte_not_run"):
+            lines += ["", f"`.pte` programs not run on `{run['cpu']}`: {run['pte_not_run']}."]
     for run in report["runs"]:
         partitions = {Path(c["model"]).name: c["xnnpack_partitions"] for c in run["checks"]
                       if c.get("xnnpack_partitions") is not None}
@@ -475,6 +505,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="where the codes part: the kernel-parity trace of every QDQ graph, the code trace of "
                              "every INT8 .tflite")
     parser.add_argument("--portable", action="store_true", help="check each QDQ graph's portable form too")
+    parser.add_argument("--host-python", default=sys.executable,
+                        help="the Python that records the host's rollouts (default this one); for .pte programs, "
+                             f"one with {' '.join(EXECUTORCH_PINS)} makes the host and the root run the same "
+                             "ExecuTorch release, so the comparison differs in the ISA alone (docs/edge.md)")
     parser.add_argument("--out", type=Path, default=RESULTS / "arm_emulation", help="report stem (.json, .md)")
     args = parser.parse_args(argv)
     graphs = [Path(g) for g in args.graphs]
@@ -497,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     staged = stage_graphs(graphs, work)
     if args.portable:
         staged += portable_graphs(staged[1:], work)
-    host_golden(staged[0], staged[1:], args.data, args.steps, work)
+    host_golden(staged[0], staged[1:], args.data, args.steps, work, args.host_python)
     runs = [check_on(args.root, staged, work, args.steps, EmulatedCPU(None if m == "max" else m, qemu), args.trace)
             for m in args.cpus]
     return write_report(args, runs, load)
@@ -506,6 +540,10 @@ def main(argv: list[str] | None = None) -> int:
 def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool) -> dict:
     """Every staged graph's golden check on one emulated CPU (with the traces if asked: the
     kernel trace of each QDQ graph, the code trace of each INT8 .tflite)."""
+    refusal = executorch_refusal(root, cpu) if any(g.suffix == ".pte" for g in staged) else None
+    if refusal:  # the other graphs are still checked on this CPU
+        print(f"{cpu.name}: .pte programs not run: {refusal}")
+        staged = [g for g in staged if g.suffix != ".pte"]
     checks = emulated_checks(root, staged, work, cpu)
     partitions = emulated_delegation(root, staged, cpu)
     traces = kernel_traces(root, staged[1:], work, steps, cpu) if trace else {}
@@ -516,7 +554,7 @@ def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: Emulat
         check["arm_ready"] = arm_ready(check, traces.get(name), code_traces.get(name))
     machine = emulated_machine(root, cpu, executorch=any(g.suffix == ".pte" for g in staged))
     return {"cpu": cpu.name, "emulated": machine, "checks": checks, "traces": traces,
-            "code_traces": code_traces}
+            "code_traces": code_traces, "pte_not_run": refusal}
 
 
 def write_report(args: argparse.Namespace, runs: list[dict], load: float) -> int:
@@ -526,18 +564,11 @@ def write_report(args: argparse.Namespace, runs: list[dict], load: float) -> int
     report = report_header("benchmarks/arm_emulation.py", {k: str(v) for k, v in vars(args).items()})
     report.update(steps=args.steps, load_average=round(load, 2), runs=runs,
                   host={"isa": detect_isa().to_dict(), "onnxruntime": onnxruntime.__version__,
-                        "numpy": numpy.__version__, "executorch": _version("executorch")})
+                        "numpy": numpy.__version__, "executorch": host_executorch(args.host_python)})
     write_json_atomic(args.out.with_suffix(".json"), report)
     write_text_atomic(args.out.with_suffix(".md"), markdown(report))
     print(markdown(report))
     return 0
-
-
-def _version(distribution: str) -> str | None:
-    try:
-        return importlib.metadata.version(distribution)
-    except importlib.metadata.PackageNotFoundError:
-        return None
 
 
 if __name__ == "__main__":
