@@ -125,10 +125,11 @@ def test_sent_counts_what_was_written(clock) -> None:
     clock[0] += 0.030  # 30 ms later
     channel.sent("pose", _pose(12, window_end_ms=NOW_S * 1e3))
     channel.sent("frame", None)
+    channel.sent("frame", None)
     channel.sent("control", None)
     channel.sent("pose", None)  # a pose kind without its message counts nothing
     summary = channel.summary()
-    assert (summary["poses_sent"], summary["last_seq_sent"], summary["frames_sent"]) == (2, 12, 1)
+    assert (summary["poses_sent"], summary["last_seq_sent"], summary["frames_sent"]) == (2, 12, 2)
     latency = summary["sent_latency_ms"]
     assert latency["count"] == 2 and latency["max"] == pytest.approx(30.0)
     assert channel.sent_latency_ms.min == pytest.approx(20.0)
@@ -150,7 +151,7 @@ def test_closing_is_recorded_once(clock) -> None:
     channel.closed(1001, "going away")
     clock[0] += 1.0
     channel.closed(1006, "later")
-    assert not channel.open
+    assert channel.open is False
     summary = channel.summary()
     assert (summary["closed_wall_ms"], summary["close_code"], summary["close_reason"]) == (
         (NOW_S + 2.5) * 1e3, 1001, "going away")
