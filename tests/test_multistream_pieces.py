@@ -183,3 +183,131 @@ def test_the_last_state_is_fed_back_only_to_the_same_rows() -> None:
     for sid, events in (("a", a), ("b", b)):
         assert [p.t_start_us for p in got[sid]] == [1_000_000 + k * WINDOW_US for k in range(5)]
         np.testing.assert_allclose([p.outputs["pose"] for p in got[sid]], _expected_rows(events, 5), rtol=1e-6)
+
+
+class SteppedClock:
+    """time.perf_counter that moves only where the estimator spends time on purpose here:
+    STEP_COST_S per session call plus ROW_COST_S per row (inside the step), LNES_COST_S per
+    window's LNES frame, PUSH_COST_S per chunk cut into windows."""
+
+    STEP_COST_S, ROW_COST_S, LNES_COST_S, PUSH_COST_S = 0.001, 0.004, 0.002, 0.0005
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture()
+def stepped(monkeypatch):
+    from e3dpsm.runtime import multistream
+
+    clock = SteppedClock()
+    monkeypatch.setattr(multistream.time, "perf_counter", clock)
+    lnes, push = multistream.events_to_lnes, multistream.EventWindower.push
+
+    def timed_lnes(*args, **kwargs):
+        clock.now += clock.LNES_COST_S
+        return lnes(*args, **kwargs)
+
+    def timed_push(self, *args):
+        clock.now += clock.PUSH_COST_S
+        return push(self, *args)
+
+    monkeypatch.setattr(multistream, "events_to_lnes", timed_lnes)
+    monkeypatch.setattr(multistream.EventWindower, "push", timed_push)
+
+    class TimedStepper(CountingStepper):
+        def step(self, frames, state, windows):
+            clock.now += clock.STEP_COST_S + clock.ROW_COST_S * len(frames)
+            return super().step(frames, state, windows)
+
+    return clock, TimedStepper()
+
+
+def test_time_is_split_between_the_session_and_the_rest(stepped) -> None:
+    clock, stepper = stepped
+    estimator = MultiStreamEstimator(stepper)
+    a, b = _events(1, 3), _events(2, 5)
+    estimator.add_stream("a", start_us=1_000_000)
+    estimator.add_stream("b", start_us=1_000_000)
+    estimator.push_many({"a": a, "b": b})  # rounds: (a, b), (a, b), (b), (b)
+    estimator.finish_many()  # (a, b)
+    assert stepper.calls == [2, 2, 1, 1, 2]
+    c = clock
+    step_total = 5 * c.STEP_COST_S + 8 * c.ROW_COST_S
+    assert estimator.stats.step_seconds == pytest.approx(step_total)
+    assert estimator.stats.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 8 * c.LNES_COST_S)
+    shared, alone = (c.STEP_COST_S + 2 * c.ROW_COST_S) / 2, c.STEP_COST_S + c.ROW_COST_S
+    stats_a, stats_b = estimator.stream_stats("a"), estimator.stream_stats("b")
+    assert stats_a.step_seconds == pytest.approx(3 * shared)
+    assert stats_b.step_seconds == pytest.approx(3 * shared + 2 * alone)
+    assert stats_a.overhead_seconds == pytest.approx(c.PUSH_COST_S + 3 * c.LNES_COST_S)
+    assert stats_b.overhead_seconds == pytest.approx(c.PUSH_COST_S + 5 * c.LNES_COST_S)
+    figures = estimator.stats.to_dict()
+    assert figures["mean_batch"] == 8 / 5 and figures["mean_step_ms_per_pose"] == pytest.approx(step_total * 1e3 / 8)
+
+
+def test_stream_counters(stepped) -> None:
+    estimator = MultiStreamEstimator(stepped[1])
+    x, y, t, p = _events(3, 4)
+    early = np.array([990_000, 995_000], np.int64)  # before the stream's start: skipped and counted
+    silent = (t >= 1_000_000 + WINDOW_US) & (t < 1_000_000 + 2 * WINDOW_US)  # window 1 left empty
+    keep = ~silent
+    x, y, t, p = (np.concatenate([v[:2], v[keep]]) for v in (x, y, t, p))
+    t[:2] = early
+    estimator.add_stream("cam", start_us=1_000_000)
+    estimator.push("cam", x[:50], y[:50], t[:50], p[:50])
+    estimator.push("cam", x[50:], y[50:], t[50:], p[50:])
+    estimator.finish("cam")
+    stats = estimator.stream_stats("cam")
+    assert (stats.windows, stats.empty_windows, stats.events_received, stats.events_before_start, stats.events) == (
+        4, 1, len(t), 2, len(t) - 2)
+
+
+def test_where_a_streams_windows_start() -> None:
+    estimator = MultiStreamEstimator(CountingStepper())
+    estimator.add_stream("given", start_us=900_000)
+    estimator.add_stream("first_event")
+    assert estimator.first_window_start_us("given") == 900_000
+    assert estimator.first_window_start_us("first_event") is None  # no event yet
+    estimator.push("first_event", *_events(4, 2, t0=1_234_567))
+    estimator.push("given", *_events(4, 2, t0=1_000_000))
+    assert estimator.first_window_start_us("first_event") == 1_234_567
+    assert estimator.first_window_start_us("given") == 900_000
+
+
+def test_a_bad_chunk_is_named_by_its_stream() -> None:
+    from e3dpsm.runtime.stream import EventWindower
+
+    x, y, t, p = _events(5, 2)
+    t = t[::-1].copy()  # time runs backwards
+    with pytest.raises(InputError) as inner:
+        EventWindower(WINDOW_US, META_SENSOR_HW, 1_000_000).push(x, y, t, p)
+    estimator = MultiStreamEstimator(CountingStepper())
+    estimator.add_stream("cam", start_us=1_000_000)
+    with pytest.raises(InputError) as refused:
+        estimator.push("cam", x, y, t, p)
+    assert str(refused.value) == f"stream 'cam': {inner.value}"
+
+
+def test_a_steady_set_of_rows_gets_its_state_back_as_the_session_returned_it() -> None:
+    """No gather or scatter while the same rows step: the state object the session returned
+    is what it is given next (an IOBindingStepSession's device state stays on the device)."""
+    fed_back = []
+
+    class Recording(CountingStepper):
+        last = None
+
+        def step(self, frames, state, windows):
+            fed_back.append(state is self.last)
+            outputs, self.last = super().step(frames, state, windows)
+            return outputs, self.last
+
+    estimator = MultiStreamEstimator(Recording())
+    estimator.add_stream("a", start_us=1_000_000)
+    estimator.add_stream("b", start_us=1_000_000)
+    estimator.push_many({"a": _events(1, 4), "b": _events(2, 4)})
+    estimator.finish_many()
+    assert fed_back == [False, True, True, True]
