@@ -188,9 +188,10 @@ def test_the_last_state_is_fed_back_only_to_the_same_rows() -> None:
 class SteppedClock:
     """time.perf_counter that moves only where the estimator spends time on purpose here:
     STEP_COST_S per session call plus ROW_COST_S per row (inside the step), LNES_COST_S per
-    window's LNES frame, PUSH_COST_S per chunk cut into windows."""
+    window's LNES frame, PUSH_COST_S per chunk cut into windows, CUT_COST_S per flush or finish
+    of a stream's windower."""
 
-    STEP_COST_S, ROW_COST_S, LNES_COST_S, PUSH_COST_S = 0.001, 0.004, 0.002, 0.0005
+    STEP_COST_S, ROW_COST_S, LNES_COST_S, PUSH_COST_S, CUT_COST_S = 0.001, 0.004, 0.002, 0.0005, 0.0003
 
     def __init__(self) -> None:
         self.now = 100.0
@@ -215,8 +216,16 @@ def stepped(monkeypatch):
         clock.now += clock.PUSH_COST_S
         return push(self, *args)
 
+    def timed(method):
+        def run(self, *args):
+            clock.now += clock.CUT_COST_S
+            return method(self, *args)
+        return run
+
     monkeypatch.setattr(multistream, "events_to_lnes", timed_lnes)
     monkeypatch.setattr(multistream.EventWindower, "push", timed_push)
+    for name in ("flush", "finish"):
+        monkeypatch.setattr(multistream.EventWindower, name, timed(getattr(multistream.EventWindower, name)))
 
     class TimedStepper(CountingStepper):
         def step(self, frames, state, windows):
@@ -232,19 +241,22 @@ def test_time_is_split_between_the_session_and_the_rest(stepped) -> None:
     a, b = _events(1, 3), _events(2, 5)
     estimator.add_stream("a", start_us=1_000_000)
     estimator.add_stream("b", start_us=1_000_000)
-    estimator.push_many({"a": a, "b": b})  # rounds: (a, b), (a, b), (b), (b)
+    cut = 1_000_000 + 2 * WINDOW_US
+    estimator.push_many({"a": _between(a, 0, cut), "b": _between(b, 0, cut)})  # round (a, b)
+    estimator.push_many({"a": _between(a, cut, 2**62), "b": _between(b, cut, 2**62)})  # (a, b), (b), (b)
+    estimator.flush_many({"a": 1_000_000, "b": 1_000_000})  # nothing left to close before then: no step
     estimator.finish_many()  # (a, b)
     assert stepper.calls == [2, 2, 1, 1, 2]
     c = clock
     step_total = 5 * c.STEP_COST_S + 8 * c.ROW_COST_S
     assert estimator.stats.step_seconds == pytest.approx(step_total)
-    assert estimator.stats.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 8 * c.LNES_COST_S)
+    assert estimator.stats.overhead_seconds == pytest.approx(4 * c.PUSH_COST_S + 8 * c.LNES_COST_S + 4 * c.CUT_COST_S)
     shared, alone = (c.STEP_COST_S + 2 * c.ROW_COST_S) / 2, c.STEP_COST_S + c.ROW_COST_S
     stats_a, stats_b = estimator.stream_stats("a"), estimator.stream_stats("b")
     assert stats_a.step_seconds == pytest.approx(3 * shared)
     assert stats_b.step_seconds == pytest.approx(3 * shared + 2 * alone)
-    assert stats_a.overhead_seconds == pytest.approx(c.PUSH_COST_S + 3 * c.LNES_COST_S)
-    assert stats_b.overhead_seconds == pytest.approx(c.PUSH_COST_S + 5 * c.LNES_COST_S)
+    assert stats_a.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 3 * c.LNES_COST_S)
+    assert stats_b.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 5 * c.LNES_COST_S)
     figures = estimator.stats.to_dict()
     assert figures["mean_batch"] == 8 / 5 and figures["mean_step_ms_per_pose"] == pytest.approx(step_total * 1e3 / 8)
 
