@@ -35,6 +35,16 @@ def test_golden_check_passes_against_the_onnx_graph(artifact, edge_golden, tmp_p
     assert "PASSED" in capsys.readouterr().out
 
 
+def test_several_artifacts_are_reported_by_the_runtime_each_ran_on(pte_path, tflite_path, edge_golden,
+                                                                     tmp_path) -> None:
+    assert main(["golden", "check", "--model", str(pte_path), str(tflite_path), "--golden", str(edge_golden),
+                 "--out", str(tmp_path / "chk"), "--threads", "1"]) == 0
+    summary = json.loads((tmp_path / "chk" / "summary.json").read_text())
+    folders = {Path(c["report"]).parent.name: c["runtime"] for c in summary["checks"]}
+    assert folders == {f"{pte_path.stem}-executorch": "executorch", f"{tflite_path.stem}-litert": "litert"}
+    assert all((tmp_path / "chk" / folder / "check.json").is_file() for folder in folders)
+
+
 def test_an_int8_artifact_is_checked_against_the_hosts_rollout_of_it(tflite_path, edge_model, edge_golden,
                                                                        tmp_path) -> None:
     """A converted INT8 artifact says so in its metadata, as a quantised ONNX graph does: golden

@@ -178,7 +178,7 @@ def _question_lines(result) -> list[str]:
 def run_check(args: argparse.Namespace) -> int:
     from e3dpsm.errors import ConfigError, DataError
     from e3dpsm.golden.store import load_golden
-    from e3dpsm.golden.verify import verify_graph
+    from e3dpsm.golden.verify import artifact_check_runtime, verify_graph
     from e3dpsm.utils.env import report_header
     from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -192,7 +192,8 @@ def run_check(args: argparse.Namespace) -> int:
     verdicts = []
     for model in args.model:
         for runtime in args.runtime:
-            folder = out if single else out / f"{Path(model).stem}-{runtime}"
+            # named by the runtime it runs on: a .pte's check is executorch's whatever --runtime says
+            folder = out if single else out / f"{Path(model).stem}-{artifact_check_runtime(model, runtime)}"
             try:
                 result, report = verify_graph(
                     model, golden, folder, runtime=runtime, providers=args.providers, threads=args.threads,
