@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from _timing_helpers import ManualClock, charge
 from e3dpsm.errors import InputError
 from e3dpsm.events import events_to_lnes
 from e3dpsm.runtime.multistream import MultiStreamEstimator, MultiStreamStats
@@ -185,58 +186,32 @@ def test_the_last_state_is_fed_back_only_to_the_same_rows() -> None:
         np.testing.assert_allclose([p.outputs["pose"] for p in got[sid]], _expected_rows(events, 5), rtol=1e-6)
 
 
-class SteppedClock:
-    """time.perf_counter that moves only where the estimator spends time on purpose here:
-    STEP_COST_S per session call plus ROW_COST_S per row (inside the step), LNES_COST_S per
-    window's LNES frame, PUSH_COST_S per chunk cut into windows, CUT_COST_S per flush or finish
-    of a stream's windower."""
-
-    STEP_COST_S, ROW_COST_S, LNES_COST_S, PUSH_COST_S, CUT_COST_S = 0.001, 0.004, 0.002, 0.0005, 0.0003
-
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+# Seconds the injected clock charges: per session call and per row inside it, per window's
+# LNES frame, per chunk cut into windows, per flush or finish of a stream's windower.
+STEP_COST_S, ROW_COST_S, LNES_COST_S, PUSH_COST_S, CUT_COST_S = 0.001, 0.004, 0.002, 0.0005, 0.0003
 
 
 @pytest.fixture()
 def stepped(monkeypatch):
     from e3dpsm.runtime import multistream
 
-    clock = SteppedClock()
+    clock = ManualClock()
     monkeypatch.setattr(multistream.time, "perf_counter", clock)
-    lnes, push = multistream.events_to_lnes, multistream.EventWindower.push
-
-    def timed_lnes(*args, **kwargs):
-        clock.now += clock.LNES_COST_S
-        return lnes(*args, **kwargs)
-
-    def timed_push(self, *args):
-        clock.now += clock.PUSH_COST_S
-        return push(self, *args)
-
-    def timed(method):
-        def run(self, *args):
-            clock.now += clock.CUT_COST_S
-            return method(self, *args)
-        return run
-
-    monkeypatch.setattr(multistream, "events_to_lnes", timed_lnes)
-    monkeypatch.setattr(multistream.EventWindower, "push", timed_push)
-    for name in ("flush", "finish"):
-        monkeypatch.setattr(multistream.EventWindower, name, timed(getattr(multistream.EventWindower, name)))
+    charge(monkeypatch, multistream, "events_to_lnes", clock, LNES_COST_S)
+    charge(monkeypatch, multistream.EventWindower, "push", clock, PUSH_COST_S)
+    charge(monkeypatch, multistream.EventWindower, "flush", clock, CUT_COST_S)
+    charge(monkeypatch, multistream.EventWindower, "finish", clock, CUT_COST_S)
 
     class TimedStepper(CountingStepper):
         def step(self, frames, state, windows):
-            clock.now += clock.STEP_COST_S + clock.ROW_COST_S * len(frames)
+            clock.advance(STEP_COST_S + ROW_COST_S * len(frames))
             return super().step(frames, state, windows)
 
     return clock, TimedStepper()
 
 
 def test_time_is_split_between_the_session_and_the_rest(stepped) -> None:
-    clock, stepper = stepped
+    stepper = stepped[1]
     estimator = MultiStreamEstimator(stepper)
     a, b = _events(1, 3), _events(2, 5)
     estimator.add_stream("a", start_us=1_000_000)
@@ -247,16 +222,15 @@ def test_time_is_split_between_the_session_and_the_rest(stepped) -> None:
     estimator.flush_many({"a": 1_000_000, "b": 1_000_000})  # nothing left to close before then: no step
     estimator.finish_many()  # (a, b)
     assert stepper.calls == [2, 2, 1, 1, 2]
-    c = clock
-    step_total = 5 * c.STEP_COST_S + 8 * c.ROW_COST_S
+    step_total = 5 * STEP_COST_S + 8 * ROW_COST_S
     assert estimator.stats.step_seconds == pytest.approx(step_total)
-    assert estimator.stats.overhead_seconds == pytest.approx(4 * c.PUSH_COST_S + 8 * c.LNES_COST_S + 4 * c.CUT_COST_S)
-    shared, alone = (c.STEP_COST_S + 2 * c.ROW_COST_S) / 2, c.STEP_COST_S + c.ROW_COST_S
+    assert estimator.stats.overhead_seconds == pytest.approx(4 * PUSH_COST_S + 8 * LNES_COST_S + 4 * CUT_COST_S)
+    shared, alone = (STEP_COST_S + 2 * ROW_COST_S) / 2, STEP_COST_S + ROW_COST_S
     stats_a, stats_b = estimator.stream_stats("a"), estimator.stream_stats("b")
     assert stats_a.step_seconds == pytest.approx(3 * shared)
     assert stats_b.step_seconds == pytest.approx(3 * shared + 2 * alone)
-    assert stats_a.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 3 * c.LNES_COST_S)
-    assert stats_b.overhead_seconds == pytest.approx(2 * c.PUSH_COST_S + 5 * c.LNES_COST_S)
+    assert stats_a.overhead_seconds == pytest.approx(2 * PUSH_COST_S + 3 * LNES_COST_S)
+    assert stats_b.overhead_seconds == pytest.approx(2 * PUSH_COST_S + 5 * LNES_COST_S)
     figures = estimator.stats.to_dict()
     assert figures["mean_batch"] == 8 / 5 and figures["mean_step_ms_per_pose"] == pytest.approx(step_total * 1e3 / 8)
 

@@ -244,7 +244,8 @@ def test_the_hub_lists_the_latest_100_closed_clients() -> None:
 
 def test_summaries_are_ordered_by_client_id() -> None:
     hub = ClientHub(pose_backlog=2)
-    a, b, c = hub.add("a"), hub.add("b"), hub.add("c")
+    hub.add("a"), hub.add("b")
+    c = hub.add("c")
     c.closed(1000, "")
     hub.retire(c)  # retired before the older ones: listed in id order all the same
     assert [s["client_id"] for s in hub.summaries()] == [0, 1, 2]

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from _timing_helpers import ManualClock, charge
 from e3dpsm.errors import InputError
 from e3dpsm.events import events_to_lnes
 from e3dpsm.runtime import stream as stream_module
@@ -150,44 +151,29 @@ class FakeStepper:
 
     def feeds(self, frame, state, window):
         if self.clock:
-            self.clock.now += self.clock.FEEDS_S
+            self.clock.advance(FEEDS_S)
         return {"frame": frame, "h": state["h"], "window": window}
 
     def run_feeds(self, feeds):
         if self.clock:
-            self.clock.now += self.clock.RUN_S
+            self.clock.advance(RUN_S)
         added = np.stack([np.ones(1), feeds["frame"].reshape(1, -1).sum(1), feeds["window"]], 1)
         h = (feeds["h"] + added).astype(np.float32)
         return {"pose": h.copy()}, {"h": h}
 
 
-class Clock:
-    FEEDS_S, RUN_S, LNES_S, CUT_S = 0.0002, 0.003, 0.001, 0.0005
-
-    def __init__(self) -> None:
-        self.now = 50.0
-
-    def __call__(self) -> float:
-        return self.now
+# Seconds the injected clock charges: building feeds, the session's run, a window's LNES
+# frame, each push / flush / finish of the windower.
+FEEDS_S, RUN_S, LNES_S, CUT_S = 0.0002, 0.003, 0.001, 0.0005
 
 
 @pytest.fixture()
 def clock(monkeypatch):
-    clock = Clock()
+    clock = ManualClock(50.0)
     monkeypatch.setattr(stream_module.time, "perf_counter", clock)
-    lnes = stream_module.events_to_lnes
-
-    def timed_lnes(*args):
-        clock.now += clock.LNES_S
-        return lnes(*args)
-    monkeypatch.setattr(stream_module, "events_to_lnes", timed_lnes)
+    charge(monkeypatch, stream_module, "events_to_lnes", clock, LNES_S)
     for name in ("push", "flush", "finish"):
-        method = getattr(EventWindower, name)
-
-        def timed(self, *args, _method=method):
-            clock.now += clock.CUT_S
-            return _method(self, *args)
-        monkeypatch.setattr(EventWindower, name, timed)
+        charge(monkeypatch, EventWindower, name, clock, CUT_S)
     return clock
 
 
@@ -206,9 +192,9 @@ def test_time_and_counters(clock) -> None:
     early = int((events[2] < T0).sum())
     assert (stats.windows, stats.empty_windows, stats.events_received, stats.events_before_start, stats.events) == (
         4, 1, len(events[2]), early, len(events[2]) - early)
-    window = Clock.LNES_S + Clock.FEEDS_S + Clock.RUN_S
-    assert stats.step_seconds == pytest.approx(4 * Clock.RUN_S)
-    assert stats.overhead_seconds == pytest.approx(4 * Clock.CUT_S + 4 * (Clock.LNES_S + Clock.FEEDS_S))
+    window = LNES_S + FEEDS_S + RUN_S
+    assert stats.step_seconds == pytest.approx(4 * RUN_S)
+    assert stats.overhead_seconds == pytest.approx(4 * CUT_S + 4 * (LNES_S + FEEDS_S))
     assert (stats.step_ms.count, stats.step_ms.min, stats.step_ms.max) == (4, pytest.approx(3.0), pytest.approx(3.0))
     assert (stats.window_ms.min, stats.window_ms.max) == (pytest.approx(window * 1e3), pytest.approx(window * 1e3))
     assert [p.events for p in poses] == [int(((events[2] >= T0 + k * W) & (events[2] < T0 + (k + 1) * W)).sum())
