@@ -5,7 +5,9 @@ and closing every client. tests/test_serve_security.py checks the same rules on 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
+import logging
 import socket
 import time
 
@@ -128,6 +130,18 @@ def test_every_other_response_carries_the_default_headers() -> None:
             assert got[name] == value
 
 
+def test_the_socket_is_not_compressed_even_when_the_client_offers() -> None:
+    """permessage-deflate stays off: poses are small and frequent, and compressed secrets beside
+    attacker-chosen text leak their length (the CRIME family)."""
+    served = Served()
+
+    async def scenario(s, session):
+        async with session.ws_connect(s.base + "/ws" + s.token_query, headers={"Origin": s.origin}, compress=15) as ws:
+            await ws.receive(timeout=5)
+            return ws.compress
+    assert served.run(scenario) == 0
+
+
 def test_the_page_inlines_its_script_and_style_admitted_by_hash() -> None:
     from importlib import resources
 
@@ -137,6 +151,15 @@ def test_the_page_inlines_its_script_and_style_admitted_by_hash() -> None:
     assert page.csp_hashes == (csp_hash(script), csp_hash(style))
     assert script in page.html and style in page.html
     assert "/*SCRIPT*/" not in page.html and "/*STYLE*/" not in page.html
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        page.html = ""
+
+
+async def _handshake(session, url, **headers):
+    """The status and text of a WebSocket handshake the server refuses."""
+    async with session.get(url, headers={"Connection": "Upgrade", "Upgrade": "websocket", "Sec-WebSocket-Version": "13",
+                                         "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==", **headers}) as response:
+        return response.status, await response.text()
 
 
 async def _ws_status(session, url, **headers):
@@ -151,21 +174,18 @@ def test_the_socket_refuses_foreign_origins_and_missing_tokens() -> None:
     served = Served()
 
     async def scenario(s, session):
-        async def refused_text(url, **headers):
-            async with session.get(url, headers={"Connection": "Upgrade", "Upgrade": "websocket",
-                                                 "Sec-WebSocket-Version": "13",
-                                                 "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==", **headers}) as r:
-                return r.status, await r.text()
-        return [await refused_text(s.base + "/ws" + s.token_query, Origin="http://evil.example"),
-                await refused_text(s.base + "/ws", Origin=s.origin),
-                await refused_text(s.base + "/ws?token=nope", Origin=s.origin),
+        return [await _handshake(session, s.base + "/ws" + s.token_query, Origin="http://evil.example"),
+                await _handshake(session, s.base + "/ws" + s.token_query, Origin="null"),
+                await _handshake(session, s.base + "/ws", Origin=s.origin),
+                await _handshake(session, s.base + "/ws?token=nope", Origin=s.origin),
                 await _ws_status(session, s.base + "/ws" + s.token_query, Origin=s.origin),
                 await _ws_status(session, s.base + "/ws" + s.token_query)]  # no Origin, with the token
-    foreign, missing, wrong, own, tool = served.run(scenario)
-    assert foreign == (403, FOREIGN) and missing == (401, MISSING) and wrong == (403, WRONG)
+    foreign, sandboxed, missing, wrong, own, tool = served.run(scenario)
+    assert foreign == (403, FOREIGN) and sandboxed == (403, FOREIGN)
+    assert missing == (401, MISSING) and wrong == (403, WRONG)
     assert own[0] == "hello" and tool[0] == "hello"
     r = served.refusals
-    assert (r.origin, r.token_missing, r.token_wrong, r.host, r.rate_limited) == (1, 1, 1, 0, 0)
+    assert (r.origin, r.token_missing, r.token_wrong, r.host, r.rate_limited) == (2, 1, 1, 0, 0)
 
 
 def test_without_a_token_only_the_servers_own_pages_connect() -> None:
@@ -173,11 +193,11 @@ def test_without_a_token_only_the_servers_own_pages_connect() -> None:
 
     async def scenario(s, session):
         page = await _get(session, s.base + "/")
-        return page[0], await _ws_status(session, s.base + "/ws"), await _ws_status(session, s.base + "/ws",
-                                                                                     Origin=s.origin)
-    page, no_origin, own = served.run(scenario)
-    assert page == 200 and no_origin == (403, None) and own[0] == "hello"
-    assert served.refusals.origin == 1
+        return (page[0], await _handshake(session, s.base + "/ws"), await _handshake(session, s.base + "/ws"),
+                await _ws_status(session, s.base + "/ws", Origin=s.origin))
+    page, no_origin, again, own = served.run(scenario)
+    assert page == 200 and no_origin == again == (403, NO_ORIGIN) and own[0] == "hello"
+    assert served.refusals.origin == 2
 
 
 def test_a_socket_gets_hello_then_the_status_and_answers_pings() -> None:
@@ -221,7 +241,7 @@ def test_a_socket_gets_hello_then_the_status_and_answers_pings() -> None:
     (lambda ws: ws.send_str(json.dumps({"type": "shout"})), protocol.CLOSE_POLICY,
      "unknown message type 'shout'; expected one of ping, latency, hello"),
 ])
-def test_a_message_outside_the_protocol_closes_that_client(send, code, reason) -> None:
+def test_a_message_outside_the_protocol_closes_that_client(send, code, reason, caplog) -> None:
     served = Served()
 
     async def scenario(s, session):
@@ -230,27 +250,34 @@ def test_a_message_outside_the_protocol_closes_that_client(send, code, reason) -
             await send(ws)
             closing = await ws.receive(timeout=5)
             return closing.type, closing.data, closing.extra
-    kind, got_code, got_reason = served.run(scenario)
+    with caplog.at_level(logging.INFO, logger="e3dpsm.serve.app"):
+        kind, got_code, got_reason = served.run(scenario)
     assert (kind, got_code, got_reason) == (aiohttp.WSMsgType.CLOSE, code, reason)
     summary = served.hub.summaries()[0]
-    assert (summary["close_code"], summary["close_reason"]) == (code, reason)
+    assert (summary["close_code"], summary["close_reason"], summary["remote"]) == (code, reason, "127.0.0.1")
+    assert [r.getMessage() for r in caplog.records if r.name == "e3dpsm.serve.app"] == [
+        f"client 0 closed: {reason} ({code})"]
 
 
 def test_a_flooding_client_is_closed_after_its_burst() -> None:
     served = Served()
 
     async def scenario(s, session):
-        async with session.ws_connect(s.base + "/ws" + s.token_query, headers={"Origin": s.origin}) as ws:
-            await ws.receive(timeout=5)  # hello
-            for _ in range(protocol.CLIENT_MESSAGE_BURST + 5):
-                await ws.send_str(json.dumps({"type": "hello", "agent": "x"}))
-            while True:
-                message = await ws.receive(timeout=5)
-                if message.type == aiohttp.WSMsgType.CLOSE:
-                    return message.data, message.extra
-    code, reason = served.run(scenario)
-    assert (code, reason) == (protocol.CLOSE_POLICY, "more than 10 messages a second (bursts of 40)")
-    assert served.refusals.rate_limited == 1
+        closes = []
+        for _ in range(2):  # two floods, two clients closed
+            async with session.ws_connect(s.base + "/ws" + s.token_query, headers={"Origin": s.origin}) as ws:
+                await ws.receive(timeout=5)  # hello
+                for _ in range(protocol.CLIENT_MESSAGE_BURST + 5):
+                    await ws.send_str(json.dumps({"type": "hello", "agent": "x"}))
+                while True:
+                    message = await ws.receive(timeout=5)
+                    if message.type == aiohttp.WSMsgType.CLOSE:
+                        closes.append((message.data, message.extra))
+                        break
+        return closes
+    closes = served.run(scenario)
+    assert closes == [(protocol.CLOSE_POLICY, "more than 10 messages a second (bursts of 40)")] * 2
+    assert served.refusals.rate_limited == 2
 
 
 def test_an_oversized_message_closes_the_client_with_1009() -> None:
