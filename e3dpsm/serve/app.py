@@ -27,7 +27,6 @@ from e3dpsm.serve.security import Access, Refusals, TokenBucket, csp_hash, respo
 log = logging.getLogger(__name__)
 
 CLOSE_TIMEOUT_S = 2.0  # how long a closing client may take to answer the close frame
-HUB_KEY = web.AppKey("hub", ClientHub)
 SOCKETS_KEY = web.AppKey("sockets", dict)
 
 
@@ -94,7 +93,6 @@ def make_app(hub: ClientHub, hello_fields: dict[str, Any], access: Access, refus
     host_guard, security_headers = _guards(access, refusals)
     app = web.Application(middlewares=[host_guard])
     app.on_response_prepare.append(security_headers)
-    app[HUB_KEY] = hub
     app[SOCKETS_KEY] = {}
     page = load_page()
 
