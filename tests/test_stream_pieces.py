@@ -254,3 +254,59 @@ def test_stream_stats_figures() -> None:
     stats.window_ms.add(5.0)
     assert stats.to_dict()["step_ms"] == stats.step_ms.summary()
     assert stats.to_dict()["window_ms"] == stats.window_ms.summary()
+
+
+def test_pending_events_are_counted_across_chunks() -> None:
+    windower = EventWindower(W, SENSOR_HW)
+    assert windower.pending_events == 0
+    first, second = _events(11, 7, T0, T0 + 100), _events(12, 5, T0 + 100, T0 + 200)
+    first[2][0] = T0  # the grid starts here
+    assert windower.push(*first) == [] and windower.pending_events == 7
+    assert windower.push(*second) == [] and windower.pending_events == 12
+    windower.push(*_events(13, 3, T0 + W + 1, T0 + W + 9))  # closes window 0: its 12 events leave
+    assert windower.pending_events == 3
+
+
+def test_only_the_events_before_an_explicit_start_are_skipped() -> None:
+    x, y, t, p = _events(14, 10, T0, T0 + 500)
+    t[0] = T0 - 1  # the only event before the start
+    windower = EventWindower(W, SENSOR_HW, start_us=T0)
+    windower.push(x, y, t, p)
+    assert windower.skipped_before_start == 1 and windower.pending_events == 9
+
+
+def test_finish_before_any_event_with_a_start_closes_nothing() -> None:
+    assert EventWindower(W, SENSOR_HW, start_us=T0).finish() == []
+
+
+def test_finish_does_not_close_a_window_ending_two_microseconds_after_the_last_event() -> None:
+    windower = EventWindower(W, SENSOR_HW, start_us=T0)
+    events = _events(15, 30, T0, T0 + 2 * W - 2)
+    events[2][-1] = T0 + 2 * W - 2
+    got = windower.push(*events) + windower.finish()
+    assert _cut(got) == [(T0, int((events[2] < T0 + W).sum()))]
+
+
+def test_a_grid_starting_at_zero_closes_empty_windows_empty() -> None:
+    assert _cut(EventWindower(W, SENSOR_HW, start_us=0).flush(2 * W)) == [(0, 0), (W, 0)]
+
+
+def test_the_windower_checks_coordinates_against_its_sensor() -> None:
+    windower = EventWindower(W, (12, 16))
+    assert windower.sensor_hw == (12, 16)
+    x, y, t, p = _events(16, 4, T0, T0 + 10)
+    y[2] = 12  # one row below a 12-row sensor
+    with pytest.raises(InputError):
+        windower.push(x, y, t, p)
+    y[2], x[1] = 11, 16  # a 16-column sensor has no column 16 either
+    with pytest.raises(InputError):
+        windower.push(x, y, t, p)
+
+
+def test_a_pose_record_is_frozen_and_keeps_no_frame_unless_given() -> None:
+    from e3dpsm.runtime.stream import PoseEstimate
+
+    pose = PoseEstimate(t_us=T0 + W, t_start_us=T0, events=3, outputs={"pose": np.zeros((2, 3))})
+    assert pose.lnes is None and pose.pose is pose.outputs["pose"]
+    with pytest.raises(AttributeError):
+        pose.t_us = 0
