@@ -27,6 +27,8 @@ def artifact_check_runtime(model: str | os.PathLike, runtime: str) -> str:
 
     own = artifact_runtime(model)
     if own == "onnxruntime":
+        if runtime not in RUNTIMES:
+            raise InputError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
         return runtime
     if runtime not in ("onnxruntime", own):
         raise InputError(f"{model} runs on {own}, not {runtime}; leave --runtime out for it")
@@ -43,13 +45,11 @@ def open_runner(model: str | os.PathLike, runtime: str = "onnxruntime", *, threa
         if providers and runtime != "onnxruntime":
             raise InputError(f"--providers applies to onnxruntime; {model} runs on {runtime}")
         return open_stepper(model, threads=threads, **({"providers": providers} if providers else {}))
-    if runtime in ("openvino", "openvino-bf16"):
-        if providers:
-            raise InputError("--providers applies to onnxruntime; OpenVINO runs on its CPU device here")
-        from e3dpsm.runtime.openvino_session import OpenVINOStepSession
+    if providers:  # an ONNX graph on "openvino" or "openvino-bf16"
+        raise InputError("--providers applies to onnxruntime; OpenVINO runs on its CPU device here")
+    from e3dpsm.runtime.openvino_session import OpenVINOStepSession
 
-        return OpenVINOStepSession(model, threads=threads, precision="bf16" if runtime == "openvino-bf16" else "f32")
-    raise InputError(f"unknown runtime {runtime!r}; choose one of {', '.join(RUNTIMES)}")
+    return OpenVINOStepSession(model, threads=threads, precision="bf16" if runtime == "openvino-bf16" else "f32")
 
 
 def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golden_manifest: dict[str, Any],
