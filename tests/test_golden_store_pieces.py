@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from e3dpsm.errors import DataError
-from e3dpsm.golden.store import (ARRAYS_FILE, GOLDEN_FORMAT, MANIFEST_FILE, STATE_SAMPLES, GoldenRecord, GoldenWriter,
+from e3dpsm.golden.store import (ARRAYS_FILE, MANIFEST_FILE, STATE_SAMPLES, GoldenRecord, GoldenWriter,
                                  load_golden, sample_indices, snapshot_steps)
 
 FRAME = (2, 3, 5)
@@ -147,10 +147,11 @@ def test_written_and_loaded_back(tmp_path) -> None:
     written = writer.write(tmp_path / "golden", manifest)
     on_disk = json.loads((tmp_path / "golden" / MANIFEST_FILE).read_text())
     assert written == on_disk
+    assert sorted(p.name for p in (tmp_path / "golden").iterdir()) == ["golden.json", "rollout.npz"]  # docs
     assert {k: written[k] for k in ("format", "steps", "frame_shape", "outputs", "snapshot_steps",
                                     "state_samples", "arrays")} == {
-        "format": GOLDEN_FORMAT, "steps": 12, "frame_shape": list(FRAME), "outputs": ["pose", "aux"],
-        "snapshot_steps": snapshot_steps(12), "state_samples": 32, "arrays": ARRAYS_FILE}
+        "format": "e3dpsm-golden/1", "steps": 12, "frame_shape": list(FRAME), "outputs": ["pose", "aux"],
+        "snapshot_steps": snapshot_steps(12), "state_samples": 32, "arrays": "rollout.npz"}
     assert written["bytes"] == {"arrays": (tmp_path / "golden" / ARRAYS_FILE).stat().st_size}
     assert written["source"] == {"kind": "onnx"}
     loaded = load_golden(tmp_path / "golden")
@@ -176,7 +177,7 @@ def test_the_loader_names_what_is_wrong(tmp_path) -> None:
         return str(refused.value)
 
     (folder / ARRAYS_FILE).rename(tmp_path / "kept.npz")
-    assert refusal() == (f"{folder} is not a golden record (needs {MANIFEST_FILE} and {ARRAYS_FILE}); "
+    assert refusal() == (f"{folder} is not a golden record (needs golden.json and rollout.npz); "
                          "write one with `e3dpsm golden record`")
     (tmp_path / "kept.npz").rename(folder / ARRAYS_FILE)
     good = (folder / MANIFEST_FILE).read_text()
@@ -184,10 +185,18 @@ def test_the_loader_names_what_is_wrong(tmp_path) -> None:
     assert refusal() == (f"{folder / MANIFEST_FILE}: cannot read JSON (Expecting property name enclosed in double "
                          "quotes: line 1 column 2 (char 1))")
     (folder / MANIFEST_FILE).write_text("[1, 2]")
-    assert refusal() == f"{folder / MANIFEST_FILE}: format 'list', this e3dpsm reads {GOLDEN_FORMAT!r}"
+    assert refusal() == f"{folder / MANIFEST_FILE}: format 'list', this e3dpsm reads 'e3dpsm-golden/1'"
     (folder / MANIFEST_FILE).write_text(json.dumps({**json.loads(good), "format": "e3dpsm-golden/0"}))
-    assert refusal() == f"{folder / MANIFEST_FILE}: format 'e3dpsm-golden/0', this e3dpsm reads {GOLDEN_FORMAT!r}"
+    assert refusal() == f"{folder / MANIFEST_FILE}: format 'e3dpsm-golden/0', this e3dpsm reads 'e3dpsm-golden/1'"
     (folder / MANIFEST_FILE).write_text(json.dumps({**json.loads(good), "outputs": ["pose", "aux", "extra"]}))
     assert refusal() == f"{folder / ARRAYS_FILE} lacks out.extra; record the golden again"
+    five = ["pose", "aux", "e1", "e2", "e3", "e4", "e5"]
+    (folder / MANIFEST_FILE).write_text(json.dumps({**json.loads(good), "outputs": five}))
+    assert refusal() == f"{folder / ARRAYS_FILE} lacks out.e1, out.e2, out.e3, out.e4; record the golden again"
+    (folder / MANIFEST_FILE).write_text(good)
+    arrays = (folder / ARRAYS_FILE).read_bytes()
+    (folder / ARRAYS_FILE).write_bytes(b"not a zip archive")
+    assert refusal().startswith(f"{folder / ARRAYS_FILE}: cannot read the arrays (truncated or corrupted?): ")
+    (folder / ARRAYS_FILE).write_bytes(arrays)
     (folder / MANIFEST_FILE).write_text(good)
     assert load_golden(folder).steps == 3
