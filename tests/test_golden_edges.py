@@ -18,72 +18,9 @@ from e3dpsm.golden.check import HOST_MEASURE, MIN_GROWTH_STEPS, TensorCheck, che
 from e3dpsm.errors import DataError
 from e3dpsm.golden.host import HostRollout, KernelParity, host_rollout_for
 from e3dpsm.golden.tolerances import PROFILES
-from e3dpsm.golden.store import GoldenRecord, GoldenWriter
-from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.state import StateSpec, initial_states
-
-J = 16
-FRAME = (2, 4, 4)
-STATE = "s"
-STATE_SHAPE = (6,)
-GT_OFFSET_MM = 100.0  # the golden poses sit 100 mm from the ground truth along y: its MPJPE
-# ... and a fixed error in shape too, along z (+-10 mm by joint), so that PA-MPJPE is not zero
-SHAPE_ERROR = np.stack([np.zeros(J), np.zeros(J), 10.0 * (-1.0) ** np.arange(J)], axis=1).astype(np.float32)
-STEPS = 40  # quarters of 10 steps
-
-
-def _golden_pose(step: int) -> np.ndarray:
-    base = np.linspace(-800.0, 1200.0, 3 * J, dtype=np.float32).reshape(J, 3)
-    return base + np.float32(step + 20.0 * np.sin(step / 3.0))  # moving, with a second difference
-
-
-def _golden_state(step: int) -> np.ndarray:
-    return (np.arange(1, 1 + STATE_SHAPE[0], dtype=np.float32) * (1.0 + 0.25 * step)).astype(np.float32)
-
-
-def make_golden(steps: int = STEPS) -> GoldenRecord:
-    writer, manifest = _golden_writer(steps)
-    return GoldenRecord(manifest, writer.arrays())
-
-
-def _golden_writer(steps: int) -> tuple[GoldenWriter, dict]:
-    writer = GoldenWriter(FRAME, ["pose"], {STATE: STATE_SHAPE}, steps)
-    rng = np.random.default_rng(0)
-    for step in range(steps):
-        frame = (rng.random(FRAME) < 0.2).astype(np.float16)
-        gt = _golden_pose(step) + np.float32([0.0, GT_OFFSET_MM, 0.0]) + SHAPE_ERROR
-        writer.add(frame, 20.0, gt, {"pose": _golden_pose(step)[None]}, {STATE: _golden_state(step)[None]})
-    manifest = {"steps": steps, "frame_shape": list(FRAME), "outputs": ["pose"],
-                "states": [{"name": STATE, "shape": [-1, *STATE_SHAPE]}],
-                "source": {"variant": "fake"}, "mpjpe_scale_mm": GT_OFFSET_MM}
-    return writer, manifest
-
-
-class FakeRunner:
-    """Returns the golden pose moved by `pose_mm[step]` mm (every joint along x: the mean
-    joint distance is exactly that) and the golden state scaled by 1 + `state_rel[step]`
-    (its relative RMS error is exactly that)."""
-
-    def __init__(self, pose_mm, state_rel) -> None:
-        self.pose_mm, self.state_rel = np.asarray(pose_mm, float), np.asarray(state_rel, float)
-        self.step_index = 0
-        self.meta = GraphMetadata(
-            states=(StateSpec(STATE, STATE_SHAPE),),
-            inputs={"frame": {"name": "lnes", "shape": ["batch", *FRAME]}, "window": {"name": "window_ms"}},
-            outputs=[{"name": "pose"}], config={"variant": "fake"}, joints=[f"j{i}" for i in range(J)])
-
-    def init_state(self, batch: int = 1):
-        self.step_index = 0
-        return initial_states(self.meta.states, batch)
-
-    def step(self, lnes, state, window_ms):
-        k = self.step_index
-        self.step_index += 1
-        pose = _golden_pose(k).astype(np.float64)
-        pose[:, 0] += self.pose_mm[k]
-        new_state = _golden_state(k).astype(np.float64) * (1.0 + self.state_rel[k])
-        return {"pose": pose[None].astype(np.float32)}, {STATE: new_state[None].astype(np.float32)}
-
+from _golden_fakes import (J, STATE, STATE_SHAPE, STEPS, FakeRunner, golden_pose,
+                           golden_state, golden_writer, make_golden)
+from e3dpsm.golden.store import GoldenRecord
 
 def _run(profile: str, pose_mm, state_rel, steps: int = STEPS, **kwargs):
     return check_golden(FakeRunner(pose_mm, state_rel), make_golden(steps), PROFILES[profile], **kwargs)
@@ -91,7 +28,7 @@ def _run(profile: str, pose_mm, state_rel, steps: int = STEPS, **kwargs):
 
 def _host(shift_mm, steps: int = STEPS, kind: str = "vnni") -> HostRollout:
     """The host's rollout: the golden pose moved `shift_mm` (per step) along x."""
-    poses = np.stack([_golden_pose(k) for k in range(steps)]).astype(np.float64)
+    poses = np.stack([golden_pose(k) for k in range(steps)]).astype(np.float64)
     poses[:, :, 0] += np.broadcast_to(np.asarray(shift_mm, float), (steps,))[:, None]
     return HostRollout({"graph": "g.onnx", "runtime": "onnxruntime", "isa": {"kind": kind}}, {"pose": poses})
 
@@ -357,7 +294,7 @@ def _entry(sha="abc", runtime="onnxruntime", kind="vnni", file="host/g-onnxrunti
 
 
 def test_the_host_rollout_is_the_one_of_this_graph_and_runtime(tmp_path):
-    poses = np.stack([_golden_pose(k) for k in range(STEPS)])
+    poses = np.stack([golden_pose(k) for k in range(STEPS)])
     other = _entry(runtime="openvino", file="host/g-openvino.npz")
     golden = _golden_with_host(tmp_path, [other, _entry(), _entry(sha="def", file="host/h.npz")],
                                {"g-onnxruntime.npz": {"out.pose": poses}, "g-openvino.npz": {"out.pose": poses + 1},
@@ -402,7 +339,7 @@ def test_record_host_rollouts_keeps_each_graph_on_each_runtime_and_replaces_a_re
     from e3dpsm.golden.store import load_golden
     from e3dpsm.utils.isa import detect_isa
 
-    writer, manifest = _golden_writer(STEPS)
+    writer, manifest = golden_writer(STEPS)
     writer.write(tmp_path / "golden", {**manifest, "joints": [f"j{i}" for i in range(J)]})
     golden = load_golden(tmp_path / "golden")
     graph, artifact = tmp_path / "q.onnx", tmp_path / "q8.tflite"
@@ -423,7 +360,7 @@ def test_record_host_rollouts_keeps_each_graph_on_each_runtime_and_replaces_a_re
         assert runner.batches == [1] and len(runner.calls) == STEPS
         for step, (frame, window, state) in enumerate(runner.calls):
             assert np.array_equal(frame, golden.frame(step)) and window == golden.window_ms(step)
-            expected = np.zeros(STATE_SHAPE) if step == 0 else _golden_state(step - 1)
+            expected = np.zeros(STATE_SHAPE) if step == 0 else golden_state(step - 1)
             assert np.allclose(state[0], expected), step
     digest = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (graph, artifact)}
     assert [e["file"] for e in entries] == [f"host/q-{digest['q.onnx'][:12]}-onnxruntime.npz",
@@ -437,7 +374,7 @@ def test_record_host_rollouts_keeps_each_graph_on_each_runtime_and_replaces_a_re
         with np.load(tmp_path / "golden" / entry["file"]) as saved:
             assert list(saved) == ["out.pose"] and saved["out.pose"].shape == (STEPS, J, 3)
             shift = runner.pose_mm[0]
-            want = np.stack([_golden_pose(k) + np.float32([shift, 0, 0]) for k in range(STEPS)])
+            want = np.stack([golden_pose(k) + np.float32([shift, 0, 0]) for k in range(STEPS)])
             assert np.allclose(saved["out.pose"], want)
     reloaded = load_golden(tmp_path / "golden")
     assert reloaded.manifest["host_rollouts"] == entries and reloaded.manifest["steps"] == STEPS

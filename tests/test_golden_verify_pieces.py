@@ -95,3 +95,67 @@ def test_providers_apply_to_onnx_runtime_only(tmp_path) -> None:
     with pytest.raises(InputError) as unknown:  # not run on ONNX Runtime under another name
         verify.open_runner(tmp_path / "missing.onnx", "tensorrt-fp8")
     assert str(unknown.value) == f"unknown runtime 'tensorrt-fp8'; choose one of {', '.join(verify.RUNTIMES)}"
+
+
+def _graph_file(tmp_path) -> tuple[str, str]:
+    import hashlib
+
+    path = tmp_path / "g.onnx"
+    path.write_bytes(b"stands for a graph: only its bytes' sha256 is read")
+    return str(path), hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("quantization, profile", [(None, "fp32"), ({"mode": "int8", "budget": {"mpjpe_pct": 2.0}},
+                                                                       "int8")])
+def test_verify_graph_writes_the_report(tmp_path, monkeypatch, quantization, profile) -> None:
+    """verify_graph on a fake runner and an in-memory golden: what it opens, the profile and
+    budget it holds the graph to, and every field of the report it writes."""
+    import dataclasses
+    import json
+
+    import numpy as np
+    from _golden_fakes import STEPS, FakeRunner, make_golden
+
+    runner = FakeRunner(np.full(STEPS, 1e-3), np.zeros(STEPS))
+    runner.meta = dataclasses.replace(runner.meta, quantization=quantization)
+    opened = []
+    monkeypatch.setattr(verify, "open_runner", lambda model, runtime, threads=None, providers=None: (
+        opened.append((model, runtime, threads, providers)) or runner))
+    model, digest = _graph_file(tmp_path)
+    golden = make_golden()
+    result, report = verify.verify_graph(model, golden, tmp_path / "out", threads=2, header={"command": "test"})
+    assert opened == [(model, "onnxruntime", 2, None)]
+    assert result.profile == PROFILES[profile] and report["profile"] == PROFILES[profile].to_dict()
+    assert result.budget is None or result.budget.budget == verify.resolve_budget(quantization)
+    assert report["command"] == "test"
+    assert report["model"] == {"path": model, "sha256": digest, "variant": "fake", "quantization": quantization}
+    assert report["golden"] == {"path": "None", "source": {"variant": "fake"}, "steps": STEPS, "window_ms": None}
+    assert (report["runtime"], report["providers"]) == ("onnxruntime", [])
+    assert report["isa"] == verify.isa_comparison(quantization)
+    assert report["budget_runtimes"] == verify.runtime_comparison(quantization, "onnxruntime")
+    assert {k: report[k] for k in result.to_dict()} == result.to_dict() and "kernel_trace" not in report
+    written = json.loads((tmp_path / "out" / "check.json").read_text())
+    assert written == json.loads(json.dumps(report))
+    import importlib.util
+
+    plotted = importlib.util.find_spec("matplotlib") is not None
+    assert report["plot"] == ("check.png" if plotted else None)
+    assert (tmp_path / "out" / "check.png").is_file() == plotted
+    _, unwritten = verify.verify_graph(model, golden, None)
+    assert "plot" not in unwritten
+
+
+def test_verify_graph_holds_a_given_budget_and_profile(tmp_path, monkeypatch) -> None:
+    import dataclasses
+
+    import numpy as np
+    from _golden_fakes import STEPS, FakeRunner, make_golden
+
+    runner = FakeRunner(np.zeros(STEPS), np.zeros(STEPS))
+    runner.meta = dataclasses.replace(runner.meta, quantization={"mode": "int8"})
+    monkeypatch.setattr(verify, "open_runner", lambda *args, **kwargs: runner)
+    model, _ = _graph_file(tmp_path)
+    result, report = verify.verify_graph(model, make_golden(), budget_pct=3.0, profile="int8", runtime="openvino",
+                                         providers=None)
+    assert result.budget.budget == TaskBudget(mpjpe_pct=3.0, pa_mpjpe_pct=3.0)
+    assert report["runtime"] == "openvino" and report["budget_runtimes"]["runtime"] == "openvino"
