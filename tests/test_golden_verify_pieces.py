@@ -159,3 +159,114 @@ def test_verify_graph_holds_a_given_budget_and_profile(tmp_path, monkeypatch) ->
                                          providers=None)
     assert result.budget.budget == TaskBudget(mpjpe_pct=3.0, pa_mpjpe_pct=3.0)
     assert report["runtime"] == "openvino" and report["budget_runtimes"]["runtime"] == "openvino"
+
+
+class _Opened:
+    def __init__(self, *args, **kwargs) -> None:
+        self.args, self.kwargs = args, kwargs
+
+
+def test_open_runner_opens_each_runtime_with_its_settings(monkeypatch) -> None:
+    from e3dpsm.runtime import openvino_session, stepping
+
+    monkeypatch.setattr(stepping, "open_stepper", _Opened)
+    monkeypatch.setattr(openvino_session, "OpenVINOStepSession", _Opened)
+    plain = verify.open_runner("g.onnx", threads=3)
+    assert (plain.args, plain.kwargs) == (("g.onnx",), {"threads": 3})
+    chosen = verify.open_runner("g.onnx", "onnxruntime", providers=["CPUExecutionProvider"])
+    assert (chosen.args, chosen.kwargs) == (("g.onnx",), {"threads": None, "providers": ["CPUExecutionProvider"]})
+    artifact = verify.open_runner("a/step.pte", threads=1)
+    assert (artifact.args, artifact.kwargs) == (("a/step.pte",), {"threads": 1})
+    for runtime, precision in (("openvino", "f32"), ("openvino-bf16", "bf16")):
+        session = verify.open_runner("g.onnx", runtime, threads=2)
+        assert (session.args, session.kwargs) == (("g.onnx",), {"threads": 2, "precision": precision})
+
+
+class _Traced:
+    """Records what verify_graph hands the host-rollout lookup, the kernel trace and the plot."""
+
+    def __init__(self, monkeypatch, host_shift_mm: float | None) -> None:
+        import numpy as np
+        from _golden_fakes import STEPS, golden_pose
+
+        from e3dpsm.golden import host as host_module
+        from e3dpsm.golden.host import HostRollout
+
+        self.lookups, self.traces, self.titles = [], [], []
+        rollout = None
+        if host_shift_mm is not None:
+            poses = np.stack([golden_pose(k) for k in range(STEPS)]).astype(np.float64)
+            poses[:, :, 0] += host_shift_mm
+            rollout = HostRollout({"graph": "g.onnx", "runtime": "onnxruntime", "isa": {"kind": "vnni"}},
+                                  {"pose": poses})
+
+        def lookup(golden, digest, runtime):
+            self.lookups.append((digest, runtime))
+            return rollout
+
+        monkeypatch.setattr(host_module, "host_rollout_for", lookup)
+        monkeypatch.setattr(verify, "_kernel_trace", lambda folder, digest, threads: (
+            self.traces.append((folder, digest, threads)) or {"trace": "here"}))
+        monkeypatch.setattr(verify, "plot_check", lambda result, path, title: (
+            self.titles.append(title), path.write_bytes(b"png")))
+
+
+def _int8_runner(monkeypatch, pose_mm: float):
+    import dataclasses
+
+    import numpy as np
+    from _golden_fakes import STEPS, FakeRunner
+
+    runner = FakeRunner(np.full(STEPS, pose_mm), np.zeros(STEPS))
+    runner.meta = dataclasses.replace(runner.meta, quantization={"mode": "int8"})
+    monkeypatch.setattr(verify, "open_runner", lambda *args, **kwargs: runner)
+
+
+@pytest.mark.parametrize("host_shift, folder, same, traced", [
+    (0.0, True, True, False), (3.0, True, False, True), (3.0, False, False, False)])
+def test_a_budget_profile_compares_with_the_hosts_rollout_and_traces_where_it_parts(
+        tmp_path, monkeypatch, host_shift, folder, same, traced) -> None:
+    from _golden_fakes import make_golden
+
+    from e3dpsm.golden.store import GoldenRecord
+
+    calls = _Traced(monkeypatch, host_shift)
+    _int8_runner(monkeypatch, 0.0)
+    model, digest = _graph_file(tmp_path)
+    made = make_golden()
+    golden = GoldenRecord({**made.manifest, "window_ms": 20.0}, made.arrays, tmp_path if folder else None)
+    result, report = verify.verify_graph(model, golden, tmp_path / "a" / "b" / "out", threads=2)
+    assert calls.lookups == [(digest, "onnxruntime")]
+    assert result.questions["same_as_host"] is same and report["golden"]["window_ms"] == 20.0
+    assert calls.traces == ([(tmp_path, digest, 2)] if traced else [])
+    assert report.get("kernel_trace") == ({"trace": "here"} if traced else None)
+    assert ("kernel_trace" in report) is traced
+    verdict = "PASSED" if result.passed else "FAILED"
+    assert calls.titles == [f"g.onnx on onnxruntime vs golden (int8): {verdict}"]
+    verify.verify_graph(model, golden, tmp_path / "a" / "b" / "out")  # an existing folder is written again
+
+
+def test_an_fp32_graph_never_looks_for_a_host_rollout(tmp_path, monkeypatch, capsys) -> None:
+    from _golden_fakes import make_golden
+
+    calls = _Traced(monkeypatch, 0.0)
+    _int8_runner(monkeypatch, 0.0)
+    model, _ = _graph_file(tmp_path)
+    result, _ = verify.verify_graph(model, make_golden(), profile="fp32")
+    assert calls.lookups == [] and result.questions["same_as_host"] is None
+    assert capsys.readouterr().err == ""  # no progress bar unless asked
+
+
+def test_the_kernel_trace_runs_where_the_golden_keeps_one(tmp_path, monkeypatch) -> None:
+    from e3dpsm.golden import kernel_report
+
+    found, ran = [], []
+    monkeypatch.setattr(kernel_report, "find_trace", lambda golden, digest: (
+        found.append((golden, digest)) or (tmp_path / "trace" if digest == "kept" else None)))
+    monkeypatch.setattr(kernel_report, "run_device", lambda folder, threads, out: (
+        ran.append((folder, threads, out.name, out.parent.is_dir())) or {"isolated": []}))
+    assert verify._kernel_trace(tmp_path, "missing", None) is None and ran == []
+    assert verify._kernel_trace(tmp_path, "kept", None) == {"isolated": []}
+    assert verify._kernel_trace(tmp_path, "kept", 3) == {"isolated": []}
+    assert found == [(tmp_path, "missing"), (tmp_path, "kept"), (tmp_path, "kept")]
+    assert ran == [(tmp_path / "trace", 1, "trace.json", True), (tmp_path / "trace", 3, "trace.json", True)]
