@@ -246,15 +246,20 @@ def test_a_budget_profile_compares_with_the_hosts_rollout_and_traces_where_it_pa
     verify.verify_graph(model, golden, tmp_path / "a" / "b" / "out")  # an existing folder is written again
 
 
-def test_an_fp32_graph_never_looks_for_a_host_rollout(tmp_path, monkeypatch, capsys) -> None:
+def test_an_fp32_graph_never_looks_for_a_host_rollout(tmp_path, monkeypatch) -> None:
     from _golden_fakes import make_golden
 
     calls = _Traced(monkeypatch, 0.0)
     _int8_runner(monkeypatch, 0.0)
+    progress = []
+    check = verify.check_golden
+    monkeypatch.setattr(verify, "check_golden", lambda *args, **kwargs: (
+        progress.append(kwargs["progress"]) or check(*args, **kwargs)))
     model, _ = _graph_file(tmp_path)
     result, _ = verify.verify_graph(model, make_golden(), profile="fp32")
     assert calls.lookups == [] and result.questions["same_as_host"] is None
-    assert capsys.readouterr().err == ""  # no progress bar unless asked
+    verify.verify_graph(model, make_golden(), profile="fp32", progress=True)
+    assert progress == [False, True]  # a progress bar only when asked
 
 
 def test_the_kernel_trace_runs_where_the_golden_keeps_one(tmp_path, monkeypatch) -> None:
