@@ -3,7 +3,8 @@ the same graph? One script, no ARM hardware.
 
 It sets up an arm64 Debian root (debootstrap + qemu-user-static through binfmt_misc; once,
 idempotent), installs the aarch64 wheels of this host's onnxruntime and numpy (and
-ai-edge-litert for .tflite artifacts) and the project itself into it, records a golden rollout
+ai-edge-litert for .tflite artifacts, torch and ExecuTorch's runtime for .pte programs:
+EXECUTORCH_PINS) and the project itself into it, records a golden rollout
 of the fp32 graph on this host with the host's rollouts of the other graphs (`golden record
 --also`), and runs `golden check` of every graph inside the root under emulation, once per
 CPU model of --cpus (qemu's `max`, every feature it implements, by default). With --trace,
@@ -15,8 +16,9 @@ activation quantisation kept only where every op before it computes to the bit o
 and that is checked too.
 
     sudo apt-get install -y qemu-user-static binfmt-support debootstrap   # once, Debian/Ubuntu
-    python benchmarks/arm_emulation.py --graphs step.onnx step_int8.onnx lt/step.tflite lt8/step.tflite \
-        --data PREP --steps 60 [--cpus max cortex-a72 neoverse-n1] [--qemu qemu-aarch64] [--trace --portable]
+    python benchmarks/arm_emulation.py --graphs step.onnx step_int8.onnx lt/step.tflite et/step.pte \
+        --data PREP --steps 60 [--cpus max cortex-a72 neoverse-n1] [--qemu qemu-aarch64] [--trace --portable] \
+        [--host-python VENV/bin/python]
 
 Needs root (debootstrap, chroot). The host's /proc and /sys are NOT mounted into the root:
 ONNX Runtime's cpuinfo reads them and segfaults under emulation when they are the x86
