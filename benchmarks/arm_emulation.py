@@ -45,6 +45,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from e3dpsm.runtime.executorch_session import OTHER_RELEASE_ENV  # noqa: E402
 from e3dpsm.utils.env import report_header  # noqa: E402
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic  # noqa: E402
 from e3dpsm.utils.isa import detect_isa  # noqa: E402
@@ -141,7 +142,6 @@ def install_packages(root: Path, litert: bool = False, executorch: bool = False)
     import numpy
     import onnxruntime
 
-    platforms = [a for p in WHEEL_PLATFORMS for a in ("--platform", p)]
     pins = [f"onnxruntime=={onnxruntime.__version__}", f"numpy=={numpy.__version__}", "tqdm"]
     wanted = [f"onnxruntime-{onnxruntime.__version__}"]
     if litert:  # the LiteRT runner imports no torch: the interpreter and numpy are all it needs
@@ -150,8 +150,7 @@ def install_packages(root: Path, litert: bool = False, executorch: bool = False)
         wanted.append(f"ai_edge_litert-{version}")
     site = root / SITE
     if not all((site / f"{name}.dist-info").exists() for name in wanted):
-        run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", "--target", site, *platforms,
-             "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *pins])
+        pip_install_aarch64(site, pins)
     if executorch:
         install_executorch(root)
     wheels = root / "tmp" / "e3dpsm-wheel"
@@ -205,7 +204,7 @@ def _emulated_process(root: Path, cmd: list[str], cpu: EmulatedCPU, executorch: 
     path = f"/{PROJECT}:/{SITE}" + (f":/{EXECUTORCH_SITE}" if executorch else "")
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": path, "OMP_NUM_THREADS": "1", "HOME": "/root",
            **({"QEMU_CPU": cpu.model} if cpu.model else {}),
-           **({"E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if executorch else {})}
+           **({OTHER_RELEASE_ENV: "1"} if executorch else {})}
     return subprocess.run(["chroot", str(root), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in env.items()),
                            *cpu.command(cmd)], capture_output=True, text=True)
 
@@ -257,13 +256,17 @@ def emulated_delegation(root: Path, graphs: list[Path], cpu: EmulatedCPU = DEFAU
 def install_executorch(root: Path) -> None:
     """EXECUTORCH_PINS without their dependencies (torch's would pull CUDA wheels), and the pure
     Python packages their imports need, into EXECUTORCH_SITE."""
-    platforms = [a for p in WHEEL_PLATFORMS for a in ("--platform", p)]
     site = root / EXECUTORCH_SITE
     if all(any(site.glob(f"{pin.replace('==', '-')}*.dist-info")) for pin in EXECUTORCH_PINS):
         return
-    run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", "--no-deps", "--target", site, *platforms,
-         "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *EXECUTORCH_PINS,
-         *EXECUTORCH_PURE])
+    pip_install_aarch64(site, [*EXECUTORCH_PINS, *EXECUTORCH_PURE], deps=False)
+
+
+def pip_install_aarch64(site: Path, packages: list[str], deps: bool = True) -> None:
+    """The aarch64 CPython 3.11 wheels of `packages` into `site` (the root's python3 reads them)."""
+    platforms = [a for p in WHEEL_PLATFORMS for a in ("--platform", p)]
+    run([sys.executable, "-m", "pip", "install", "-q", "--upgrade", *([] if deps else ["--no-deps"]), "--target",
+         site, *platforms, "--python-version", "3.11", "--implementation", "cp", "--only-binary=:all:", *packages])
 
 
 def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
@@ -298,13 +301,17 @@ def stage_graphs(graphs: list[Path], work: Path) -> list[Path]:
     return staged
 
 
+def has_pte(graphs: list[Path]) -> bool:
+    return any(g.suffix == ".pte" for g in graphs)
+
+
 def host_golden(fp32: Path, others: list[Path], data: str, steps: int, work: Path,
                 python: str = sys.executable) -> Path:
     """The fp32 graph's golden rollout on this host, with this host's rollouts of `others`, made
     by `python` (another environment: e.g. one with the root's ExecuTorch release, so that a
     .pte's comparison differs in the ISA alone)."""
     golden = work / "golden"
-    env = {**os.environ, "E3DPSM_EXECUTORCH_OTHER_RELEASE": "1"} if python != sys.executable else None
+    env = {**os.environ, OTHER_RELEASE_ENV: "1"} if python != sys.executable else None
     run([python, "-m", "e3dpsm", "golden", "record", "--model", fp32, "--data", data, "--steps", steps,
          "--threads", 1, "--out", golden, "--force", *(["--also", *others] if others else [])],
         stdout=subprocess.DEVNULL, env=env)
@@ -324,7 +331,7 @@ def emulated_checks(root: Path, graphs: list[Path], work: Path, cpu: EmulatedCPU
     shutil.rmtree(out, ignore_errors=True)
     emulated(root, ["python3", "-m", "e3dpsm", "golden", "check", "--model", *(_inside(root, g) for g in graphs),
                     "--golden", _inside(root, work / "golden"), "--out", _inside(root, out), "--threads", "1",
-                    "--exit-zero"], cpu, executorch=any(g.suffix == ".pte" for g in graphs))
+                    "--exit-zero"], cpu, executorch=has_pte(graphs))
     return collect_checks(root, graphs, out)
 
 
@@ -433,7 +440,7 @@ def markdown(report: dict) -> str:
         litert = f", ai-edge-litert {device['ai_edge_litert']}" if device.get("ai_edge_litert") else ""
         if device.get("executorch"):
             litert += (f", executorch {device['executorch']} with torch {device['torch']} (the host's rollouts "
-                       f"by executorch {host.get('executorch')}; E3DPSM_EXECUTORCH_OTHER_RELEASE=1)")
+                       f"by executorch {host.get('executorch')}; {OTHER_RELEASE_ENV}=1)")
         lines.append(f"- CPU `{run['cpu']}`: {device['qemu']}, {device['machine']}, Python {device['python']}, "
                      f"ISA {device['isa']['kind']} ({' '.join(device['isa']['flags'])}), onnxruntime "
                      f"{device['onnxruntime']}, numpy {device['numpy']}{litert}.")
@@ -527,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_root(args.root)
     describe_cpu(args.root)
     install_packages(args.root, litert=any(g.suffix == ".tflite" for g in graphs),
-                     executorch=any(g.suffix == ".pte" for g in graphs))
+                     executorch=has_pte(graphs))
     qemu = install_qemu(args.root, args.qemu)
     work = args.root / WORK / "arm_emulation"
     staged = stage_graphs(graphs, work)
@@ -542,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
 def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool) -> dict:
     """Every staged graph's golden check on one emulated CPU (with the traces if asked: the
     kernel trace of each QDQ graph, the code trace of each INT8 .tflite)."""
-    refusal = executorch_refusal(root, cpu) if any(g.suffix == ".pte" for g in staged) else None
+    refusal = executorch_refusal(root, cpu) if has_pte(staged) else None
     if refusal:  # the other graphs are still checked on this CPU
         print(f"{cpu.name}: .pte programs not run: {refusal}")
         staged = [g for g in staged if g.suffix != ".pte"]
@@ -554,7 +561,7 @@ def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: Emulat
         name = Path(check["model"]).name
         check["xnnpack_partitions"] = partitions.get(name)
         check["arm_ready"] = arm_ready(check, traces.get(name), code_traces.get(name))
-    machine = emulated_machine(root, cpu, executorch=any(g.suffix == ".pte" for g in staged))
+    machine = emulated_machine(root, cpu, executorch=has_pte(staged))
     return {"cpu": cpu.name, "emulated": machine, "checks": checks, "traces": traces,
             "code_traces": code_traces, "pte_not_run": refusal}
 
