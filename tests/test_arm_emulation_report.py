@@ -45,3 +45,30 @@ def test_the_report_gives_each_trace_kind_its_section():
     assert "| q28 | LayerNormalization | 3 | 3 | 3 / 12288 | 1 |" in text
     assert "XNNPACK partitions LiteRT made on `cortex-a72` (0 would mean its builtin kernels ran): lt8.tflite 6." in text
     assert "| cortex-a72 | lt8.tflite | int8 | pose | host_distance_mm | 2.4 | 1.34 | 0.5 / 5.0 | **over** | **no** |" in text
+
+
+def test_pte_programs_are_skipped_with_the_reason_where_torch_cannot_start(monkeypatch) -> None:
+    """The root's torch needs ARMv8.2: an illegal instruction (SIGILL, -4) says so; any other
+    failure gives its exit status; a clean import lets the programs run."""
+    import subprocess
+    from pathlib import Path
+
+    asked = []
+
+    def fake(root, cmd, cpu, executorch, code=0, stderr=""):
+        asked.append((cmd, executorch))
+        return subprocess.CompletedProcess(cmd, code, "", stderr)
+
+    cpu = SCRIPT.EmulatedCPU("cortex-a72")
+    monkeypatch.setattr(SCRIPT, "_emulated_process", fake)
+    assert SCRIPT.executorch_refusal(Path("/root"), cpu) is None
+    assert asked == [(["python3", "-c", "import torch, executorch.runtime"], True)]
+    monkeypatch.setattr(SCRIPT, "_emulated_process", lambda *a: fake(*a, code=-4))
+    assert SCRIPT.executorch_refusal(Path("/root"), cpu) == (
+        "torch 2.10.0 for aarch64 dies of an illegal instruction on `cortex-a72`")
+    monkeypatch.setattr(SCRIPT, "_emulated_process", lambda *a: fake(*a, code=132, stderr="Illegal instruction"))
+    assert SCRIPT.executorch_refusal(Path("/root"), cpu).endswith("dies of an illegal instruction on `cortex-a72`")
+    monkeypatch.setattr(SCRIPT, "_emulated_process", lambda *a: fake(*a, code=1))
+    assert SCRIPT.executorch_refusal(Path("/root"), cpu) == (
+        "`import torch, executorch.runtime` exited 1 on `cortex-a72`")
+    assert SCRIPT.has_pte([Path("a.onnx"), Path("b.pte")]) and not SCRIPT.has_pte([Path("a.onnx"), Path("b.tflite")])
