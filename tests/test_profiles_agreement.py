@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _timing_helpers import ManualClock
 from e3dpsm.profiles.agreement import (NO_AGREEMENT, agreement_ratio, best_turn_agreement, combine_turns,
                                       measure_agreement, time_in_turns)
 from e3dpsm.profiles.outside import (OutsideFigure, OutsideToolError, _run, benchmark_app_args,
@@ -22,18 +23,10 @@ SAMPLES = Path(__file__).parent / "fixtures" / "outside_tools"
 
 
 # -- the step split on an injected clock -----------------------------------------------------
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 class ScriptedRunner:
     """Each phase advances the fake clock by its scripted seconds for the current step."""
 
-    def __init__(self, clock: FakeClock, prepare: list[float], run: list[float], collect: list[float]) -> None:
+    def __init__(self, clock: ManualClock, prepare: list[float], run: list[float], collect: list[float]) -> None:
         self.clock, self.script, self.k = clock, {"prepare": prepare, "run": run, "collect": collect}, 0
         self.frames: list[float] = []
 
@@ -59,7 +52,7 @@ class ScriptedRunner:
 
 
 class StepOnlyRunner:
-    def __init__(self, clock: FakeClock, seconds: float) -> None:
+    def __init__(self, clock: ManualClock, seconds: float) -> None:
         self.clock, self.seconds = clock, seconds
 
     def reset(self) -> None:
@@ -73,7 +66,7 @@ def test_runtime_and_overhead_split_on_an_injected_clock() -> None:
     """Five steps, milliseconds by hand: prepare + run + collect = total; the runtime is the
     run alone, the overhead prepare + collect. Medians (odd count: the middle value):
     totals 12, 15, 11, 20, 13 -> 13; runtimes 10, 13, 10, 17, 11 -> 11; overheads 2, 2, 1, 3, 2 -> 2."""
-    clock = FakeClock()
+    clock = ManualClock()
     ms = 1e-3
     phased = ScriptedRunner(clock, prepare=[1 * ms, 1 * ms, 0.5 * ms, 2 * ms, 1 * ms],
                             run=[10 * ms, 13 * ms, 10 * ms, 17 * ms, 11 * ms],
@@ -237,7 +230,7 @@ class ScriptedTool:
 
 
 class LoggedRunner(ScriptedRunner):
-    def __init__(self, clock: FakeClock, log: list, run_ms: list[float]) -> None:
+    def __init__(self, clock: ManualClock, log: list, run_ms: list[float]) -> None:
         n = len(run_ms)
         super().__init__(clock, [0.0] * n, [v * 1e-3 for v in run_ms], [0.0] * n)
         self.log = log
@@ -255,7 +248,7 @@ def test_runner_bursts_bracket_the_tools_turns_on_an_injected_clock() -> None:
     """Turns 2, steps 2, one untimed warm-up step per burst: warm-up, timed, timed, turn 0,
     warm-up, timed, timed, turn 1, warm-up, timed, timed. The runner's median is over its
     timed runs only (6, 7, 9, 10, 11, 30 ms -> 9.5); the tool's is the median of its turns'."""
-    clock, log = FakeClock(), []
+    clock, log = ManualClock(), []
     runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
     tool = ScriptedTool(log, [8.0, 12.0])
     frames = np.arange(5, dtype=np.float32).reshape(5, 1, 1, 1)
@@ -276,7 +269,7 @@ def test_runner_bursts_bracket_the_tools_turns_on_an_injected_clock() -> None:
 
 
 def test_a_failed_turn_ends_the_turns_and_gives_no_figure() -> None:
-    clock, log = FakeClock(), []
+    clock, log = ManualClock(), []
     runner = LoggedRunner(clock, log, [5.0] * 6)
     tool = ScriptedTool(log, [8.0, 12.0, 9.0], fail_at=1)
     figure, own = time_in_turns(runner, tool, np.zeros((2, 1, 1, 1), np.float32), turns=3, steps=1, clock=clock,
@@ -442,7 +435,7 @@ def test_agreement_in_milliseconds_on_an_injected_clock(monkeypatch) -> None:
     from e3dpsm.profiles.inputs import Frames
     from e3dpsm.profiles.targets import load_targets
 
-    clock, log = FakeClock(), []
+    clock, log = ManualClock(), []
     tool = ScriptedTool(log, [8.0, 12.0])
     monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: tool)
     runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
@@ -464,7 +457,7 @@ def test_a_runner_without_phases_gets_the_tools_name_and_a_reason(monkeypatch) -
 
     monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: Tool())
     frames = Frames(np.zeros((1, 1, 1, 1), np.float32), 20.0, "test")
-    result = measure_agreement(StepOnlyRunner(FakeClock(), 0.001), load_targets()["openvino-cpu-fp32"],
+    result = measure_agreement(StepOnlyRunner(ManualClock(), 0.001), load_targets()["openvino-cpu-fp32"],
                                Path("g.onnx"), frames, 4.0, 0, 2)
     assert result == {"outside": OutsideFigure("benchmark_app", reason="the runner has no separate runtime call")
                       .to_dict(), "beside_ms": None, "beside_burst_ms": None, "agreement": None,
