@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from e3dpsm.profiles.step_timing import speedup_interval, time_beside
-from test_profiles_agreement import FakeClock, StepOnlyRunner
+from _timing_helpers import ManualClock
+from test_profiles_agreement import StepOnlyRunner
 from e3dpsm.quantize.verdict import time_beside_fp32
 
 
@@ -80,7 +81,7 @@ def test_one_step_rounds_are_allowed() -> None:
 
 
 def test_time_beside_reports_both_medians_in_milliseconds_and_needs_frames() -> None:
-    clock = FakeClock()
+    clock = ManualClock()
     timed = time_beside(StepOnlyRunner(clock, 0.004), StepOnlyRunner(clock, 0.002), np.zeros((3, 1)), steps=6,
                         warmup=1, chunk=3, clock=clock)
     assert timed["p50_ms"] == pytest.approx(4.0) and timed["fp32_p50_ms"] == pytest.approx(2.0)
