@@ -68,7 +68,8 @@ def combine_turns(tool: str, turns: list[OutsideFigure]) -> OutsideFigure:
         return replace(failed, reason=f"turn {turns.index(failed) + 1} of {len(turns)}: {failed.reason}")
     medians = tuple(float(t.p50_ms) for t in turns)
     runs = sum(t.runs or 0 for t in turns) or None
-    return OutsideFigure(tool, float(np.median(medians)), runs, turns[0].command, round_p50_ms=medians)
+    return OutsideFigure(tool, float(np.median(medians)), runs, turns[0].command, round_p50_ms=medians,
+                         executed=turns[0].executed)
 
 
 class ProfiledOrtRuns:
@@ -187,8 +188,32 @@ def measure_agreement(runner: Any, target: Target, graph: Path | None, frames: F
         figure, own = time_in_turns(runner, timer, frames.lnes, turns, steps, clock)
     beside = 1e3 * float(np.median(own))
     bursts = [1e3 * float(np.median(burst)) for burst in own]
+    mismatch = executed_mismatch(runner, figure)
+    if mismatch:
+        return {"outside": replace(figure, note=mismatch).to_dict(), "beside_ms": beside, "beside_burst_ms": bursts,
+                "agreement": None, "agreement_median": None}
     return {"outside": figure.to_dict(), "beside_ms": beside, "beside_burst_ms": bursts,
             "agreement": best_turn_agreement(bursts, figure), "agreement_median": agreement_ratio(beside, figure)}
+
+
+def executed_mismatch(runner: Any, figure: OutsideFigure) -> str | None:
+    """Why the tool's figure is not comparable, where it ran another graph than the runner's
+    compiled model (heavy layers by run-time precision); None where they agree or either side
+    is unknown (runners without an OpenVINO compiled model, tools without an executed graph)."""
+    compiled = getattr(runner, "compiled", None)
+    if compiled is None or figure.executed is None:
+        return None
+    from e3dpsm.runtime.openvino_session import executed_layers
+
+    own = executed_layers(compiled)
+    if own == figure.executed:
+        return None
+    return (f"not compared: {figure.tool} executed another graph ({_layers(figure.executed)}) "
+            f"than the runner ({_layers(own)})")
+
+
+def _layers(counts: Mapping[str, int]) -> str:
+    return ", ".join(f"{name} x{count}" for name, count in counts.items()) or "no heavy layers"
 
 
 def best_turn_agreement(burst_ms: list[float], outside: OutsideFigure) -> float | None:

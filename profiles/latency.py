@@ -153,7 +153,7 @@ class OpenVinoStatefulRunner:
 
         model, _ = convert_step_graph(path, stateful=True, batch=1)  # in memory; no IR file needed to time it
         meta = metadata_from_ir(model, path)
-        compiled = ov.Core().compile_model(model, target.provider, openvino_target_config(target))
+        self.compiled = compiled = ov.Core().compile_model(model, target.provider, openvino_target_config(target))
         self.request = compiled.create_infer_request()
         self.frame_port = compiled.input(meta.frame_input["name"])
         self.window_port = compiled.input(meta.window_input["name"])

@@ -7,7 +7,12 @@ profile's figures can be checked against them:
   its compile properties, on the target's graph converted to an IR (stateful targets: the
   stateful IR), fed the profile's first frame, window length and initial states. Its median
   covers `infer()` alone, inputs set once (`-inference_only`), as the profile's runtime
-  phase does.
+  phase does. It compiles the file as it is (`-lfile`): without it benchmark_app builds a
+  PrePostProcessor on the model first, which constant-folds parts of an INT8 QDQ graph's
+  dequantisation, and OpenVINO then runs that graph's convolutions in f32 (`small`: 0 of 37
+  in u8; benchmark_app's median 12.7 against the runner's 9.5 ms, OpenVINO 2026.4). Each
+  run writes its executed graph (`-exec_graph_path`); its heavy layers by run-time
+  precision (`executed`) are compared with the runner's compiled model (profiles.agreement).
 - ONNX Runtime: `onnxruntime_perf_test` where it is on PATH (it is not in the pip wheel),
   else ONNX Runtime's own profiler: the median `model_run` event of a profiled session
   (`profiles.ort_profile.summarize_trace`).
@@ -20,6 +25,7 @@ import re
 import shutil
 import subprocess
 import sys
+from xml.etree import ElementTree
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -33,6 +39,7 @@ ORT_PROFILER = "onnxruntime profiler (model_run)"
 # target goes to it through -load_config.
 _FLAG_PROPERTIES = ("PERFORMANCE_HINT", "NUM_STREAMS", "INFERENCE_NUM_THREADS", "INFERENCE_PRECISION_HINT")
 DEFAULT_TURNS = 3  # turns an outside timer and the target's runner take (profiles.agreement)
+EXEC_GRAPH = "exec_graph.xml"  # benchmark_app's executed graph, in its report folder
 _START_UP_SECONDS = 300  # reading and compiling `paper` on a loaded 2-core host, with margin
 
 
@@ -47,6 +54,7 @@ class OutsideFigure:
     reason: str | None = None
     round_p50_ms: tuple[float, ...] | None = None  # one median per turn (profiles.agreement)
     note: str | None = None
+    executed: dict[str, int] | None = None  # the tool's executed graph (count_heavy_layers)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -68,9 +76,10 @@ def benchmark_app_args(model: Path, config: Mapping[str, Any], seconds: float, r
     `runtime.openvino_session.compile_config` makes it); `data_shapes` for a graph with a
     dynamic batch (kept dynamic, as the profile runs it; -shape would make it static)."""
     precision = str(config.get("INFERENCE_PRECISION_HINT", "f32"))
-    args = ["-m", str(model), "-d", "CPU", "-hint", "none", "-nstreams", "1", "-api", "sync",
+    args = ["-m", str(model), "-lfile", "-d", "CPU", "-hint", "none", "-nstreams", "1", "-api", "sync",
             "-infer_precision", precision, "-t", str(max(1, round(seconds))), "-inference_only", "true",
             "-json_stats", "-report_type", "no_counters", "-report_folder", str(report_folder),
+            "-exec_graph_path", str(report_folder / EXEC_GRAPH),
             "-i", ",".join(f"{name}:{path}" for name, path in inputs.items())]
     if config.get("INFERENCE_NUM_THREADS"):
         args += ["-nthreads", str(int(config["INFERENCE_NUM_THREADS"]))]
@@ -115,9 +124,24 @@ def run_benchmark_app(model: Path, config: Mapping[str, Any], seconds: float, wo
     try:
         report = json.loads((work / "benchmark_report.json").read_text(encoding="utf-8"))
         p50, runs = parse_benchmark_app_report(report)
-    except (OSError, ValueError, OutsideToolError) as exc:
+        executed = exec_graph_layers(work / EXEC_GRAPH)
+    except (OSError, ValueError, OutsideToolError, ElementTree.ParseError) as exc:
         return OutsideFigure(BENCHMARK_APP, command=shown, reason=f"unreadable report: {str(exc)[:300]}")
-    return OutsideFigure(BENCHMARK_APP, p50, runs, shown)
+    return OutsideFigure(BENCHMARK_APP, p50, runs, shown, executed=executed)
+
+
+def exec_graph_layers(path: Path) -> dict[str, int]:
+    """The heavy layers of an executed graph benchmark_app wrote (`-exec_graph_path`) by
+    run-time precision, counted as `runtime.openvino_session.count_heavy_layers` counts a
+    compiled model's: each `<layer type=...>` with its `<data runtimePrecision=...>`."""
+    from e3dpsm.runtime.openvino_session import count_heavy_layers
+
+    def precision(layer: ElementTree.Element) -> str:
+        data = layer.find("data")
+        return "" if data is None else data.get("runtimePrecision", "")
+
+    root = ElementTree.parse(path).getroot()
+    return count_heavy_layers((layer.get("type", ""), precision(layer)) for layer in root.iter("layer"))
 
 
 def _file_safe(name: str) -> str:

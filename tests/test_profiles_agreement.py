@@ -168,6 +168,9 @@ def test_benchmark_app_arguments_carry_the_targets_compile_properties(tmp_path: 
     assert (flag["-hint"], flag["-nstreams"], flag["-api"], flag["-nthreads"]) == ("none", "1", "sync", "2")
     assert flag["-infer_precision"] == "bf16" and flag["-t"] == "5" and flag["-inference_only"] == "true"
     assert flag["-data_shape"] == "lnes[1,2,4,4],window_ms[1]"
+    # the file compiled as it is (no PrePostProcessor: it dequantises INT8 graphs), and the
+    # graph it executed written beside the report
+    assert "-lfile" in args and flag["-exec_graph_path"] == str(tmp_path / "exec_graph.xml")
     assert flag["-i"] == f"lnes:{tmp_path / 'lnes.npy'},window_ms:{tmp_path / 'window_ms.npy'}"
     # what no flag says travels in -load_config, and only that
     assert json.loads(Path(flag["-load_config"]).read_text()) == {"CPU": {"DYNAMIC_QUANTIZATION_GROUP_SIZE": 0}}
@@ -186,6 +189,25 @@ def test_benchmark_app_report_parsed_from_a_committed_sample() -> None:
         parse_benchmark_app_report(report)
     with pytest.raises(OutsideToolError):
         parse_benchmark_app_report({})
+
+
+def test_benchmark_app_executed_graph_counted_from_a_committed_sample() -> None:
+    """exec_graph.xml: eight layers of the executed graph benchmark_app wrote for `small`'s INT8
+    graph (-exec_graph_path, OpenVINO 2026.4), ports kept, edges dropped. Counted here by a
+    regular expression over the text, apart from the XML reader under test."""
+    import re
+
+    from e3dpsm.profiles.outside import exec_graph_layers
+
+    text = (SAMPLES / "exec_graph.xml").read_text()
+    pairs = re.findall(r'<layer id="\d+" name="[^"]*" type="(\w+)">\s*<data [^>]*runtimePrecision="(\w+)"', text)
+    assert len(pairs) == 8
+    expected = {}
+    for kind, precision in pairs:
+        if kind in ("Convolution", "Deconvolution", "FullyConnected", "MatMul"):
+            expected[f"{kind} {precision}"] = expected.get(f"{kind} {precision}", 0) + 1
+    assert exec_graph_layers(SAMPLES / "exec_graph.xml") == expected == {
+        "Convolution f32": 1, "Convolution u8": 2, "FullyConnected f32": 1, "FullyConnected u8": 1}
 
 
 def test_perf_test_output_parsed_from_a_sample() -> None:
@@ -215,14 +237,16 @@ class ScriptedTool:
 
     tool = "tool"
 
-    def __init__(self, log: list, medians: list[float], fail_at: int | None = None) -> None:
+    def __init__(self, log: list, medians: list[float], fail_at: int | None = None,
+                 executed: dict[str, int] | None = None) -> None:
         self.log, self.medians, self.fail_at, self.turns = log, medians, fail_at, []
+        self.executed = executed
 
     def turn(self, index: int) -> str | None:
         self.log.append(f"turn {index}")
         failed = index == self.fail_at
         self.turns.append(OutsideFigure("tool", None if failed else self.medians[index], None if failed else 10,
-                                        reason="exit 1: boom" if failed else None))
+                                        reason="exit 1: boom" if failed else None, executed=self.executed))
         return self.turns[-1].reason
 
     def figure(self) -> OutsideFigure:
@@ -445,6 +469,61 @@ def test_agreement_in_milliseconds_on_an_injected_clock(monkeypatch) -> None:
     assert result["beside_ms"] == pytest.approx(9.5) and result["beside_burst_ms"] == pytest.approx([6.5, 9.5, 20.5])
     assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["agreement_median"] == pytest.approx(9.5 / 10.0)
     assert tuple(result["outside"]["round_p50_ms"]) == (8.0, 12.0)
+
+
+class _CompiledModel:
+    """What executed_layers reads of an OpenVINO compiled model: its run-time graph's ops and
+    their `layerType` / `runtimePrecision`."""
+
+    class _Op:
+        def __init__(self, kind: str, precision: str) -> None:
+            self.info = {"layerType": kind, "runtimePrecision": precision}
+
+        def get_rt_info(self) -> dict[str, str]:
+            return self.info
+
+    def __init__(self, *layers: tuple[str, str]) -> None:
+        self.ops = [self._Op(*layer) for layer in layers]
+
+    def get_runtime_model(self) -> "_CompiledModel":
+        return self
+
+    def get_ops(self) -> list:
+        return self.ops
+
+
+@pytest.mark.parametrize("runner_layers, runner_counts", [
+    ((("Convolution", "u8"), ("Convolution", "u8"), ("Eltwise", "f32"), ("FullyConnected", "f32")), None),
+    ((("Convolution", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")),  # one conv in f32
+     "Convolution f32 x1, Convolution u8 x1, FullyConnected f32 x1"),
+    ((("Convolution", "u8"), ("MatMul", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")),
+     "Convolution u8 x2, FullyConnected f32 x1, MatMul f32 x1"),
+])
+def test_a_tool_that_executed_another_graph_is_not_compared(monkeypatch, runner_layers, runner_counts) -> None:
+    """The tool's executed graph against the runner's compiled model, heavy layers by run-time
+    precision (other layers do not count): equal (`runner_counts` None), the figures are
+    compared; else the figure is kept, with a note naming both, and no agreement is given."""
+    import e3dpsm.profiles.agreement as agreement
+    from e3dpsm.profiles.inputs import Frames
+    from e3dpsm.profiles.targets import load_targets
+
+    clock, log = ManualClock(), []
+    executed = {"Convolution u8": 2, "FullyConnected f32": 1}
+    monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: ScriptedTool(log, [8.0, 12.0],
+                                                                                         executed=executed))
+    runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
+    runner.compiled = _CompiledModel(*runner_layers)
+    frames = Frames(np.zeros((3, 1, 1, 1), np.float32), 20.0, "test")
+    result = measure_agreement(runner, load_targets()["openvino-cpu-int8"], Path("g.onnx"), frames, 4.0, 0, 2,
+                               turns=2, clock=clock)
+    assert result["beside_ms"] == pytest.approx(9.5) and result["outside"]["executed"] == executed
+    assert result["outside"]["p50_ms"] == pytest.approx(10.0)
+    if runner_counts is None:
+        assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["outside"]["note"] is None
+    else:
+        assert result["agreement"] is None and result["agreement_median"] is None
+        assert result["outside"]["note"] == ("not compared: tool executed another graph (Convolution u8 x2, "
+                                             f"FullyConnected f32 x1) than the runner ({runner_counts})")
 
 
 def test_a_runner_without_phases_gets_the_tools_name_and_a_reason(monkeypatch) -> None:
