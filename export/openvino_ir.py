@@ -29,7 +29,8 @@ from typing import Any
 
 from e3dpsm.errors import ConfigError, DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.openvino_session import DYNAMIC_QUANTIZATION_OFF, openvino_available, openvino_core
+from e3dpsm.runtime.openvino_session import (DYNAMIC_QUANTIZATION_OFF, openvino_available, openvino_core,
+                                             protect_dequantization)
 from e3dpsm.runtime.openvino_stateful import RT_CONVERSION, RT_METADATA
 
 
@@ -78,6 +79,7 @@ def read_step_graph(path: str | os.PathLike) -> tuple[Any, GraphMetadata, dict[s
         model = openvino_core().read_model(str(path))
     except RuntimeError as exc:
         raise DataError(f"OpenVINO cannot read {path}: {str(exc).splitlines()[0][:300]}") from exc
+    protect_dequantization(model)
     return model, meta, props
 
 

@@ -16,8 +16,12 @@ from e3dpsm.profiles.outside import exec_graph_layers  # noqa: E402
 from e3dpsm.runtime.openvino_session import compile_config, executed_layers, read_openvino_model  # noqa: E402
 
 
-def _compiled(graph: Path, prepostprocessor: bool = False):
+def _compiled(graph: Path, prepostprocessor: bool = False, unprotected: bool = False):
+    """`graph` compiled as e3dpsm reads it, or (`unprotected`) read by OpenVINO's read_model
+    alone; behind a PrePostProcessor built with nothing asked of it where asked."""
     core, model = read_openvino_model(graph)
+    if unprotected:
+        model = core.read_model(str(graph))
     if prepostprocessor:
         from openvino.preprocess import PrePostProcessor
 
@@ -37,12 +41,13 @@ def test_executed_layers_read_as_the_serialised_executed_graph(full_integer_dir,
 
 
 def test_a_prepostprocessor_leaves_the_int8_convolutions_in_f32(full_integer_dir) -> None:  # noqa: F811
-    """OpenVINO 2026.4: PrePostProcessor.build() with nothing asked of it constant-folds parts
-    of the QDQ graph's dequantisation, and the CPU plugin then runs every convolution in f32
-    (docs/runtimes.md). If a release stops doing so, this fails: the warning there and
-    benchmark_app's -lfile may go."""
+    """OpenVINO 2026.4, the graph read by `read_model` alone: PrePostProcessor.build() with
+    nothing asked of it constant-folds parts of the QDQ graph's dequantisation, and the CPU
+    plugin then runs every convolution in f32 (docs/runtimes.md). If a release stops doing
+    so, this fails: `protect_dequantization` and benchmark_app's -lfile may go."""
     graph = full_integer_dir / "step_int8.onnx"
-    direct, built = executed_layers(_compiled(graph)), executed_layers(_compiled(graph, prepostprocessor=True))
+    direct = executed_layers(_compiled(graph, unprotected=True))
+    built = executed_layers(_compiled(graph, prepostprocessor=True, unprotected=True))
     convolutions = sum(count for name, count in direct.items() if name.startswith("Convolution "))
     assert direct["Convolution u8"] == convolutions
     assert built.get("Convolution u8", 0) == 0 and built["Convolution f32"] == convolutions
@@ -66,3 +71,22 @@ def test_benchmark_app_executes_the_graph_the_runner_compiles(full_integer_dir, 
     runner = OpenVinoRunner(str(graph), target, frames.window_ms)
     assert figure.executed == executed_layers(runner.compiled) and figure.executed.get("Convolution u8", 0) >= 20
     assert executed_mismatch(runner, figure) is None
+
+
+def test_the_ir_keeps_the_int8_convolutions_through_a_fixed_batch_and_a_prepostprocessor(
+        full_integer_dir, tmp_path) -> None:  # noqa: F811
+    """`e3dpsm convert openvino` protects the INT8 graph's dequantisation (as OpenVINO's own
+    converter does): the stateful IR (its batch fixed at 1) and the dynamic IR compiled
+    behind an application's PrePostProcessor both run every convolution the ONNX graph runs
+    in u8 in u8."""
+    from e3dpsm.cli import main
+    from e3dpsm.runtime.openvino_stateful import OpenVINOStatefulSession
+
+    graph = full_integer_dir / "step_int8.onnx"
+    direct = executed_layers(_compiled(graph))
+    assert main(["convert", "openvino", "--model", str(graph), "--out", str(tmp_path / "stateful"), "--stateful"]) == 0
+    stateful = executed_layers(OpenVINOStatefulSession(tmp_path / "stateful" / "step_int8.xml", threads=1).compiled)
+    assert stateful["Convolution u8"] == direct["Convolution u8"] and "Convolution f32" not in stateful
+    assert main(["convert", "openvino", "--model", str(graph), "--out", str(tmp_path / "dynamic")]) == 0
+    built = executed_layers(_compiled(tmp_path / "dynamic" / "step_int8.xml", prepostprocessor=True))
+    assert built["Convolution u8"] == direct["Convolution u8"] and "Convolution f32" not in built

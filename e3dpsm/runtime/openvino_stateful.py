@@ -71,6 +71,11 @@ class OpenVINOStatefulSession:
         # its producer's): index every name so each metadata output is found.
         self._output_ports = {name: port for port in self._compiled.outputs for name in port.get_names()}
 
+    @property
+    def compiled(self) -> Any:
+        """The openvino.CompiledModel (its run-time graph says which kernels run)."""
+        return self._compiled
+
     def _check_stateful(self, model: Any) -> None:
         variables = {v.info.variable_id for v in model.get_variables()}
         expected = {s.name for s in self.meta.states}
