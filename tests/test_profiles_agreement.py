@@ -346,6 +346,9 @@ def test_onnxruntime_profiler_in_turns_on_the_tiny_static_graph(tiny_static_grap
     assert 0 < result["beside_ms"] < 1e3 and len(result["beside_burst_ms"]) == 4
     assert result["agreement_median"] == pytest.approx(result["beside_ms"] / outside["p50_ms"])
     assert result["agreement"] == pytest.approx(min(result["beside_burst_ms"]) / outside["p50_ms"])
+    unphased = measure_agreement(StepOnlyRunner(ManualClock(), 0.001), target, tiny_static_graph, frames, 1.0, 6, 2,
+                                 turns=3)
+    assert unphased["outside"] == OutsideFigure(ORT_PROFILER, reason="the runner has no separate runtime call").to_dict()
 
 
 def test_a_failing_outside_tool_is_one_line_of_reason(tmp_path: Path) -> None:
@@ -492,31 +495,40 @@ class _CompiledModel:
         return self.ops
 
 
-@pytest.mark.parametrize("runner_layers, runner_counts", [
-    ((("Convolution", "u8"), ("Convolution", "u8"), ("Eltwise", "f32"), ("FullyConnected", "f32")), None),
-    ((("Convolution", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")),  # one conv in f32
+EXECUTED = {"Convolution u8": 2, "FullyConnected f32": 1}
+
+
+@pytest.mark.parametrize("runner_layers, executed, runner_counts", [
+    ((("Convolution", "u8"), ("Convolution", "u8"), ("Eltwise", "f32"), ("FullyConnected", "f32")), EXECUTED, None),
+    ((("Convolution", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")), EXECUTED,  # one conv in f32
      "Convolution f32 x1, Convolution u8 x1, FullyConnected f32 x1"),
-    ((("Convolution", "u8"), ("MatMul", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")),
+    ((("Convolution", "u8"), ("MatMul", "f32"), ("Convolution", "u8"), ("FullyConnected", "f32")), EXECUTED,
      "Convolution u8 x2, FullyConnected f32 x1, MatMul f32 x1"),
+    ((("Eltwise", "f32"),), EXECUTED, "no heavy layers"),
+    (None, EXECUTED, None),  # a runner with no OpenVINO compiled model: nothing to compare
+    ((("Convolution", "f32"),), None, None),  # a tool that reported no executed graph
 ])
-def test_a_tool_that_executed_another_graph_is_not_compared(monkeypatch, runner_layers, runner_counts) -> None:
+def test_a_tool_that_executed_another_graph_is_not_compared(monkeypatch, runner_layers, executed,
+                                                            runner_counts) -> None:
     """The tool's executed graph against the runner's compiled model, heavy layers by run-time
-    precision (other layers do not count): equal (`runner_counts` None), the figures are
-    compared; else the figure is kept, with a note naming both, and no agreement is given."""
+    precision (other layers do not count): equal, or either side unknown (`runner_counts`
+    None), the figures are compared; else the figure is kept, with a note naming both, and no
+    agreement is given."""
     import e3dpsm.profiles.agreement as agreement
     from e3dpsm.profiles.inputs import Frames
     from e3dpsm.profiles.targets import load_targets
 
     clock, log = ManualClock(), []
-    executed = {"Convolution u8": 2, "FullyConnected f32": 1}
     monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: ScriptedTool(log, [8.0, 12.0],
                                                                                          executed=executed))
     runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
-    runner.compiled = _CompiledModel(*runner_layers)
+    if runner_layers is not None:
+        runner.compiled = _CompiledModel(*runner_layers)
     frames = Frames(np.zeros((3, 1, 1, 1), np.float32), 20.0, "test")
     result = measure_agreement(runner, load_targets()["openvino-cpu-int8"], Path("g.onnx"), frames, 4.0, 0, 2,
                                turns=2, clock=clock)
     assert result["beside_ms"] == pytest.approx(9.5) and result["outside"]["executed"] == executed
+    assert result["beside_burst_ms"] == pytest.approx([6.5, 9.5, 20.5])
     assert result["outside"]["p50_ms"] == pytest.approx(10.0)
     if runner_counts is None:
         assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["outside"]["note"] is None
