@@ -3,6 +3,8 @@ against shapes written out here from its config (192 x 256 LNES of 2 polarities,
 the tiny's seven states) and DESIGN.md's metadata contract; `declare_on` on a hand-made graph."""
 from __future__ import annotations
 
+import dataclasses
+
 import onnx
 import pytest
 from onnx import TensorProto, helper
@@ -43,6 +45,15 @@ def test_dynamic_axes_name_the_batch_axis_of_every_tensor_and_only_where_it_is_d
     assert step_io_spec(tiny, 1).dynamic_axes == {}
     assert TensorSpec("x", ("n", 3, "m")).dynamic_axes == {0: "n", 2: "m"}
     assert TensorSpec("x", (1, 3)).dtype == "float32"
+
+
+def test_specs_are_immutable(tiny) -> None:
+    """A spec is a value the exporter, the metadata and the runtimes share: none can change it."""
+    spec = step_io_spec(tiny)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        spec.inputs = ()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        spec.inputs[0].shape = (1,)
 
 
 def test_declare_on_writes_the_shapes_and_axis_names_and_leaves_the_rest() -> None:
