@@ -114,7 +114,7 @@ def markdown(report: dict[str, Any]) -> str:
     lines = ["# OpenVINO on an INT8 step graph: executed kernels by how the graph is read", "",
              f"`{result['graph']}`; {report['config']['threads']} threads, {report['config']['steps']} timed steps "
              f"per runner, interleaved in chunks of {report['config']['chunk']}; {machine.get('cpu_model', '?')}, "
-             f"{machine.get('cpu_count')} cores, ISA kind `{machine['isa']['kind']}`; OpenVINO "
+             f"{machine.get('cpu_count')} cores, ISA kind `{report['isa']['kind']}`; OpenVINO "
              f"{report['versions'].get('openvino')}.", "",
              "| form | heavy layers by run-time precision | p50 ms | min ms |", "|---|---|---:|---:|"]
     for name, counts in result["executed_layers"].items():
@@ -128,23 +128,19 @@ def markdown(report: dict[str, Any]) -> str:
 
 def main() -> int:
     from e3dpsm.utils.env import report_header
-    from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+    from e3dpsm.utils.io import write_benchmark_report
     from e3dpsm.utils.isa import detect_isa
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--graph", required=True, help="INT8 QDQ step graph (e3dpsm quantize)")
-    parser.add_argument("--steps", type=int, default=200)
-    parser.add_argument("--warmup", type=int, default=20)
-    parser.add_argument("--chunk", type=int, default=25)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--window-ms", type=float, default=20.0)
+    for flag, kind, default in (("--steps", int, 200), ("--warmup", int, 20), ("--chunk", int, 25),
+                                ("--threads", int, 2), ("--window-ms", float, 20.0)):
+        parser.add_argument(flag, type=kind, default=default)
     parser.add_argument("--out", default="benchmarks/results/openvino_int8_kernels")
     args = parser.parse_args()
-    report = report_header("bench_openvino_int8_kernels", vars(args))
+    report = {**report_header("bench_openvino_int8_kernels", vars(args)), "isa": detect_isa().to_dict()}
     report["result"] = run(args)
-    out = Path(f"{args.out}_{detect_isa().kind}")
-    write_json_atomic(out.with_suffix(".json"), report)
-    write_text_atomic(out.with_suffix(".md"), markdown(report))
+    write_benchmark_report(args.out, report, markdown(report))
     print(markdown(report))
     return 0
 

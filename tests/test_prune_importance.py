@@ -7,23 +7,14 @@ import pytest
 import torch
 
 import e3dpsm
+from _model_helpers import randomised_tiny
 from e3dpsm.compress.importance import channel_scores, keep_lists, keep_top
 from e3dpsm.compress.units import ATTN_BLOCK, ATTN_FF, DECODER_FFN, RES, SSM_FF, SSM_MODES, prunable_units
 
 
-def _randomised(**overrides) -> e3dpsm.E3DPSM:
-    """The tiny with every parameter drawn at random (distinct scores; signs matter)."""
-    model = e3dpsm.create_model("tiny", height=64, width=96, **overrides).eval()
-    gen = torch.Generator().manual_seed(3)
-    with torch.no_grad():
-        for parameter in model.parameters():
-            parameter.copy_(torch.randn(parameter.shape, generator=gen))
-    return model
-
-
 @pytest.fixture(scope="module")
 def model() -> e3dpsm.E3DPSM:
-    return _randomised(decoder_layers=2)
+    return randomised_tiny(3, decoder_layers=2)
 
 
 def _unit(model, kind: str, name: str | None = None):
@@ -59,7 +50,7 @@ def test_geglu_hidden_channels_by_value_gate_and_outgoing_rows(model, kind) -> N
 
 @pytest.mark.parametrize("bidirectional", [True, False])
 def test_s5_modes_by_complex_input_and_output_norms(bidirectional) -> None:
-    model = _randomised(ssm_bidirectional=bidirectional)
+    model = randomised_tiny(3, ssm_bidirectional=bidirectional)
     unit = _unit(model, SSM_MODES, "ssm.3.s5")
     s5 = model.get_submodule(unit.name)
     assert hasattr(s5, "cb_re") is bidirectional

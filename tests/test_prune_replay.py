@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import e3dpsm
+from _model_helpers import randomised_tiny
 from e3dpsm.checkpoint import read_checkpoint, save_checkpoint
 from e3dpsm.compress.importance import keep_top
 from e3dpsm.compress.plan import total_macs
@@ -22,12 +23,7 @@ ROUND2 = {"stages.1.block2": 6, "attention.2": 0}
 
 @pytest.fixture(scope="module")
 def teacher() -> e3dpsm.E3DPSM:
-    model = e3dpsm.create_model("tiny", height=64, width=96).eval()
-    gen = torch.Generator().manual_seed(5)
-    with torch.no_grad():
-        for parameter in model.parameters():
-            parameter.copy_(torch.randn(parameter.shape, generator=gen))
-    return model
+    return randomised_tiny(5)
 
 
 @pytest.fixture(scope="module")
