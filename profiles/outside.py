@@ -40,6 +40,7 @@ ORT_PROFILER = "onnxruntime profiler (model_run)"
 _FLAG_PROPERTIES = ("PERFORMANCE_HINT", "NUM_STREAMS", "INFERENCE_NUM_THREADS", "INFERENCE_PRECISION_HINT")
 DEFAULT_TURNS = 3  # turns an outside timer and the target's runner take (profiles.agreement)
 EXEC_GRAPH = "exec_graph.xml"  # benchmark_app's executed graph, in its report folder
+UNKNOWN_PRECISION = "?"  # a layer of the executed graph that names no run-time precision
 _START_UP_SECONDS = 300  # reading and compiling `paper` on a loaded 2-core host, with margin
 
 
@@ -138,10 +139,10 @@ def exec_graph_layers(path: Path) -> dict[str, int]:
 
     def precision(layer: ElementTree.Element) -> str:
         data = layer.find("data")
-        return "" if data is None else data.get("runtimePrecision", "")
+        return UNKNOWN_PRECISION if data is None else data.get("runtimePrecision", UNKNOWN_PRECISION)
 
     root = ElementTree.parse(path).getroot()
-    return count_heavy_layers((layer.get("type", ""), precision(layer)) for layer in root.iter("layer"))
+    return count_heavy_layers((layer.get("type"), precision(layer)) for layer in root.iter("layer"))
 
 
 def _file_safe(name: str) -> str:

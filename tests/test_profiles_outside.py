@@ -149,3 +149,92 @@ def test_a_tools_failure_line_is_its_last_error_or_last_line(tmp_path) -> None:
     assert (tmp_path / "a.txt").read_text().splitlines()[0] == "[ INFO ] reading"  # the output kept in the log
     assert _run([sys.executable, "-c", "import time; time.sleep(30)"], 0.6, tmp_path / "e.txt") == "timed out after 1 s"
     assert _run([str(tmp_path / "none")], 60, tmp_path / "f.txt") == "could not start: No such file or directory"
+
+
+def test_benchmark_app_arguments_whole(tmp_path) -> None:
+    """The exact command line for a static graph with a property no flag carries (the list
+    docs/validate-and-profile.md describes); a fraction of a second still runs one."""
+    config = {"INFERENCE_NUM_THREADS": 3, "NUM_STREAMS": 1, "PERFORMANCE_HINT": "LATENCY",
+              "INFERENCE_PRECISION_HINT": "f32", "DYNAMIC_QUANTIZATION_GROUP_SIZE": 0}
+    args = outside.benchmark_app_args(Path("m.xml"), config, 0.4, tmp_path, {"lnes": tmp_path / "l.npy"}, None,
+                                      tmp_path / "config.json")
+    assert args == ["-m", "m.xml", "-lfile", "-d", "CPU", "-hint", "none", "-nstreams", "1", "-api", "sync",
+                    "-infer_precision", "f32", "-t", "1", "-inference_only", "true", "-json_stats", "-report_type",
+                    "no_counters", "-report_folder", str(tmp_path), "-exec_graph_path", str(tmp_path / "exec_graph.xml"),
+                    "-i", f"lnes:{tmp_path / 'l.npy'}", "-nthreads", "3", "-load_config", str(tmp_path / "config.json")]
+    # the flags' properties stay out of -load_config (benchmark_app sets them from its flags)
+    assert json.loads((tmp_path / "config.json").read_text()) == {"CPU": {"DYNAMIC_QUANTIZATION_GROUP_SIZE": 0}}
+
+
+def test_run_benchmark_app_makes_nested_folders_reuses_one_and_names_its_config_file(benchmark_app, tmp_path) -> None:
+    tool = benchmark_app(FakeTool(report=REPORT, exec_graph=(SAMPLES / "exec_graph.xml").read_text()))
+    work = tmp_path / "a" / "b" / "turn0"
+    config = {"DYNAMIC_QUANTIZATION_GROUP_SIZE": 0}
+    for _ in range(2):  # a folder that exists is used as it is
+        assert run_benchmark_app(Path("m.xml"), config, 1.0, work, {"lnes": np.zeros((1, 2), np.float32)},
+                                 False).reason is None
+    args = tool.calls[-1][0]
+    assert args[args.index("-load_config") + 1] == str(work / "config.json")
+    assert json.loads((work / "config.json").read_text()) == {"CPU": config}
+
+
+def test_a_long_unreadable_report_is_cut_to_300_characters(benchmark_app, tmp_path) -> None:
+    benchmark_app(FakeTool(report={"execution_results": {f"key{i}": i for i in range(100)}},
+                           exec_graph=(SAMPLES / "exec_graph.xml").read_text()))
+    figure = run_benchmark_app(Path("m.xml"), {}, 1.0, tmp_path, {"lnes": np.zeros((1, 2), np.float32)}, False)
+    text = ("benchmark_app report lacks its median latency or iteration count (KeyError('latency (ms)')); "
+            f"execution_results: { {f'key{i}': i for i in range(100)} }")
+    assert figure.reason == "unreadable report: " + text[:300]
+
+
+def test_the_executed_graph_counts_a_layer_without_a_precision_as_unknown(tmp_path) -> None:
+    (tmp_path / "g.xml").write_text(
+        '<net><layers><layer id="0" type="Convolution"/><layer id="1" type="MatMul"><data shape="1"/></layer>'
+        '<layer id="2"><data runtimePrecision="u8"/></layer>'
+        '<layer id="3" type="FullyConnected"><data runtimePrecision="i8"/></layer></layers></net>')
+    assert outside.exec_graph_layers(tmp_path / "g.xml") == {"Convolution ?": 1, "FullyConnected i8": 1,
+                                                             "MatMul ?": 1}
+
+
+def test_heavy_layers_are_the_four_kinds_that_carry_the_arithmetic() -> None:
+    from e3dpsm.runtime.openvino_session import count_heavy_layers
+
+    pairs = [("Convolution", "u8"), ("Deconvolution", "f32"), ("FullyConnected", "i8"), ("MatMul", "bf16"),
+             ("Convolution", "u8"), ("Eltwise", "f32"), ("Reorder", "u8"), (None, "f32"), ("Pooling", "u8")]
+    assert count_heavy_layers(pairs) == {"Convolution u8": 2, "Deconvolution f32": 1, "FullyConnected i8": 1,
+                                         "MatMul bf16": 1}
+    assert list(count_heavy_layers([("MatMul", "f32"), ("Convolution", "u8")])) == ["Convolution u8", "MatMul f32"]
+
+
+def test_outside_figures_default_to_nothing_and_are_immutable() -> None:
+    import dataclasses
+
+    figure = OutsideFigure("benchmark_app")
+    assert figure.to_dict() == {"tool": "benchmark_app", "p50_ms": None, "runs": None, "command": None, "reason": None,
+                                "round_p50_ms": None, "note": None, "executed": None}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        figure.p50_ms = 1.0
+    assert outside.ORT_PROFILER == "onnxruntime profiler (model_run)"  # the name the report prints
+
+
+def test_benchmark_app_is_found_where_openvino_is_installed() -> None:
+    import importlib.util
+
+    assert outside.benchmark_app_available() is (importlib.util.find_spec("openvino") is not None)
+
+
+def test_undecodable_tool_output_is_read_with_replacement_characters(monkeypatch, tmp_path) -> None:
+    bad = b"\xff\xfe noise\n"
+    script = f"import sys; sys.stdout.buffer.write({bad!r} + b'[ ERROR ] \\xff broken\\nlast line\\n'); sys.exit(1)"
+    assert _run([sys.executable, "-c", script], 60, tmp_path / "a.txt") == "exit 1: [ ERROR ] \ufffd broken"
+
+    class BytesTool(FakeTool):
+        def __call__(self, command, timeout_s, log):
+            self.calls.append((command, timeout_s, log))
+            log.write_bytes(bad + (SAMPLES / "onnxruntime_perf_test.txt").read_bytes())
+            return None
+
+    monkeypatch.setattr(outside, "_run", BytesTool())
+    monkeypatch.setattr(outside, "perf_test_path", lambda: "perf_test")
+    assert run_perf_test(Path("g.onnx"), 1, 1.0, False, tmp_path / "a" / "b").p50_ms == pytest.approx(20.1223)
+    assert run_perf_test(Path("g.onnx"), 1, 1.0, False, tmp_path / "a" / "b").runs == 243  # the folder reused

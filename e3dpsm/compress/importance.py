@@ -37,7 +37,7 @@ def channel_scores(model: E3DPSM, unit: Unit, layer: int | None = None) -> torch
     if unit.kind == RES:
         block = _module(model, unit.name)
         scale = block.norm2.weight.abs() + block.norm2.bias.abs()
-        return scale * block.conv2.weight.flatten(2).transpose(0, 1).flatten(1).norm(dim=1)
+        return scale * block.conv2.weight.transpose(0, 1).flatten(1).norm(dim=1)
     if unit.kind in (ATTN_FF, SSM_FF):
         return _geglu_scores(_module(model, unit.name))
     if unit.kind == SSM_MODES:

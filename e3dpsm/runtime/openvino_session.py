@@ -138,7 +138,7 @@ def compile_config(threads: int | None, extra: Mapping[str, Any] | None = None,
 HEAVY_LAYER_TYPES = ("Convolution", "Deconvolution", "FullyConnected", "MatMul")
 
 
-def count_heavy_layers(layers: Iterable[tuple[str, str]]) -> dict[str, int]:
+def count_heavy_layers(layers: Iterable[tuple[str | None, str]]) -> dict[str, int]:
     """{"<layer type> <run-time precision>": count} over (type, precision) pairs of an
     executed graph, heavy layers only (`HEAVY_LAYER_TYPES`)."""
     counts = Counter(f"{kind} {precision}" for kind, precision in layers if kind in HEAVY_LAYER_TYPES)
