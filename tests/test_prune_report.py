@@ -6,7 +6,7 @@ import copy
 
 import pytest
 
-from e3dpsm.compress.report import front_rows, plot_front, render_markdown
+from e3dpsm.compress.report import front_figure, front_rows, plot_front, render_markdown
 
 HEADER = {"machine": {"cpu_model": "Test CPU", "isa": {"kind": "vnni", "flags": ["avx2", "avx512_vnni"]}}}
 
@@ -15,7 +15,7 @@ def _round(k: int, macs: int, fraction: float, mpjpe: float, **extra) -> dict:
     return {"round": k, "macs": macs, "macs_fraction": fraction, "params": 1234567 - 1000 * k,
             "heldout": {"mpjpe_mm": mpjpe, **({"to_teacher_mm": 1.5 * k} if k else {})},
             "macs_per_stage": {"stage0": 3_000_000 - k * 1_000_000, "decoder": 500_000},
-            "profile": {"run_ms": 10.0 - k, "kernel_ms": 8.0 - k, "dispatch_ms_per_node": 0.0021,
+            "profile": {"run_ms": 10.0 - k, "kernel_ms": 8.0 - k, "dispatch_ms_per_node": 0.1,
                         "units": {"stages.0.block1": {"kernel_ms": 1.25}, **({"attention.1": {"kernel_ms": 0.5}}
                                                                             if k == 0 else {})}},
             **extra}
@@ -85,8 +85,8 @@ def test_the_markdown_of_a_macs_target_line_by_line() -> None:
         "## Step time per unit (ORT profile, kernel ms)", "",
         "| round | run ms | kernels | dispatch/node us | attention.1 | stages.0.block1 |",
         "|---:|---:|---:|---:|---:|---:|",
-        "| 0 | 10.00 | 8.00 | 2.1 | 0.50 | 1.25 |",
-        "| 1 | 9.00 | 7.00 | 2.1 | - | 1.25 |",
+        "| 0 | 10.00 | 8.00 | 100.0 | 0.50 | 1.25 |",
+        "| 1 | 9.00 | 7.00 | 100.0 | - | 1.25 |",
     ]
 
 
@@ -95,7 +95,10 @@ def test_a_latency_target_and_a_missed_one_are_said() -> None:
     result["config"].update(target_macs=None, target_latency_ms=5.0, target_latency_pct=50.0,
                             target_runtime="onnxruntime")
     result["met"] = False
-    result["rounds"][1]["target_ms"] = 4.75
+    last = {key: value for key, value in copy.deepcopy(result["rounds"][1]).items() if key != "int8"}
+    result["rounds"].append({**last, "round": 2, "cuts": {"stages.0.block1": 2},
+                             "target_ms": 4.75})  # the last round's target is the one named
+    result["rounds"][1]["target_ms"] = 9.99
     result["rounds"][1]["macs_per_stage"] = {"stage0": 2_000_000}  # the decoder's MACs left out of round 1
     del result["rounds"][1]["int8"]
     lines = render_markdown(result, {}).splitlines()
@@ -104,13 +107,32 @@ def test_a_latency_target_and_a_missed_one_are_said() -> None:
                         "distillation steps per round (labels teacher). CPU: ?, ISA ? ().")
     assert "## INT8 after pruning" not in "\n".join(lines)
     assert "| 1 | 0.00 | 2.00 |" in lines  # a stage a round lacks reads 0
-    del result["rounds"][1]["target_ms"]
+    del result["rounds"][2]["target_ms"]
     del result["config"]["target_latency_pct"]
     assert render_markdown(result, {}).splitlines()[2].startswith(
         "Target: fp32 step <= 5.00 ms on onnxruntime, read against")
 
 
 def test_the_front_is_plotted(tmp_path) -> None:
+    """One line per runtime timed at the end (MPJPE against its step time), each point labelled
+    with its round, the axes named; written as a PNG."""
     pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    fig = front_figure(RESULT)
+    ax = fig.axes[0]
+    lines = {line.get_label(): (list(line.get_xdata()), list(line.get_ydata())) for line in ax.get_lines()}
+    assert lines == {"ORT fp32": ([10.0, 6.25], [40.0, 42.0]), "OV fp32": ([9.5], [40.0]), "ORT INT8": ([4.0], [42.0])}
+    assert [t.get_text() for t in ax.legend_.get_texts()] == ["ORT fp32", "OV fp32", "ORT INT8"]
+    assert [(t.get_text(), t.xy) for t in ax.texts] == [("0", (10.0, 40.0)), ("1", (6.25, 42.0)), ("0", (9.5, 40.0)),
+                                                        ("1", (4.0, 42.0))]
+    assert (ax.get_xlabel(), ax.get_ylabel(), ax.get_title()) == (
+        "step time (ms, median, side by side)", "held-out MPJPE (mm)", "pruning rounds: accuracy vs latency (labels: round)")
+    plt.close(fig)
+    timed_ov_int8 = copy.deepcopy(RESULT)
+    timed_ov_int8["final_timing_ms"] = {"r1_ov_int8": 3.0}
+    fig = front_figure(timed_ov_int8)
+    assert [line.get_label() for line in fig.axes[0].get_lines()] == ["OV INT8"]
+    plt.close(fig)
     path = plot_front(RESULT, tmp_path / "front.png")
     assert path == tmp_path / "front.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -39,6 +39,9 @@ def test_the_widest_gap_is_named_and_the_previous_chunks_last_event_counts() -> 
     with pytest.raises(DataError) as refused:  # two gaps over the bound: the wider one
         check_gaps([0, 3_000_000, 3_000_001, 10_500_001], 2.0, 50.0, "a.raw")
     assert str(refused.value) == _gap_message("a.raw", "events 2 and 3", 7.5, 50.0, 8)
+    with pytest.raises(DataError) as refused:  # the chunk's first two events
+        check_gaps([0, 4_000_000, 4_000_001], 2.0, 20.0, "a.raw")
+    assert str(refused.value) == _gap_message("a.raw", "events 0 and 1", 4.0, 20.0, 4)
     with pytest.raises(DataError) as refused:  # the silence lies between two chunks
         check_gaps([5_000_000, 5_000_010], 1.0, 25.0, "b.dat", previous_us=1_000_000)
     assert str(refused.value) == _gap_message("b.dat", "event 0 and the event before it", 4.0, 25.0, 4)

@@ -98,7 +98,9 @@ def render_markdown(result: dict[str, Any], header: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_front(result: dict[str, Any], path: Path) -> Path:
+def front_figure(result: dict[str, Any]) -> Any:
+    """The front as a matplotlib figure: held-out MPJPE against the final step time, one line
+    per runtime timed, each point labelled with its round."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,6 +120,13 @@ def plot_front(result: dict[str, Any], path: Path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
+    return fig
+
+
+def plot_front(result: dict[str, Any], path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig = front_figure(result)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
