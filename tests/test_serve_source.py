@@ -12,7 +12,7 @@ import pytest
 
 from e3dpsm.data.sequence import EventStream
 from e3dpsm.errors import ConfigError, DataError
-from e3dpsm.serve.source import TICKS_PER_WINDOW, LiveFeed, RecordingReplay, Tick
+from e3dpsm.serve.source import LIVE_QUEUE_CHUNKS, TICKS_PER_WINDOW, LiveFeed, RecordingReplay, Tick
 
 SPEED = 1e6  # a pass of a few ms of events replays in microseconds
 
@@ -141,7 +141,6 @@ def test_closing_a_live_feed_closes_its_source_once_and_stops_the_reader() -> No
     feed.close()
     feed.close()
     assert source.closed == 1
-    assert _live_ticks(feed) == []  # stopped before it read: no chunk is handed on
     chunks = itertools.count()
 
     class Endless(FakeLive):
@@ -160,3 +159,159 @@ def test_closing_a_live_feed_closes_its_source_once_and_stops_the_reader() -> No
 
     got = asyncio.run(first_then_close())
     assert [_released(t) for t in got] == [[0], [1], [2]] and feed.source.closed == 1
+
+
+# -- on an injected clock -------------------------------------------------------------------------
+class FakeClock:
+    """source.py's `time` (wall and monotonic clocks) and its sleep: the monotonic clock moves
+    only when slept on, or by `overrun` seconds after the k-th sleep (a slow estimator)."""
+
+    EPOCH_S = 1_700_000_000.0
+
+    def __init__(self, overrun: dict[int, float] | None = None) -> None:
+        self.now, self.sleeps, self.overrun = 0.0, [], overrun or {}
+
+    def time(self) -> float:
+        return self.EPOCH_S
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    async def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += seconds + self.overrun.get(len(self.sleeps), 0.0)
+
+
+@pytest.fixture()
+def clock(monkeypatch):
+    import types
+
+    import e3dpsm.serve.source as source
+
+    fake = FakeClock()
+    monkeypatch.setattr(source, "time", fake)
+    monkeypatch.setattr(source, "asyncio", types.SimpleNamespace(sleep=fake.sleep))
+    return fake
+
+
+def test_each_slice_waits_for_its_time_and_is_stamped_with_it(clock) -> None:
+    """Speed 2 from t0 = 10,100 (not on the window grid): slices of 250 us of stream time are
+    125 us of wall time; each tick's wall time is the pass's start plus its slice's end."""
+    replay = RecordingReplay(_stream([10_100, 10_400, 12_000]), 1000, speed=2.0)
+    got = _ticks(replay)
+    ends = [250 * k / 1e6 / 2.0 for k in range(1, 9)]  # seconds after the pass's start; 12,100 ends it
+    assert clock.sleeps == pytest.approx(np.diff([0.0, *ends]).tolist(), abs=1e-15)
+    assert [t.wall_ms for t in got] == pytest.approx([FakeClock.EPOCH_S * 1e3 + e * 1e3 for e in ends], abs=1e-6)
+    assert [t.flush_until_us for t in got] == [None, None, None, 11_100, None, None, None, None]
+    assert [_released(t) for t in got] == [[10_100], [10_400], None, None, None, None, None, [12_000]]
+    assert got[-1].finish and replay.pass_span_us == 2000
+
+
+def test_a_slice_whose_time_has_come_is_not_waited_for(monkeypatch) -> None:
+    """After the 2nd sleep the estimator overran by 1.5 slices: the 3rd slice is released at
+    once (no sleep), the 4th waits half a slice."""
+    import types
+
+    import e3dpsm.serve.source as source
+
+    fake = FakeClock(overrun={2: 1.5 * 250 / 1e6})
+    monkeypatch.setattr(source, "time", fake)
+    monkeypatch.setattr(source, "asyncio", types.SimpleNamespace(sleep=fake.sleep))
+    _ticks(RecordingReplay(_stream([0, 999]), 1000, speed=1.0))
+    assert fake.sleeps == pytest.approx([250e-6, 250e-6, 125e-6], abs=1e-12)
+
+
+def test_a_last_event_on_a_slice_end_is_released_by_the_next_slice() -> None:
+    got = _ticks(RecordingReplay(_stream([0, 500]), 1000, speed=SPEED))
+    assert [(_released(t), t.finish) for t in got] == [([0], False), (None, False), ([500], True)]
+
+
+def test_ticks_are_immutable() -> None:
+    import dataclasses
+
+    tick = Tick(None, None, False, 0.0, 0)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        tick.finish = True
+
+
+def test_a_live_chunk_is_stamped_with_its_arrival_and_the_reader_is_a_named_daemon(monkeypatch) -> None:
+    import threading
+
+    import e3dpsm.serve.source as source
+
+    monkeypatch.setattr(source.time, "time", lambda: FakeClock.EPOCH_S)
+    seen: list[tuple[str, bool]] = []
+
+    class Watching(FakeLive):
+        def __iter__(self):
+            seen.append((threading.current_thread().name, threading.current_thread().daemon))
+            yield from self.chunks
+
+    feed = LiveFeed(Watching([_stream([1]), _stream([2])]))
+    assert feed.stop_message is None  # nothing said before it stops
+    got = _live_ticks(feed)
+    assert [t.wall_ms for t in got] == [FakeClock.EPOCH_S * 1e3] * 2
+    assert seen == [("e3dpsm-serve-live", True)]  # a blocked reader never keeps the process alive
+
+
+def _wait_until_steady(read, seconds: float = 0.4) -> int:
+    """`read()` once it has not changed for `seconds` (a thread that stopped or blocked)."""
+    import time
+
+    value, since = read(), time.monotonic()
+    while time.monotonic() - since < seconds:
+        time.sleep(0.02)
+        if read() != value:
+            value, since = read(), time.monotonic()
+    return value
+
+
+def test_a_live_reader_blocks_when_the_loop_falls_behind_and_loses_nothing() -> None:
+    """The loop takes one chunk, then stops reading for over a second (past the reader's 0.5 s
+    polls): the reader stops at the queue's bound, and every chunk then arrives in order."""
+    total = LIVE_QUEUE_CHUNKS + 40
+    read_so_far: list[int] = []
+
+    class Counting(FakeLive):
+        def __iter__(self):
+            for k in range(total):
+                read_so_far.append(k)
+                yield _stream([k])
+
+    feed = LiveFeed(Counting([]))
+
+    async def slow_loop() -> tuple[list[int], int]:
+        ticks = feed.ticks()
+        got = [_released(await ticks.__anext__())[0]]
+        blocked_at = await asyncio.get_running_loop().run_in_executor(None, _wait_until_steady,
+                                                                      lambda: len(read_so_far), 1.2)
+        got += [_released(tick)[0] async for tick in ticks]
+        return got, blocked_at
+
+    got, blocked_at = asyncio.run(slow_loop())
+    assert got == list(range(total))
+    # one taken, LIVE_QUEUE_CHUNKS queued, one waiting to be put: the reader read no further
+    assert blocked_at == 1 + LIVE_QUEUE_CHUNKS + 1
+
+
+def test_a_closed_live_feed_stops_reading_its_source() -> None:
+    read_so_far: list[int] = []
+
+    class Endless(FakeLive):
+        def __iter__(self):
+            for k in itertools.count():
+                read_so_far.append(k)
+                yield _stream([k])
+
+    feed = LiveFeed(Endless([]))
+
+    async def take_two_then_close() -> None:
+        ticks = feed.ticks()
+        for _ in range(2):
+            await ticks.__anext__()
+        feed.close()
+        await ticks.aclose()
+
+    asyncio.run(take_two_then_close())
+    stopped_at = _wait_until_steady(lambda: len(read_so_far))
+    assert stopped_at <= 2 + LIVE_QUEUE_CHUNKS + 2  # it stopped, within a queue's worth

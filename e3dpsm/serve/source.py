@@ -24,6 +24,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.runtime.stream import EventChunk
 
 TICKS_PER_WINDOW = 4
+# Live chunks waiting for the estimation loop: past this the reader thread blocks (bounded
+# memory when the estimator falls behind; the source buffers or drops, as a camera does).
+LIVE_QUEUE_CHUNKS = 256
 
 
 @dataclass(frozen=True)
@@ -107,7 +110,7 @@ class LiveFeed:
 
     async def ticks(self) -> AsyncIterator[Tick]:
         loop = asyncio.get_running_loop()
-        queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=256)
+        queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=LIVE_QUEUE_CHUNKS)
         done = object()
 
         def put(item: Any) -> None:
