@@ -168,8 +168,8 @@ class FakeClock:
 
     EPOCH_S = 1_700_000_000.0
 
-    def __init__(self, overrun: dict[int, float] | None = None) -> None:
-        self.now, self.sleeps, self.overrun = 0.0, [], overrun or {}
+    def __init__(self, overrun: dict[int, float] | None = None, start: float = 0.0) -> None:
+        self.now, self.sleeps, self.overrun = start, [], overrun or {}
 
     def time(self) -> float:
         return self.EPOCH_S
@@ -182,16 +182,19 @@ class FakeClock:
         self.now += seconds + self.overrun.get(len(self.sleeps), 0.0)
 
 
-@pytest.fixture()
-def clock(monkeypatch):
+def _install(monkeypatch, fake: FakeClock) -> FakeClock:
     import types
 
     import e3dpsm.serve.source as source
 
-    fake = FakeClock()
     monkeypatch.setattr(source, "time", fake)
     monkeypatch.setattr(source, "asyncio", types.SimpleNamespace(sleep=fake.sleep))
     return fake
+
+
+@pytest.fixture()
+def clock(monkeypatch):
+    return _install(monkeypatch, FakeClock(start=100.0))  # a monotonic clock far from 0
 
 
 def test_each_slice_waits_for_its_time_and_is_stamped_with_it(clock) -> None:
@@ -200,7 +203,7 @@ def test_each_slice_waits_for_its_time_and_is_stamped_with_it(clock) -> None:
     replay = RecordingReplay(_stream([10_100, 10_400, 12_000]), 1000, speed=2.0)
     got = _ticks(replay)
     ends = [250 * k / 1e6 / 2.0 for k in range(1, 9)]  # seconds after the pass's start; 12,100 ends it
-    assert clock.sleeps == pytest.approx(np.diff([0.0, *ends]).tolist(), abs=1e-15)
+    assert clock.sleeps == pytest.approx(np.diff([0.0, *ends]).tolist(), abs=1e-12)
     assert [t.wall_ms for t in got] == pytest.approx([FakeClock.EPOCH_S * 1e3 + e * 1e3 for e in ends], abs=1e-6)
     assert [t.flush_until_us for t in got] == [None, None, None, 11_100, None, None, None, None]
     assert [_released(t) for t in got] == [[10_100], [10_400], None, None, None, None, None, [12_000]]
@@ -209,16 +212,20 @@ def test_each_slice_waits_for_its_time_and_is_stamped_with_it(clock) -> None:
 
 def test_a_slice_whose_time_has_come_is_not_waited_for(monkeypatch) -> None:
     """After the 2nd sleep the estimator overran by 1.5 slices: the 3rd slice is released at
-    once (no sleep), the 4th waits half a slice."""
-    import types
-
-    import e3dpsm.serve.source as source
-
-    fake = FakeClock(overrun={2: 1.5 * 250 / 1e6})
-    monkeypatch.setattr(source, "time", fake)
-    monkeypatch.setattr(source, "asyncio", types.SimpleNamespace(sleep=fake.sleep))
+    once (no sleep), the 4th waits half a slice. A slice due exactly now is not slept for
+    either (the clock set to the 3rd slice's due time, as the replay computes it)."""
+    fake = _install(monkeypatch, FakeClock(overrun={2: 1.5 * 250 / 1e6}, start=100.0))
     _ticks(RecordingReplay(_stream([0, 999]), 1000, speed=1.0))
-    assert fake.sleeps == pytest.approx([250e-6, 250e-6, 125e-6], abs=1e-12)
+    assert fake.sleeps == pytest.approx([250e-6, 250e-6, 125e-6], abs=1e-9)
+
+    class ExactlyDue(FakeClock):
+        async def sleep(self, seconds: float) -> None:
+            self.sleeps.append(seconds)
+            self.now = 750 / 1e6 / 1.0 if len(self.sleeps) == 2 else self.now + seconds
+
+    fake = _install(monkeypatch, ExactlyDue())
+    _ticks(RecordingReplay(_stream([0, 999]), 1000, speed=1.0))
+    assert len(fake.sleeps) == 3 and fake.sleeps[2] == pytest.approx(250e-6, abs=1e-12)
 
 
 def test_a_last_event_on_a_slice_end_is_released_by_the_next_slice() -> None:
@@ -290,6 +297,7 @@ def test_a_live_reader_blocks_when_the_loop_falls_behind_and_loses_nothing() -> 
 
     got, blocked_at = asyncio.run(slow_loop())
     assert got == list(range(total))
+    assert LIVE_QUEUE_CHUNKS == 256  # docs/serve.md
     # one taken, LIVE_QUEUE_CHUNKS queued, one waiting to be put: the reader read no further
     assert blocked_at == 1 + LIVE_QUEUE_CHUNKS + 1
 
