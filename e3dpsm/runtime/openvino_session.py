@@ -88,10 +88,11 @@ def protect_dequantization(model: Any) -> None:
     Why: read with `read_model` alone, any constant folding before the CPU plugin compiles
     the graph folds parts of the dequantisation, and the plugin then runs its convolutions in
     f32. `fix_batch`'s reshape does so (measured on `small`'s default INT8 graph, OpenVINO
-    2026.4: the stateful IR ran 0 of 37 convolutions in u8, 10.3 against 8.4 ms a step), and
-    so does an application's PrePostProcessor on a saved IR (benchmark_app: 12.7 against
-    9.5 ms). Numerics: the poses move as little as another INT8 kernel choice does (0.18 mm
-    mean over 80 steps, the same as the explicit and stateful graphs differ by)."""
+    2026.4: the stateful IR ran none of the 37 convolutions the graph otherwise runs in u8,
+    1.32-1.47x slower side by side; benchmarks/results/openvino_int8_kernels_vnni.md), and so
+    does an application's PrePostProcessor on a saved IR (benchmark_app: 12.7 against the
+    runner's 9.5 ms). Numerics: the INT8 poses move 0.185 mm mean over 80 held-out steps, as
+    far as OpenVINO and ONNX Runtime are apart on the same graph (docs/runtimes.md)."""
     from openvino._offline_transformations import apply_moc_transformations
 
     apply_moc_transformations(model, cf=False)
@@ -151,8 +152,9 @@ def executed_layers(compiled: Any) -> dict[str, int]:
 
     Why: applying `PrePostProcessor.build()` or `ConstantFolding` to the INT8 QDQ graph before
     compiling folds parts of its dequantisation, and the CPU plugin then runs every
-    convolution in f32 (`small`, OpenVINO 2026.4: 37 u8 convolutions become 0; 9.4 against
-    13 ms a step). Compare an application's compiled model with this to see it."""
+    convolution in f32 (`small`, OpenVINO 2026.4: 37 u8 convolutions become 0;
+    `protect_dequantization` prevents it). Compare an application's compiled model with this
+    to see it."""
     def text(value: Any) -> str:
         return value.astype(str) if hasattr(value, "astype") else str(value)
 
