@@ -89,7 +89,7 @@ def protect_dequantization(model: Any) -> None:
     the graph folds parts of the dequantisation, and the plugin then runs its convolutions in
     f32. `fix_batch`'s reshape does so (measured on `small`'s default INT8 graph, OpenVINO
     2026.4: the stateful IR ran none of the 37 convolutions the graph otherwise runs in u8,
-    1.32-1.47x slower side by side; benchmarks/results/openvino_int8_kernels_vnni.md), and so
+    1.3-1.5x slower side by side; benchmarks/results/openvino_int8_kernels_vnni.md), and so
     does an application's PrePostProcessor on a saved IR (benchmark_app: 12.7 against the
     runner's 9.5 ms). Numerics: the INT8 poses move 0.185 mm mean over 80 held-out steps, as
     far as OpenVINO and ONNX Runtime are apart on the same graph (docs/runtimes.md)."""
