@@ -287,11 +287,21 @@ def test_a_live_reader_blocks_when_the_loop_falls_behind_and_loses_nothing() -> 
 
     feed = LiveFeed(Counting([]))
 
+    def blocked() -> int:
+        """The chunks read once the reader has filled the queue (waited for, however slow a
+        loaded host makes it), then still after more than two of its 0.5 s polls."""
+        import time
+
+        deadline = time.monotonic() + 30.0
+        while len(read_so_far) < 1 + LIVE_QUEUE_CHUNKS + 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(1.2)
+        return len(read_so_far)
+
     async def slow_loop() -> tuple[list[int], int]:
         ticks = feed.ticks()
         got = [_released(await ticks.__anext__())[0]]
-        blocked_at = await asyncio.get_running_loop().run_in_executor(None, _wait_until_steady,
-                                                                      lambda: len(read_so_far), 1.2)
+        blocked_at = await asyncio.get_running_loop().run_in_executor(None, blocked)
         got += [_released(tick)[0] async for tick in ticks]
         return got, blocked_at
 
