@@ -24,12 +24,15 @@ def _shape(value: Any) -> tuple[int, ...]:
 
 
 def op_name(node: torch.fx.Node) -> str:
-    """`aten.mm.default` for an edge or ATen operator node."""
+    """`aten.mm.default` for an edge or ATen operator node; other callables by their name
+    (`getitem`, `executorch_call_delegate`)."""
     target = node.target
-    name = getattr(target, "__name__", None) or str(target)
-    if hasattr(target, "_op") or hasattr(target, "name"):
-        name = str(getattr(target, "_op", target)).split(":")[0].replace("<EdgeOpOverload", "").strip(" >")
-    return name.replace("torch.ops.", "")
+    wrapped = getattr(target, "_op", None)
+    if isinstance(wrapped, torch._ops.OpOverload):  # an edge operator wraps its ATen one
+        target = wrapped
+    if isinstance(target, torch._ops.OpOverload):
+        return str(target)
+    return getattr(target, "__name__", None) or str(target)
 
 
 def node_macs(node: torch.fx.Node) -> int:

@@ -1,0 +1,77 @@
+"""The MAC count convert.json's `delegation` rests on (export/delegation.py), on a small module
+exported with torch.export: each operator's multiply-accumulates against the formulas in the
+module's docstring, written out here from the shapes."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from e3dpsm.export.delegation import DELEGATE_CALL, _compute_nodes, node_macs, op_name
+
+
+class Mix(torch.nn.Module):
+    """One of each operator the count knows, and some it gives 0."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = torch.nn.Conv2d(4, 6, kernel_size=3, padding=1, groups=2)
+        self.linear = torch.nn.Linear(5, 7)
+
+    def forward(self, image: torch.Tensor, rows: torch.Tensor, grid: torch.Tensor, a: torch.Tensor,
+                b: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        conv = self.conv(image)  # [1, 6, 8, 8]
+        linear = self.linear(rows)  # [3, 5] -> [3, 7]
+        mm = torch.mm(rows, a)  # [3, 5] x [5, 2] -> [3, 2]
+        bmm = torch.bmm(b, b.transpose(1, 2))  # [2, 3, 4] x [2, 4, 3] -> [2, 3, 3]
+        addmm = torch.addmm(bias, rows, a)  # [3, 2]
+        sampled = torch.nn.functional.grid_sample(image, grid, align_corners=False)  # [1, 4, 5, 6]
+        return conv.relu() + 1.0, linear, mm, bmm, addmm, sampled
+
+
+def _graph() -> torch.fx.Graph:
+    inputs = (torch.randn(1, 4, 8, 8), torch.randn(3, 5), torch.rand(1, 5, 6, 2) * 2 - 1, torch.randn(5, 2),
+              torch.randn(2, 3, 4), torch.randn(3, 2))
+    # the core ATen operators ExecuTorch's edge dialect is made of (conv2d -> convolution, ...)
+    return torch.export.export(Mix().eval(), inputs).run_decompositions().graph
+
+
+def test_each_operator_counts_its_multiply_accumulates() -> None:
+    macs = {}
+    for node in _graph().nodes:
+        if node.op == "call_function":
+            macs.setdefault(op_name(node), []).append(node_macs(node))
+    assert macs["aten.convolution.default"] == [1 * 6 * 8 * 8 * (4 // 2) * 3 * 3]  # outputs x in/groups x kernel
+    assert macs["aten.mm.default"] == [3 * 2 * 5]
+    assert macs["aten.bmm.default"] == [2 * 3 * 3 * 4]
+    assert sorted(macs["aten.addmm.default"]) == sorted([3 * 7 * 5, 3 * 2 * 5])  # the linear's and the explicit one
+    assert macs["aten.grid_sampler_2d.default"] == [4 * 1 * 4 * 5 * 6]  # the four bilinear corners
+    assert macs["aten.relu.default"] == [0] and macs["aten.add.Tensor"] == [0]
+    placeholders = [n for n in _graph().nodes if n.op != "call_function"]
+    assert placeholders and all(node_macs(n) == 0 for n in placeholders)
+
+
+def test_operator_names_drop_the_namespace_prefix() -> None:
+    names = {op_name(n) for n in _graph().nodes if n.op == "call_function"}
+    assert {"aten.convolution.default", "aten.mm.default", "aten.relu.default"} <= names
+    assert not any(name.startswith("torch.ops.") for name in names)
+
+
+def test_getitems_and_delegate_calls_are_not_compute() -> None:
+    graph = torch.fx.Graph()
+    x = graph.placeholder("x")
+    pair = graph.call_function(torch.ops.aten.var_mean.correction, (x,))
+    first = graph.call_function(getattr(__import__("operator"), "getitem"), (pair, 0))
+    relu = graph.call_function(torch.ops.aten.relu.default, (first,))
+    graph.output(relu)
+    assert [op_name(n) for n in _compute_nodes(graph)] == ["aten.var_mean.correction", "aten.relu.default"]
+    assert DELEGATE_CALL == "executorch_call_delegate"
+
+
+def test_a_linear_reduces_over_its_weights_last_axis() -> None:
+    """aten.linear (before decomposition): outputs x the weight's input features."""
+    exported = torch.export.export(torch.nn.Linear(5, 7).eval(), (torch.randn(3, 5),))
+    (linear,) = [n for n in exported.graph.nodes if n.op == "call_function"]
+    assert op_name(linear) == "aten.linear.default" and node_macs(linear) == 3 * 7 * 5
+    no_meta = torch.fx.Graph().call_function(torch.ops.aten.mm.default, ())
+    with pytest.raises(IndexError):  # a node without shapes has no reduced length to read
+        node_macs(no_meta)
