@@ -75,3 +75,32 @@ def test_a_linear_reduces_over_its_weights_last_axis() -> None:
     no_meta = torch.fx.Graph().call_function(torch.ops.aten.mm.default, ())
     with pytest.raises(IndexError):  # a node without shapes has no reduced length to read
         node_macs(no_meta)
+
+
+def test_the_delegated_share_of_a_lowered_program() -> None:
+    """Mix lowered with XNNPACK's partitioner: whatever XNNPACK takes, the delegated and the
+    portable MACs add up to the module's (the formulas above), the portable ones are those of
+    the operators left outside, and the share is their ratio."""
+    pytest.importorskip("executorch")
+    from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
+    from executorch.exir import to_edge_transform_and_lower
+
+    from e3dpsm.export.delegation import delegation_summary
+
+    inputs = (torch.randn(1, 4, 8, 8), torch.randn(3, 5), torch.rand(1, 5, 6, 2) * 2 - 1, torch.randn(5, 2),
+              torch.randn(2, 3, 4), torch.randn(3, 2))
+    lowered = to_edge_transform_and_lower(torch.export.export(Mix().eval(), inputs),
+                                          partitioner=[XnnpackPartitioner()])
+    summary = delegation_summary(lowered)
+    # each operator's MACs in Mix (the edge dialect keeps the Linear as aten.linear)
+    by_op = {"aten.convolution.default": 6912, "aten.linear.default": 105, "aten.mm.default": 30,
+             "aten.bmm.default": 72, "aten.addmm.default": 30, "aten.grid_sampler_2d.default": 480}
+    total = sum(by_op.values())
+    portable = summary["portable_ops"]
+    assert "aten.grid_sampler_2d.default" in portable  # XNNPACK has no grid sampling
+    assert not any(name in portable for name in ("getitem", DELEGATE_CALL))
+    assert summary["portable_macs"] == sum(by_op.get(name, 0) * count for name, count in portable.items())
+    assert summary["delegated_macs"] + summary["portable_macs"] == total
+    assert summary["delegates"] >= 1 and summary["delegated_macs"] > 0
+    assert summary["delegated_share"] == summary["delegated_macs"] / total
+    assert list(portable.values()) == sorted(portable.values(), reverse=True)  # most common first
