@@ -29,8 +29,7 @@ from typing import Any
 
 from e3dpsm.errors import ConfigError, DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.runtime.openvino_session import (DYNAMIC_QUANTIZATION_OFF, openvino_available, openvino_core,
-                                             protect_dequantization)
+from e3dpsm.runtime.openvino_session import DYNAMIC_QUANTIZATION_OFF, read_openvino_model
 from e3dpsm.runtime.openvino_stateful import RT_CONVERSION, RT_METADATA
 
 
@@ -50,15 +49,6 @@ class ConversionInfo:
         return asdict(self)
 
 
-def _import_openvino() -> Any:
-    ok, reason = openvino_available()
-    if not ok:
-        raise ConfigError(reason)
-    import openvino as ov
-
-    return ov
-
-
 def read_step_graph(path: str | os.PathLike) -> tuple[Any, GraphMetadata, dict[str, str]]:
     """(openvino.Model, metadata, raw metadata_props) of an exported ONNX step graph."""
     import onnx
@@ -74,12 +64,7 @@ def read_step_graph(path: str | os.PathLike) -> tuple[Any, GraphMetadata, dict[s
         raise DataError(f"cannot read {path} as ONNX: {str(exc).splitlines()[0][:300]}") from exc
     props = {p.key: p.value for p in proto.metadata_props}
     meta = GraphMetadata.from_props(props, str(path))  # MetadataError (exit 2) without e3dpsm metadata
-    _import_openvino()
-    try:
-        model = openvino_core().read_model(str(path))
-    except RuntimeError as exc:
-        raise DataError(f"OpenVINO cannot read {path}: {str(exc).splitlines()[0][:300]}") from exc
-    protect_dequantization(model)
+    _, model = read_openvino_model(path)  # e3dpsm's OpenVINO read: its errors, the INT8 graph protected
     return model, meta, props
 
 
