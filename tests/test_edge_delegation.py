@@ -104,3 +104,60 @@ def test_the_delegated_share_of_a_lowered_program() -> None:
     assert summary["delegates"] >= 1 and summary["delegated_macs"] > 0
     assert summary["delegated_share"] == summary["delegated_macs"] / total
     assert list(portable.values()) == sorted(portable.values(), reverse=True)  # most common first
+
+
+def test_callables_other_than_operators_go_by_their_bare_name() -> None:
+    """portable_ops lists `getitem`, not `<built-in function getitem>`."""
+    import operator
+
+    graph = torch.fx.Graph()
+    pair = graph.call_function(torch.ops.aten.var_mean.correction, (graph.placeholder("x"),))
+    item = graph.call_function(operator.getitem, (pair, 0))
+    assert op_name(item) == "getitem"
+
+
+@pytest.mark.parametrize("target", [torch.ops.aten.grid_sampler_2d.default, torch.ops.aten.convolution.default])
+def test_a_node_without_shapes_counts_nothing(target) -> None:
+    """A node whose tensors carry no `val` metadata (a hand-built graph) has no output count."""
+    graph = torch.fx.Graph()
+    x, w = graph.placeholder("x"), graph.placeholder("w")
+    assert node_macs(graph.call_function(target, (x, w))) == 0
+
+
+def test_a_convolution_whose_weight_has_no_shape_counts_nothing() -> None:
+    graph = torch.export.export(torch.nn.Conv2d(2, 3, 3).eval(), (torch.randn(1, 2, 5, 5),)).run_decompositions().graph
+    (conv,) = [n for n in graph.nodes if n.op == "call_function"]
+    conv.args[1].meta.pop("val")
+    assert node_macs(conv) == 0
+
+
+class Chain(torch.nn.Module):
+    """conv -> grid sampling (portable) -> conv: XNNPACK makes two delegates around the sampler."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.first = torch.nn.Conv2d(2, 4, kernel_size=3, padding=1)
+        self.second = torch.nn.Conv2d(4, 3, kernel_size=1)
+
+    def forward(self, image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+        sampled = torch.nn.functional.grid_sample(self.first(image), grid, align_corners=False)
+        return self.second(sampled)
+
+
+def test_every_delegate_of_a_program_is_counted() -> None:
+    """Two delegates: the count is the program's delegate calls, and the delegated MACs the sum of
+    both convolutions' (outputs x in/groups x kernel), not the last delegate's alone."""
+    pytest.importorskip("executorch")
+    from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
+    from executorch.exir import to_edge_transform_and_lower
+
+    from e3dpsm.export.delegation import delegation_summary
+
+    inputs = (torch.randn(1, 2, 6, 6), torch.rand(1, 5, 4, 2) * 2 - 1)
+    lowered = to_edge_transform_and_lower(torch.export.export(Chain().eval(), inputs),
+                                          partitioner=[XnnpackPartitioner()])
+    calls = [n for n in lowered.exported_program().graph.nodes if op_name(n) == DELEGATE_CALL]
+    summary = delegation_summary(lowered)
+    assert len(calls) == 2 and summary["delegates"] == 2
+    assert summary["delegated_macs"] == (1 * 4 * 6 * 6) * 2 * 3 * 3 + (1 * 3 * 5 * 4) * 4
+    assert summary["portable_macs"] == 4 * (1 * 4 * 5 * 4)
