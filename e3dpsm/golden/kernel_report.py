@@ -20,6 +20,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from e3dpsm.errors import DataError, E3DPSMError
 from e3dpsm.golden import kernel_trace as kt
 
 EXPOSED, CUT, HOST_TRACE, ORDER = "exposed.onnx", "cut.onnx", "host.npz", "codes.json"
@@ -60,9 +61,9 @@ def record_host(graph: str | os.PathLike, golden_dir: str | os.PathLike, out: st
     from e3dpsm.runtime.session import StepSession
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
+    model = _load_qdq_graph(graph)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    model = onnx.load(str(graph))
     exposed, codes = expose_quantized(model)
     onnx.save(exposed, str(folder / EXPOSED))
     onnx.save(cut_at_quantized(model)[0], str(folder / CUT))
@@ -120,14 +121,31 @@ def run_device(folder: str | os.PathLike, threads: int = 1, out: str | os.PathLi
     return report
 
 
+def _load_qdq_graph(graph: str | os.PathLike) -> Any:
+    """The ONNX graph at `graph`; DataError unless it reads and quantises a computed tensor."""
+    import onnx
+
+    from e3dpsm.golden.kernel_cut import quantized_activations
+
+    try:
+        model = onnx.load(str(graph))
+    except Exception as exc:  # onnx raises DecodeError and friends on damaged files
+        raise DataError(f"{graph}: not a readable ONNX graph ({type(exc).__name__}: {exc})") from exc
+    if not quantized_activations(model):
+        raise DataError(f"{graph}: no QuantizeLinear on a computed tensor: not a QDQ graph (write one with "
+                        "`e3dpsm quantize --mode int8`)")
+    return model
+
+
 def write_portable(graph: str | os.PathLike, out: str | os.PathLike) -> dict[str, int]:
-    """`graph`'s portable form at `out`; its quantisation metadata records what stayed 8-bit."""
+    """`graph`'s portable form at `out`; its quantisation metadata records what stayed 8-bit.
+    DataError, nothing written, unless `graph` is a readable QDQ graph."""
     import onnx
 
     from e3dpsm.golden.kernel_cut import portable_qdq, quantized_activations
     from e3dpsm.utils.io import atomic_path
 
-    model = onnx.load(str(graph))
+    model = _load_qdq_graph(graph)
     portable, removed = portable_qdq(model)
     counts = {"activations_float": len(removed), "activations_int8": len(quantized_activations(portable))}
     for prop in portable.metadata_props:
@@ -153,6 +171,14 @@ def main(argv: list[str] | None = None) -> int:
     portable.add_argument("graph")
     portable.add_argument("out")
     args = parser.parse_args(argv)
+    try:
+        return _run(args)
+    except E3DPSMError as exc:
+        print(f"{parser.prog} {args.half}: error: " + " ".join(str(exc).split()), file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.half == "portable":
         counts = write_portable(args.graph, args.out)
         print(f"portable: {counts['activations_int8']} activations kept 8-bit, {counts['activations_float']} back "
