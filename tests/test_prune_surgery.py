@@ -245,3 +245,58 @@ def test_pruned_tiny_exports_with_parity(tmp_path):
     for window in (20.0, 25.0, 50.0):
         report = run_parity(pruned, session, frames, window, Tolerances(pose_atol_mm=0.01))
         assert report.passed, report.lines()
+
+
+def test_refusals_say_what_is_wrong_and_how_to_fix_it():
+    """Each refusal's whole message (a user reads it to fix the keep lists)."""
+    model = e3dpsm.create_model("tiny", **SIZE)
+    width = model.config.res_hidden_width(0, 0)
+    with pytest.raises(KeyError, match=r"'stages.9.block1' is not a prunable unit of this model; units: \['attention.0', "):
+        prune_model(model, {"stages.9.block1": [0]})
+    with pytest.raises(ValueError, match=rf"^unit stages.0.block1: keep indices must be distinct, within \[0, {width}\)$"):
+        prune_model(model, {"stages.0.block1": [0, 0]})
+    with pytest.raises(ValueError, match=r"^attention.0: an attention block is kept \(\[0\]\) or removed \(\[\]\) whole$"):
+        prune_model(model, {"attention.0": [0, 1]})
+    with pytest.raises(ValueError, match=r"^decoder.ffn is cut per layer: pass decoder.layers.\{l\}.ffn keep lists$"):
+        prune_model(model, {"decoder.ffn": [0, 1]})
+    ffn = model.config.decoder_ffn
+    with pytest.raises(ValueError, match=rf"^decoder.layers.0.ffn: keep indices must be distinct, within \[0, {ffn}\)$"):
+        prune_model(model, {"decoder.layers.0.ffn": [0, ffn]})
+
+
+def test_decoder_keep_lists_need_every_layer_and_one_length():
+    """`small` has several decoder layers: every layer named but the lengths differ, or one
+    length but a layer missing, are each refused."""
+    model = e3dpsm.create_model("small", **SIZE)
+    layers = model.config.decoder_layers
+    assert layers >= 2
+    message = (rf"^the decoder feed-forward needs one keep list per layer \({layers}\), "
+               r"all of one length \(decoder_ffn is one number\)$")
+    uneven = {f"decoder.layers.{k}.ffn": list(range(k + 1)) for k in range(layers)}
+    with pytest.raises(ValueError, match=message):
+        prune_model(model, uneven)
+    with pytest.raises(ValueError, match=message):
+        prune_model(model, {f"decoder.layers.{k}.ffn": [0, 1] for k in range(layers - 1)})
+
+
+def test_units_named_after_the_decoder_are_cut_too():
+    """The keep lists are read in any order: a residual block named after the decoder's layers
+    is pruned as well."""
+    model = e3dpsm.create_model("tiny", **SIZE)
+    keep = {"decoder.layers.0.ffn": [0, 1, 2], "stages.0.block1": [1, 3]}
+    pruned = prune_model(model, keep)
+    assert pruned.config.decoder_ffn == 3 and pruned.config.res_hidden_width(0, 0) == 2
+    assert torch.equal(pruned.stages[0].block1.conv1.weight, model.stages[0].block1.conv1.weight[[1, 3]])
+
+
+def test_a_coupling_the_surgery_does_not_know_fails_loudly(monkeypatch):
+    """A unit whose tensors the slicers miss leaves a tensor at its old shape: the surgery
+    names it rather than loading a model that computes something else."""
+    import e3dpsm.compress.surgery as surgery
+
+    monkeypatch.setattr(surgery, "unit_slicers", lambda model, unit, keep: {})
+    model = e3dpsm.create_model("tiny", **SIZE)
+    width = model.config.res_hidden_width(0, 0)
+    with pytest.raises(RuntimeError, match=rf"^surgery left stages.0.block1.conv1.weight at \({width}, "
+                                           r"[0-9]+, 3, 3\), the pruned model needs \(2, [0-9]+, 3, 3\)$"):
+        prune_model(model, {"stages.0.block1": [0, 1]})
