@@ -77,6 +77,94 @@ def test_guard_finds_only_shared_convolutions() -> None:
     assert len(found[0].args[0].users) == 2
 
 
+class AffineFreeBlock(PreActivationBlock):
+    """The shared BatchNorm without weight and bias (`affine=False`): scale and shift from the
+    running statistics alone."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.norm = nn.BatchNorm2d(4, eps=0.5, affine=False)
+        self.norm.running_mean.uniform_(-2.0, 2.0)
+        self.norm.running_var.uniform_(0.2, 4.0)
+
+
+def _guarded(block: nn.Module, decompose: bool) -> tuple[torch.fx.GraphModule, int]:
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+    exported = torch.export.export(block, (torch.randn(1, 3, 8, 8),), strict=False)
+    module = (exported.run_decompositions() if decompose else exported).module()
+    return module, explicit_shared_batch_norms(module)
+
+
+@pytest.mark.parametrize("decompose", [False, True], ids=["aten.batch_norm", "native_batch_norm_legit"])
+@pytest.mark.parametrize("block", [PreActivationBlock, AffineFreeBlock])
+def test_the_rewrite_computes_the_batch_norm(block, decompose) -> None:
+    """Both forms of an eval BatchNorm (the core ATen decomposition reads eps at another
+    position and returns a tuple), with and without affine parameters: the rewritten graph
+    computes the eager block, and no shared BatchNorm (nor its getitem) is left."""
+    eager = block().eval()
+    module, rewritten = _guarded(eager, decompose)
+    assert rewritten == 1
+    x = torch.randn(1, 3, 8, 8, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        torch.testing.assert_close(module(x), eager(x), atol=1e-5, rtol=1e-5)
+    norms = [n for n in module.graph.nodes if n.op == "call_function" and "batch_norm" in str(n.target)]
+    assert len(norms) == 1 and norms[0].args[0].args[0].name.startswith("add")  # the tail's, left to the fold
+
+
+def test_the_rewrite_keeps_the_module_path_the_quantizer_filters_on() -> None:
+    """The scale and shift nodes carry the BatchNorm's module stack and stack trace (the
+    quantizer's scope filter reads them), and none of its other metadata (its `val` is a
+    tuple in the decomposed form)."""
+    module, _ = _guarded(PreActivationBlock().eval(), decompose=True)
+    affine = [n for n in module.graph.nodes if n.target in (torch.ops.aten.mul.Tensor, torch.ops.aten.add.Tensor)
+              and any(str(a.target).startswith("_explicit_batch_norm") for a in n.args if isinstance(a, torch.fx.Node))]
+    assert len(affine) == 2
+    for node in affine:
+        assert set(node.meta) == {"nn_module_stack", "stack_trace"}
+        assert list(node.meta["nn_module_stack"].values())[-1][0] == "norm"
+        assert "self.norm(y)" in node.meta["stack_trace"]
+
+
+def test_a_statistic_that_is_not_a_constant_is_refused() -> None:
+    """Running statistics fed as a graph input (not the eval model's buffers): no constant
+    scale to compute, said in one line."""
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+    class FedStatistics(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.down = nn.Conv2d(3, 4, 3, padding=1)
+
+        def forward(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+            y = self.down(x)
+            return y + nn.functional.batch_norm(y, mean, torch.ones(4), training=False)
+
+    module = torch.export.export(FedStatistics().eval(), (torch.randn(1, 3, 8, 8), torch.zeros(4)),
+                                 strict=False).module()
+    with pytest.raises(ValueError, match=r"^BatchNorm statistic mean is not a constant of the graph: "
+                                         r"is the model in eval mode\?$"):
+        explicit_shared_batch_norms(module)
+
+
+def test_a_reader_of_the_saved_statistics_is_refused() -> None:
+    """The decomposed BatchNorm's other outputs (saved mean, inverse std) read by something:
+    the rewrite cannot stand in for them."""
+    from e3dpsm.export.pt2e_guards import explicit_shared_batch_norms
+
+    exported = torch.export.export(PreActivationBlock().eval(), (torch.randn(1, 3, 8, 8),), strict=False)
+    module = exported.run_decompositions().module()
+    norm = next(n for n in module.graph.nodes if n.target == torch.ops.aten._native_batch_norm_legit_no_training.default)
+    (output,) = [n for n in module.graph.nodes if n.op == "output"]
+    with module.graph.inserting_before(output):
+        saved = module.graph.call_function(__import__("operator").getitem, (norm, 1))
+    output.args = ((*output.args[0], saved),) if isinstance(output.args[0], (tuple, list)) else ((output.args[0], saved),)
+    module.recompile()
+    with pytest.raises(ValueError, match=r"^_native_batch_norm_legit_no_training has a reader of its saved "
+                                         r"statistics; cannot rewrite it$"):
+        explicit_shared_batch_norms(module)
+
+
 @pytest.fixture(scope="module")
 def annotated_step(edge_model):
     """The trained tiny's step, exported as for the INT8 program and annotated by the quantizer."""
