@@ -10,8 +10,9 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from e3dpsm.golden.kernel_cut import (EXACT_FLOAT_OPS, FEED_SUFFIX, cut_at_quantized, drop_quantization,
-                                      portable_qdq, portable_segment, quantized_activations, segment_ops)
+from e3dpsm.golden.kernel_cut import (BOOKKEEPING_OPS, EXACT_FLOAT_OPS, FEED_SUFFIX, cut_at_quantized,
+                                      drop_quantization, expose_quantized, portable_qdq, portable_segment,
+                                      quantized_activations, segment_ops)
 
 SCALES = {"x": (0.05, 128), "s": (1 / 255, 0), "a": (2 / 255, 0), "m": (0.1, 128), "k": (0.1, 128)}
 RNG = np.random.default_rng(0)
@@ -191,3 +192,127 @@ def test_the_portable_command_refuses_what_is_not_a_qdq_graph(tmp_path, capsys, 
     assert err.count("\n") == 1 and err.startswith("python -m e3dpsm.golden.kernel_report portable: error: ")
     assert ("not a QDQ graph" if damaged in ("float", "") else "not a readable ONNX graph") in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.onnx"]
+
+
+def _one_op_segment(op_type: str, inputs: int = 1) -> onnx.ModelProto:
+    """x -Q/DQ-> op -> Q: the op's segment (the graph is read, not run). A Constant, which reads
+    nothing, goes in through a Concat."""
+    model = _graph()
+    if op_type == "Constant":
+        middle = [helper.make_node("Constant", [], ["c"], value=numpy_helper.from_array(np.ones(3, np.float32))),
+                  helper.make_node("Concat", ["x_dq", "c"], ["t"], axis=0)]
+    else:
+        middle = [helper.make_node(op_type, ["x_dq"] * inputs, ["t"])]
+    nodes = [*_q("x", "x"), _dq("x", "x_dq"), *middle, *_q("m", "t")]
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    return model
+
+
+BOOKKEEPING = ("QuantizeLinear", "DequantizeLinear", "Shape", "Constant", "ConstantOfShape", "Identity", "Reshape",
+               "Unsqueeze", "Squeeze", "Transpose", "Gather", "Concat", "Slice")
+
+
+@pytest.mark.parametrize("op_type", BOOKKEEPING)
+def test_shape_bookkeeping_is_left_out_of_a_segment(op_type) -> None:
+    """Moving, selecting or describing values computes nothing a kernel could round: a segment
+    of such ops alone is described as empty (and stays portable)."""
+    assert segment_ops(_one_op_segment(op_type))["m_q"] == []
+    assert set(BOOKKEEPING) == BOOKKEEPING_OPS
+
+
+@pytest.mark.parametrize("op_type", ["Sigmoid", "Conv", "LayerNormalization", "Add"])
+def test_computing_ops_are_described(op_type) -> None:
+    assert segment_ops(_one_op_segment(op_type))["m_q"] == [op_type]
+
+
+def _exact_case(op_type: str, rng: np.random.Generator) -> tuple[onnx.NodeProto, list[np.ndarray], np.ndarray,
+                                                                  list[onnx.TensorProto]]:
+    """(node, its inputs, numpy's IEEE float32 result, initializers) for each exact op."""
+    a, b = (rng.normal(size=(1, 2, 6, 6)).astype(np.float32) * 3 for _ in range(2))
+    b[b == 0] = 1.0
+    unary = {"Relu": lambda x: np.maximum(x, np.float32(0)), "Neg": np.negative, "Abs": np.abs}
+    binary = {"Add": np.add, "Sub": np.subtract, "Mul": np.multiply, "Div": np.divide, "Max": np.maximum,
+              "Min": np.minimum}
+    if op_type in unary:
+        return helper.make_node(op_type, ["a"], ["y"]), [a], unary[op_type](a), []
+    if op_type in binary:
+        return helper.make_node(op_type, ["a", "b"], ["y"]), [a, b], binary[op_type](a, b), []
+    if op_type == "Where":
+        mask = a > 0
+        return helper.make_node("Where", ["mask", "a", "b"], ["y"]), [a, b], np.where(mask, a, b), [
+            numpy_helper.from_array(mask, "mask")]
+    if op_type == "Equal":
+        return helper.make_node("Equal", ["a", "b"], ["y"]), [a, np.where(a > 0, a, b)], a == np.where(a > 0, a, b), []
+    if op_type == "Expand":
+        row = a[:, :1]
+        return helper.make_node("Expand", ["a", "shape"], ["y"]), [row], np.broadcast_to(row, (1, 2, 6, 6)), [
+            numpy_helper.from_array(np.array([1, 2, 6, 6], np.int64), "shape")]
+    if op_type == "Tile":
+        return helper.make_node("Tile", ["a", "reps"], ["y"]), [a], np.tile(a, (1, 1, 2, 3)), [
+            numpy_helper.from_array(np.array([1, 1, 2, 3], np.int64), "reps")]
+    if op_type == "Pad":
+        return helper.make_node("Pad", ["a", "pads"], ["y"]), [a], np.pad(a, ((0, 0), (0, 0), (1, 2), (2, 1))), [
+            numpy_helper.from_array(np.array([0, 0, 1, 2, 0, 0, 2, 1], np.int64), "pads")]
+    if op_type == "MaxPool":
+        pooled = a.reshape(1, 2, 3, 2, 3, 2).max(axis=(3, 5))
+        return helper.make_node("MaxPool", ["a"], ["y"], kernel_shape=[2, 2], strides=[2, 2]), [a], pooled, []
+    raise AssertionError(f"no numpy reference for {op_type}: say why it is exact, or leave it out")
+
+
+@pytest.mark.parametrize("op_type", sorted(EXACT_FLOAT_OPS))
+def test_ops_called_exact_compute_numpys_ieee_result_to_the_bit(op_type) -> None:
+    """What makes a float segment portable: each op is one IEEE operation per element (or moves
+    values), so ONNX Runtime's result is numpy's float32 result bit for bit, on any ISA."""
+    import onnxruntime as ort
+
+    node, arrays, expected, inits = _exact_case(op_type, np.random.default_rng(5))
+    names = ["a", "b"][: len(arrays)]
+    graph = helper.make_graph([node], op_type, [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names],
+                              [onnx.ValueInfoProto(name="y")], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
+    (got,) = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        ["y"], dict(zip(names, arrays)))
+    assert got.dtype == expected.dtype and got.shape == expected.shape
+    assert np.array_equal(got.view(np.uint8), np.ascontiguousarray(expected).view(np.uint8))
+
+
+def test_constants_quantised_are_not_activations() -> None:
+    """A QuantizeLinear of an initializer or of a Constant node's output quantises a weight."""
+    model = _graph()
+    model.graph.initializer.append(numpy_helper.from_array(np.ones((6, 4), np.float32), "w_float"))
+    model.graph.node.extend([*_q("m", "w_float"),
+                             helper.make_node("Constant", [], ["c"], value=numpy_helper.from_array(np.ones(3, np.float32))),
+                             helper.make_node("QuantizeLinear", ["c", "s_k"], ["c_q"])])
+    assert quantized_activations(model) == ["x_q", "s_q", "a_q", "m_q", "k_q"]
+
+
+def test_a_code_without_a_zero_point_is_fed_as_uint8() -> None:
+    model = _graph()
+    model.graph.node.extend([helper.make_node("QuantizeLinear", ["mm2", "s_k"], ["u_q"]),
+                             helper.make_node("Relu", ["u_q"], ["u_relu"])])
+    cut, names = cut_at_quantized(model)
+    assert "u_q" in names
+    types = {i.name: i.type.tensor_type.elem_type for i in cut.graph.input}
+    assert types["u_q" + FEED_SUFFIX] == TensorProto.UINT8
+
+
+def test_a_segment_reached_twice_is_walked_whole() -> None:
+    """Sum(Sigmoid(x), Relu(x), Abs(Relu(x))): Relu is met twice on the walk; Sigmoid, met
+    after it, is still part of the segment."""
+    model = _graph()
+    nodes = [*_q("x", "x"), _dq("x", "x_dq"), helper.make_node("Sigmoid", ["x_dq"], ["e"]),
+             helper.make_node("Relu", ["x_dq"], ["r"]), helper.make_node("Abs", ["r"], ["b"]),
+             helper.make_node("Sum", ["e", "r", "b"], ["t"]), *_q("m", "t")]
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    assert segment_ops(model)["m_q"] == ["Sigmoid", "Relu", "Abs", "Sum"]
+
+
+def test_expose_says_what_a_float_graph_lacks() -> None:
+    model = _graph()
+    kept = [n for n in model.graph.node if n.op_type != "QuantizeLinear"]
+    del model.graph.node[:]
+    model.graph.node.extend(kept)
+    with pytest.raises(ValueError, match="^the graph has no QuantizeLinear on a computed tensor: not a QDQ graph$"):
+        expose_quantized(model)

@@ -48,9 +48,7 @@ def cut_at_quantized(model: onnx.ModelProto) -> tuple[onnx.ModelProto, list[str]
     activation `q` read the graph input `q` + FEED_SUFFIX instead (same element type)."""
     cut, names = expose_quantized(model)
     dtypes = _code_types(model)
-    for node in cut.graph.node:
-        if node.op_type == "QuantizeLinear" and node.output[0] in dtypes:
-            continue
+    for node in cut.graph.node:  # a QuantizeLinear reads a float tensor, never a code: only readers change
         for i, name in enumerate(node.input):
             if name in dtypes:
                 node.input[i] = name + FEED_SUFFIX
