@@ -161,3 +161,91 @@ def test_golden_check_names_the_activation_where_a_device_departs(tmp_path, trai
     assert found["first_departures"][0] == target
     first = found["isolated"][0]
     assert (first["name"], first["first_step"], first["apart"], first["max_codes"]) == (target, 3, 1, 1)
+
+
+def _recurrent_qdq(path) -> None:
+    """A one-state QDQ graph: a = Q(frame + state); h = Q(DQ(a) * 0.5); the new state is DQ(h),
+    the pose DQ(h) too. Metadata as the export writes it (one state `s` of shape [4])."""
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.state import StateSpec, state_input_name, state_output_name
+
+    spec = StateSpec("s", (4,))
+    inits = [numpy_helper.from_array(np.array(v, np.float32 if isinstance(v, float) else np.uint8), n) for n, v in
+             (("s_a", 0.05), ("z_a", 128), ("s_h", 0.02), ("z_h", 128), ("half", 0.5))]
+    nodes = [helper.make_node("Add", ["lnes", state_input_name("s")], ["sum"]),
+             helper.make_node("QuantizeLinear", ["sum", "s_a", "z_a"], ["a_q"]),
+             helper.make_node("DequantizeLinear", ["a_q", "s_a", "z_a"], ["a"]),
+             helper.make_node("Mul", ["a", "half"], ["halved"]),
+             helper.make_node("QuantizeLinear", ["halved", "s_h", "z_h"], ["h_q"]),
+             helper.make_node("DequantizeLinear", ["h_q", "s_h", "z_h"], [state_output_name("s")]),
+             helper.make_node("Identity", [state_output_name("s")], ["pose"])]
+    value = lambda name: helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, 4])  # noqa: E731
+    graph = helper.make_graph(nodes, "recurrent", [value("lnes"), value(state_input_name("s"))],
+                              [value("pose"), value(state_output_name("s"))], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
+    GraphMetadata(states=(spec,), inputs={"frame": {"name": "lnes", "shape": [1, 4]}, "window": None},
+                  outputs=[{"name": "pose"}], config={"variant": "fake"}, joints=["j"]).write_to(model)
+    onnx.save(model, str(path))
+    return model
+
+
+def _qdq(value: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """(codes, dequantised) of ONNX's u8 QuantizeLinear with zero point 128: half to even, saturated."""
+    codes = np.clip(np.rint(value / np.float32(scale)) + 128, 0, 255).astype(np.uint8)
+    return codes, ((codes.astype(np.float32) - 128) * np.float32(scale)).astype(np.float32)
+
+
+def test_rollout_carries_the_states_and_keeps_every_code(tmp_path) -> None:
+    """The host's trace against the recurrence written out in numpy: inputs (states included)
+    as fed, codes and state outputs per step."""
+    from e3dpsm.golden.kernel_trace import IN, OUT, rollout
+    from e3dpsm.state import state_input_name, state_output_name
+
+    model = _recurrent_qdq(tmp_path / "step.onnx")
+    exposed, codes = expose_quantized(model)
+    onnx.save(exposed, str(tmp_path / "exposed.onnx"))
+    frames = np.random.default_rng(4).normal(size=(5, 1, 4)).astype(np.float32) * 2
+    start = np.full((1, 4), 0.3, np.float32)
+    inputs = iter([{"lnes": frames[0], state_input_name("s"): start}, *({"lnes": f} for f in frames[1:])])
+    trace = rollout(tmp_path / "exposed.onnx", inputs, codes)
+    assert codes == ["a_q", "h_q"]
+    assert set(trace) == {IN + "lnes", IN + state_input_name("s"), CODE + "a_q", CODE + "h_q",
+                          OUT + state_output_name("s")}
+    state = start
+    for step, frame in enumerate(frames):
+        a_codes, a = _qdq(frame + state, 0.05)
+        h_codes, h = _qdq(a * np.float32(0.5), 0.02)
+        assert np.array_equal(trace[IN + state_input_name("s")][step], state)
+        assert np.array_equal(trace[CODE + "a_q"][step], a_codes) and np.array_equal(trace[CODE + "h_q"][step], h_codes)
+        assert np.array_equal(trace[OUT + state_output_name("s")][step], h)
+        state = h
+    assert np.array_equal(trace[IN + "lnes"], frames)
+    assert trace[CODE + "a_q"].shape == (5, 1, 4) and trace[CODE + "a_q"].dtype == np.uint8
+
+
+def test_isolated_segments_compute_from_the_host_codes_alone(tmp_path) -> None:
+    """Each step of the cut graph reads the host's codes: h's segment follows a code changed in
+    the host's trace (a), not what the device would have computed; a's follows the host's inputs."""
+    from e3dpsm.golden.kernel_trace import IN, isolated, load_trace, rollout
+    from e3dpsm.state import state_input_name
+
+    model = _recurrent_qdq(tmp_path / "step.onnx")
+    exposed, codes = expose_quantized(model)
+    onnx.save(exposed, str(tmp_path / "exposed.onnx"))
+    onnx.save(cut_at_quantized(model)[0], str(tmp_path / "cut.onnx"))
+    frames = np.random.default_rng(5).normal(size=(4, 1, 4)).astype(np.float32)
+    inputs = iter([{"lnes": frames[0], state_input_name("s"): np.zeros((1, 4), np.float32)},
+                   *({"lnes": f} for f in frames[1:])])
+    host = rollout(tmp_path / "exposed.onnx", inputs, codes)
+    np.savez(tmp_path / "host.npz", **host)
+    host = load_trace(tmp_path / "host.npz")
+    host[CODE + "a_q"][2, 0, 1] = 250  # the host's trace says otherwise at step 2
+    got = isolated(tmp_path / "cut.onnx", host, codes)
+    assert set(got) == {CODE + "a_q", CODE + "h_q"}
+    for step in range(4):
+        a_codes, _ = _qdq(host[IN + "lnes"][step] + host[IN + state_input_name("s")][step], 0.05)
+        fed = (host[CODE + "a_q"][step].astype(np.float32) - 128) * np.float32(0.05)
+        h_codes, _ = _qdq(fed * np.float32(0.5), 0.02)
+        assert np.array_equal(got[CODE + "a_q"][step], a_codes)
+        assert np.array_equal(got[CODE + "h_q"][step], h_codes)
+    assert got[CODE + "h_q"][2, 0, 1] == _qdq(np.float32(122 * 0.05 * 0.5), 0.02)[0]
