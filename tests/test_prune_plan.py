@@ -1,0 +1,112 @@
+"""A pruning round's candidates (e3dpsm/compress/plan.py): the widths tried, each cut's damage and
+its MAC saving, against the rules in the module's docstring and counts written out per module."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from _model_helpers import randomised_tiny
+from e3dpsm.compress.plan import _aligned, count_macs, measure_candidates, pose_distance_mm, total_macs
+from e3dpsm.compress.units import ATTN_BLOCK, RES, prunable_units
+
+
+@pytest.mark.parametrize("width, shrink, align, expected", [
+    (64, 0.5, 8, 32),     # a multiple of the alignment
+    (60, 0.5, 8, 24),     # 30 rounded down to a multiple of 8
+    (30, 0.5, 8, 8),      # 15 -> 8: never below one aligned group
+    (10, 0.1, 8, 8),      # 1 -> 0 groups: still one
+    (8, 0.5, 8, 4),       # no wider than one group: plain floor
+    (6, 0.5, 8, 3),
+    (1, 0.5, 8, 1),       # never 0: narrowing is not removing
+    (3, 0.9, 8, 2),
+    (48, 0.75, 16, 32),
+])
+def test_narrowed_widths_keep_whole_groups_of_channels(width, shrink, align, expected) -> None:
+    assert _aligned(width, shrink, align) == expected
+
+
+def test_pose_distance_is_the_mean_joint_distance() -> None:
+    a = {"pose": torch.zeros(2, 3, 16, 3)}
+    b = {"pose": torch.zeros(2, 3, 16, 3)}
+    b["pose"][..., 0] = 3.0
+    b["pose"][..., 1] = 4.0   # 5 mm at every joint
+    b["pose"][0, 0, 0] = torch.tensor([0.0, 0.0, 96.0 * 5 + 5.0])  # one joint 485 mm: +5 mm on the mean of 96
+    expected = (95 * 5.0 + math.sqrt(485.0 ** 2)) / 96
+    assert pose_distance_mm(a, b) == pytest.approx(expected)
+    assert pose_distance_mm(b, a) == pytest.approx(expected)
+
+
+@pytest.fixture(scope="module")
+def candidates():
+    """The randomised tiny, stages.0.block1's channels 4-7 silenced (conv2 reads nothing from
+    them), its candidates at shrink 0.5 / align 8 on one window."""
+    model = randomised_tiny(11)
+    with torch.no_grad():
+        model.stages[0].block1.conv2.weight[:, 4:] = 0.0
+    frames = (torch.rand(1, 1, 2, 64, 96, generator=torch.Generator().manual_seed(2)) < 0.1).float()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    found = measure_candidates(model, frames, 20.0, shrink=0.5, align=8, profile=None)
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # the model is left as it was
+    return model, found
+
+
+def test_every_unit_is_tried_narrowed_and_removable_ones_removed(candidates) -> None:
+    """Widths per unit, in unit order: an attention block is only removed; every other unit is
+    narrowed by the shrink (aligned) when that narrows it, and removed too when removable."""
+    model, found = candidates
+    expected = []
+    for unit in prunable_units(model.config):
+        if unit.kind == ATTN_BLOCK:
+            expected.append((unit.name, 0, 1))
+            continue
+        if _aligned(unit.width, 0.5, 8) < unit.width:
+            expected.append((unit.name, _aligned(unit.width, 0.5, 8), unit.width))
+        if unit.removable:
+            expected.append((unit.name, 0, unit.width))
+    assert [(c.unit, c.width, c.old_width) for c in found] == expected
+    assert any(c.width == 0 and c.old_width > 1 for c in found)  # a residual block removed
+    assert all(c.saved_ms == 0.0 for c in found)  # no latency profile: no time saving claimed
+
+
+def test_a_cut_of_silenced_channels_does_no_damage(candidates) -> None:
+    """stages.0.block1 narrowed to 4 keeps the four channels that contribute (the importance
+    ranks the silenced ones last): the poses do not move; other cuts move them."""
+    _, found = candidates
+    by_cut = {(c.unit, c.width): c for c in found}
+    assert by_cut[("stages.0.block1", 4)].damage_mm < 1e-3
+    assert by_cut[("stages.0.block1", 0)].damage_mm > 1.0
+    assert by_cut[("stages.1.block1", 8)].damage_mm > 1e-2 and by_cut[("attention.0.ff", 16)].damage_mm > 1e-2
+    assert all(math.isfinite(c.damage_mm) and c.damage_mm >= 0 for c in found)
+
+
+def test_mac_savings_follow_the_layers_each_cut_touches(candidates) -> None:
+    """From the unpruned model's per-module counts: removing an attention block saves all of its
+    layers' MACs; narrowing a residual block's hidden width from w to w' saves (w - w') / w of
+    its two convolutions' (both are linear in that width)."""
+    model, found = candidates
+    per_module = count_macs(model)
+    by_cut = {(c.unit, c.width): c for c in found}
+    attention = sum(v for k, v in per_module.items() if k.startswith("attention.1."))
+    assert attention > 0 and by_cut[("attention.1", 0)].saved_macs == attention
+    block = [u for u in prunable_units(model.config) if u.kind == RES][0]
+    convs = per_module[f"{block.name}.conv1"] + per_module[f"{block.name}.conv2"]
+    assert by_cut[(block.name, 4)].saved_macs == convs * (block.width - 4) // block.width
+    assert by_cut[(block.name, 0)].saved_macs == convs + 0  # the shortcut has no convolution in this block
+    assert sum(per_module.values()) == total_macs(model)
+
+
+def test_module_macs_against_the_layer_formulas() -> None:
+    """A Conv2d: output values x in/groups x kernel area; a Linear: output values x in features;
+    batch 1, one step: the stem's first convolution (2 -> 8 channels, 3 x 3, stride 2, on the
+    64 x 96 frame) and the pose head (16 joints x 3 outputs from 40 features)."""
+    model = randomised_tiny(3)
+    macs = count_macs(model)
+    stem = model.stem[0]
+    assert (stem.in_channels, stem.out_channels, stem.kernel_size, stem.stride, stem.padding) == (2, 8, (3, 3), (2, 2), (1, 1))
+    assert macs["stem.0"] == (8 * 32 * 48) * (2 * 3 * 3)
+    assert (model.delta_head.in_features, model.delta_head.out_features) == (40, 3)
+    assert macs["delta_head"] == (16 * 3) * 40
+    assert not model.training and total_macs(model.train()) == sum(macs.values())
+    assert model.training  # counting leaves the mode as it found it
