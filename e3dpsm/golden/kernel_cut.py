@@ -67,11 +67,24 @@ def _code_types(model: onnx.ModelProto) -> dict[str, int]:
             for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in constants}
 
 
+FLOAT_SUFFIX = " (float)"  # an integer-kernel op whose activation input is not dequantised: a float kernel
+
+
 def segment_ops(model: onnx.ModelProto) -> dict[str, list[str]]:
     """Quantised activation -> the op types of its segment: the nodes between the quantised
     activations (or graph inputs, constants) it depends on and its QuantizeLinear, in graph
-    order, DequantizeLinear and QuantizeLinear left out."""
+    order, DequantizeLinear and QuantizeLinear left out. A Conv, MatMul or Gemm that reads a
+    computed tensor other than a DequantizeLinear's output cannot be fused into an integer
+    kernel: it is described as, e.g., `MatMul (float)`."""
     producer = {o: n for n in model.graph.node for o in n.output}
+    constants = {i.name for i in model.graph.initializer}
+
+    def describe(node: onnx.NodeProto) -> str:
+        float_input = any(name and name not in constants and (name not in producer or producer[name].op_type
+                                                               not in ("DequantizeLinear", "Constant"))
+                          for name in node.input)
+        return node.op_type + FLOAT_SUFFIX if node.op_type in INTEGER_FUSED_OPS and float_input else node.op_type
+
     order = {id(n): i for i, n in enumerate(model.graph.node)}
     codes = set(quantized_activations(model))
     segments: dict[str, list[str]] = {}
@@ -87,7 +100,7 @@ def segment_ops(model: onnx.ModelProto) -> dict[str, list[str]]:
                 if name not in codes and name in producer:  # a segment ends at the codes it reads
                     stack.append(producer[name])
         nodes = sorted(seen.values(), key=lambda n: order[id(n)])
-        segments[q] = [n.op_type for n in nodes if n.op_type not in BOOKKEEPING_OPS]
+        segments[q] = [describe(n) for n in nodes if n.op_type not in BOOKKEEPING_OPS]
     return segments
 
 
