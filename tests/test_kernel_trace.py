@@ -249,3 +249,33 @@ def test_isolated_segments_compute_from_the_host_codes_alone(tmp_path) -> None:
         assert np.array_equal(got[CODE + "a_q"][step], a_codes)
         assert np.array_equal(got[CODE + "h_q"][step], h_codes)
     assert got[CODE + "h_q"][2, 0, 1] == _qdq(np.float32(122 * 0.05 * 0.5), 0.02)[0]
+
+
+def test_code_diff_dict_and_fraction_of_the_steps_apart() -> None:
+    """The fraction counts the codes apart over the codes of the steps that part (not of every
+    step); a rollout that never parts has fraction 0, not a division by zero."""
+    host = np.zeros((5, 4), np.uint8)
+    device = host.copy()
+    device[1, :3] = 2
+    device[3, 0] = 1
+    diff = compare_codes("t", host, device)
+    assert diff.fraction == pytest.approx(4 / (4 * 2))
+    assert diff.to_dict() == {"name": "t", "first_step": 1, "steps_apart": 2, "elements": 4, "apart": 4,
+                              "max_codes": 2, "mean_signed": 1.75, "fraction_of_apart_steps": 0.5}
+    assert compare_codes("t", host, host).fraction == 0.0
+
+
+def test_traces_compare_in_the_given_order_and_refuse_other_shapes() -> None:
+    from e3dpsm.golden.kernel_trace import compare_traces
+
+    host = {CODE + "a": np.zeros((2, 3), np.uint8), CODE + "b": np.ones((2, 2), np.uint8)}
+    device = {CODE + "a": np.zeros((2, 3), np.uint8), CODE + "b": np.full((2, 2), 3, np.uint8)}
+    diffs = compare_traces(host, device, ["b", "a"])
+    assert [(d.name, d.apart, d.max_codes) for d in diffs] == [("b", 4, 2), ("a", 0, 0)]
+    with pytest.raises(ValueError, match=r"^a: host codes \(2, 3\), device codes \(2, 4\)$"):
+        compare_codes("a", host[CODE + "a"], np.zeros((2, 4), np.uint8))
+
+
+def test_first_departures_are_five_unless_asked() -> None:
+    diffs = [CodeDiff(f"c{i}", 10 - i, 1, 4, 1, 1, 1.0) for i in range(8)]
+    assert [d.name for d in first_departures(diffs)] == ["c7", "c6", "c5", "c4", "c3"]
