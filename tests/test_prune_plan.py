@@ -1,5 +1,6 @@
-"""A pruning round's candidates (e3dpsm/compress/plan.py): the widths tried, each cut's damage and
-its MAC saving, against the rules in the module's docstring and counts written out per module."""
+"""A pruning round's candidates and choice (e3dpsm/compress/plan.py): the widths tried, each cut's
+damage and MAC saving, and the greedy ranking, against the rules in the module's docstring and
+counts written out per module."""
 from __future__ import annotations
 
 import math
@@ -7,8 +8,11 @@ import math
 import pytest
 import torch
 
+import e3dpsm
 from _model_helpers import randomised_tiny
-from e3dpsm.compress.plan import _aligned, count_macs, measure_candidates, pose_distance_mm, total_macs
+from e3dpsm.compress.latency import LatencyProfile, UnitLatency
+from e3dpsm.compress.plan import (Candidate, _aligned, choose, count_macs, macs_per_stage, measure_candidates,
+                                  pose_distance_mm, total_macs)
 from e3dpsm.compress.units import ATTN_BLOCK, RES, prunable_units
 
 
@@ -110,3 +114,99 @@ def test_module_macs_against_the_layer_formulas() -> None:
     assert macs["delta_head"] == (16 * 3) * 40
     assert not model.training and total_macs(model.train()) == sum(macs.values())
     assert model.training  # counting leaves the mode as it found it
+
+
+# --- the greedy choice's ranking (module docstring: damage per unit of gain; the gain is the
+# share of the step a cut saves, plus a thousandth of its share of the largest MAC saving)
+
+UNITS = prunable_units(e3dpsm.create_model("tiny").config)
+
+
+def _profile(run_ms: float) -> LatencyProfile:
+    return LatencyProfile(run_ms=run_ms, kernel_ms=run_ms, nodes=10, units={})
+
+
+def _first(candidates: list[Candidate], profile: LatencyProfile | None) -> str:
+    """The first cut chosen (MACs objective, a target one MAC away: the first cut reaches it)."""
+    widths, _ = choose(candidates, UNITS, "macs", current=10_000, target=9_999, profile=profile)
+    assert len(widths) == 1
+    return next(iter(widths))
+
+
+def _cut(unit: str, saved_ms: float, saved_macs: int, damage: float = 1.0, width: int = 4) -> Candidate:
+    return Candidate(unit, width, 8, damage_mm=damage, saved_macs=saved_macs, saved_ms=saved_ms)
+
+
+def test_measured_time_outranks_counted_macs() -> None:
+    """Equal damage: a cut saving a tenth of the step beats one saving ten times its MACs and no time."""
+    timed, counted = _cut("stages.0.block1", 1.0, 100), _cut("stages.1.block1", 0.0, 1000)
+    assert _first([counted, timed], _profile(10.0)) == "stages.0.block1"
+
+
+@pytest.mark.parametrize("run_ms, saved_ms, first", [
+    (10.0, 0.005, "stages.1.block1"),   # 5e-4 of the step < the MAC term's 1e-3: the MACs decide
+    (10.0, 0.02, "stages.2.block1"),    # 2e-3 of the step: the time decides
+    (0.5, 0.0008, "stages.2.block1"),   # 1.6e-3 of a 0.5 ms step
+    (0.0, 0.0015, "stages.2.block1"),   # a profile without a run time: shares of 1 ms
+    (0.0, 0.0005, "stages.1.block1"),
+    (None, 0.0015, "stages.2.block1"),  # no profile: shares of 1 ms
+    (None, 0.0005, "stages.1.block1"),
+])
+def test_macs_weigh_a_thousandth_of_the_step(run_ms, saved_ms, first) -> None:
+    counted = _cut("stages.1.block1", 0.0, 1000)   # the largest MAC saving: MAC term 1e-3
+    timed = _cut("stages.2.block1", saved_ms, 1)
+    profile = None if run_ms is None else _profile(run_ms)
+    assert _first([counted, timed], profile) == first
+
+
+def test_a_cut_that_saves_nothing_counted_is_never_chosen() -> None:
+    """MACs objective: a cut saving no MACs is left out (its gain could be 0: no division by it);
+    latency objective: a cut saving no measured time is left out, however harmless."""
+    free = _cut("stages.0.block1", 0.0, 0, damage=0.0)
+    assert _first([free, _cut("stages.1.block1", 0.0, 5)], None) == "stages.1.block1"
+    untimed = _cut("stages.0.block1", 0.0, 50, damage=0.0)
+    profile = LatencyProfile(run_ms=10.0, kernel_ms=10.0, nodes=10, units={"stages.1.block1": UnitLatency(2.0, 2)})
+    widths, _ = choose([untimed, _cut("stages.1.block1", 1.0, 5)], UNITS, "latency", current=10.0, target=9.5,
+                       profile=profile)
+    assert widths == {"stages.1.block1": 4}
+    assert _first([untimed, _cut("stages.1.block1", 1.0, 5)], _profile(10.0)) == "stages.0.block1"
+
+
+def test_a_units_second_cut_is_skipped_and_the_next_unit_taken() -> None:
+    cands = [_cut("stages.0.block1", 1.0, 10, damage=1.0), _cut("stages.0.block1", 1.0, 10, damage=1.1, width=0),
+             _cut("stages.1.block1", 1.0, 10, damage=5.0)]
+    widths, value = choose(cands, UNITS, "macs", current=100, target=80, profile=None)
+    assert widths == {"stages.0.block1": 4, "stages.1.block1": 4} and value == 80
+
+
+def test_a_block_removed_beside_a_narrowed_unit_elsewhere() -> None:
+    """Only units inside a removed block's scope stop its removal."""
+    cands = [_cut("stages.0.block1", 1.0, 10, damage=0.1), Candidate("attention.1", 0, 1, 1.0, 10, 1.0)]
+    widths, _ = choose(cands, UNITS, "macs", current=100, target=80, profile=None)
+    assert widths == {"stages.0.block1": 4, "attention.1": 0}
+
+
+def test_an_unknown_objective_is_named() -> None:
+    with pytest.raises(ValueError, match="^unknown objective 'speed'$"):
+        choose([], UNITS, "speed", current=1.0, target=0.5)
+
+
+def test_macs_by_stage_put_the_stem_and_the_decoder_and_heads_apart() -> None:
+    model = randomised_tiny(3)
+    per_module = count_macs(model)
+    groups = macs_per_stage(model)
+    assert set(groups) == {"stem", "stage1", "stage2", "stage3", "stage4", "decoder+heads"}
+    assert groups["stem"] == sum(v for k, v in per_module.items() if k.startswith("stem."))
+    assert groups["decoder+heads"] == sum(v for k, v in per_module.items()
+                                          if k.split(".")[0] not in ("stem", "stages", "attention", "ssm"))
+    assert groups["decoder+heads"] >= per_module["delta_head"] > 0
+
+
+def test_macs_are_whole_numbers_over_any_kernel_shape_and_grouping() -> None:
+    """A 1 x 3 kernel in two groups (the stem swapped for one, same output size): output values x
+    in/groups x kernel area, an integer."""
+    model = randomised_tiny(3)
+    model.stem[0] = torch.nn.Conv2d(2, 8, kernel_size=(1, 3), stride=2, padding=(0, 1), groups=2)
+    macs = count_macs(model)
+    assert macs["stem.0"] == (8 * 32 * 48) * (2 // 2 * 1 * 3)
+    assert all(isinstance(v, int) for v in macs.values())
