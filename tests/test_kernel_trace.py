@@ -2,6 +2,8 @@
 a QDQ graph at its quantised activations, and the exact comparison of codes."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import onnx
 import pytest
@@ -209,8 +211,8 @@ def test_rollout_carries_the_states_and_keeps_every_code(tmp_path) -> None:
     inputs = iter([{"lnes": frames[0], state_input_name("s"): start}, *({"lnes": f} for f in frames[1:])])
     trace = rollout(tmp_path / "exposed.onnx", inputs, codes)
     assert codes == ["a_q", "h_q"]
-    assert set(trace) == {IN + "lnes", IN + state_input_name("s"), CODE + "a_q", CODE + "h_q",
-                          OUT + state_output_name("s")}
+    # the keys are the host.npz format a device reads: written out, not through the constants
+    assert set(trace) == {"in.lnes", f"in.{state_input_name('s')}", "q.a_q", "q.h_q", f"out.{state_output_name('s')}"}
     state = start
     for step, frame in enumerate(frames):
         a_codes, a = _qdq(frame + state, 0.05)
@@ -240,6 +242,9 @@ def test_isolated_segments_compute_from_the_host_codes_alone(tmp_path) -> None:
     np.savez(tmp_path / "host.npz", **host)
     host = load_trace(tmp_path / "host.npz")
     host[CODE + "a_q"][2, 0, 1] = 250  # the host's trace says otherwise at step 2
+    host[IN + "not_an_input"] = np.zeros((4, 1), np.float32)  # a trace may keep inputs the cut graph lacks
+    cut_inputs = {i.name for i in onnx.load(str(tmp_path / "cut.onnx")).graph.input}
+    assert cut_inputs == {"lnes", state_input_name("s"), "a_q__host_codes", "h_q__host_codes"}
     got = isolated(tmp_path / "cut.onnx", host, codes)
     assert set(got) == {CODE + "a_q", CODE + "h_q"}
     for step in range(4):
@@ -262,7 +267,12 @@ def test_code_diff_dict_and_fraction_of_the_steps_apart() -> None:
     assert diff.fraction == pytest.approx(4 / (4 * 2))
     assert diff.to_dict() == {"name": "t", "first_step": 1, "steps_apart": 2, "elements": 4, "apart": 4,
                               "max_codes": 2, "mean_signed": 1.75, "fraction_of_apart_steps": 0.5}
-    assert compare_codes("t", host, host).fraction == 0.0
+    same = compare_codes("t", host, host)
+    assert (same.fraction, same.mean_signed) == (0.0, 0.0)
+    one_step = compare_codes("t", host[1:2], device[1:2])
+    assert (one_step.elements, one_step.apart, one_step.first_step) == (4, 3, 0)
+    with pytest.raises(dataclasses.FrozenInstanceError):  # a value, as reports hold it
+        diff.apart = 0
 
 
 def test_traces_compare_in_the_given_order_and_refuse_other_shapes() -> None:
@@ -279,3 +289,12 @@ def test_traces_compare_in_the_given_order_and_refuse_other_shapes() -> None:
 def test_first_departures_are_five_unless_asked() -> None:
     diffs = [CodeDiff(f"c{i}", 10 - i, 1, 4, 1, 1, 1.0) for i in range(8)]
     assert [d.name for d in first_departures(diffs)] == ["c7", "c6", "c5", "c4", "c3"]
+
+
+def test_a_trace_with_pickled_objects_is_refused(tmp_path) -> None:
+    """host.npz comes with a golden from another machine: numpy arrays only, no pickles."""
+    from e3dpsm.golden.kernel_trace import load_trace
+
+    np.savez(tmp_path / "host.npz", **{"q.a": np.array([{"x": 1}], dtype=object)})
+    with pytest.raises(ValueError, match="allow_pickle"):
+        load_trace(tmp_path / "host.npz")

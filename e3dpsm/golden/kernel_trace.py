@@ -47,7 +47,7 @@ class CodeDiff:
 
 
 def compare_codes(name: str, host: np.ndarray, device: np.ndarray) -> CodeDiff:
-    """Exact comparison of one activation's codes, [steps, ...] on each side."""
+    """Exact comparison of one activation's codes, [steps, ...] on each side (one step or more)."""
     if host.shape != device.shape:
         raise ValueError(f"{name}: host codes {host.shape}, device codes {device.shape}")
     diff = device.astype(np.int32) - host.astype(np.int32)
@@ -55,7 +55,7 @@ def compare_codes(name: str, host: np.ndarray, device: np.ndarray) -> CodeDiff:
     apart_steps = np.flatnonzero(per_step)
     nonzero = diff[diff != 0]
     return CodeDiff(name, int(apart_steps[0]) if apart_steps.size else None, int(apart_steps.size),
-                    int(diff[0].size) if len(diff) else 0, int(per_step.sum()),
+                    int(diff[0].size), int(per_step.sum()),
                     int(np.abs(nonzero).max()) if nonzero.size else 0,
                     float(nonzero.mean()) if nonzero.size else 0.0)
 
