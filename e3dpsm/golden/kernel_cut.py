@@ -73,16 +73,16 @@ FLOAT_SUFFIX = " (float)"  # an integer-kernel op whose activation input is not 
 def segment_ops(model: onnx.ModelProto) -> dict[str, list[str]]:
     """Quantised activation -> the op types of its segment: the nodes between the quantised
     activations (or graph inputs, constants) it depends on and its QuantizeLinear, in graph
-    order, DequantizeLinear and QuantizeLinear left out. A Conv, MatMul or Gemm that reads a
-    computed tensor other than a DequantizeLinear's output cannot be fused into an integer
-    kernel: it is described as, e.g., `MatMul (float)`."""
+    order, DequantizeLinear and QuantizeLinear left out. A Conv, MatMul or Gemm whose operands
+    are not both DequantizeLinear outputs (a float tensor, a float weight) cannot be fused into
+    an integer kernel: it is described as, e.g., `MatMul (float)`."""
     producer = {o: n for n in model.graph.node for o in n.output}
-    constants = {i.name for i in model.graph.initializer}
 
     def describe(node: onnx.NodeProto) -> str:
-        float_input = any(name and name not in constants and (name not in producer or producer[name].op_type
-                                                               not in ("DequantizeLinear", "Constant"))
-                          for name in node.input)
+        # ONNX Runtime fuses DQ -> op -> Q into an integer kernel only when both operands (the
+        # activation and the weight; a bias may follow) are DequantizeLinear outputs.
+        float_input = any(name not in producer or producer[name].op_type != "DequantizeLinear"
+                          for name in node.input[:2])
         return node.op_type + FLOAT_SUFFIX if node.op_type in INTEGER_FUSED_OPS and float_input else node.op_type
 
     order = {id(n): i for i, n in enumerate(model.graph.node)}
