@@ -280,7 +280,8 @@ def test_ops_called_exact_compute_numpys_ieee_result_to_the_bit(op_type) -> None
 def test_constants_quantised_are_not_activations() -> None:
     """A QuantizeLinear of an initializer or of a Constant node's output quantises a weight."""
     model = _graph()
-    model.graph.initializer.append(numpy_helper.from_array(np.ones((6, 4), np.float32), "w_float"))
+    model.graph.initializer.extend([numpy_helper.from_array(np.ones((6, 4), np.float32), "w_float"),
+                                    numpy_helper.from_array(np.ones(4, np.float32), "b_float")])
     model.graph.node.extend([*_q("m", "w_float"),
                              helper.make_node("Constant", [], ["c"], value=numpy_helper.from_array(np.ones(3, np.float32))),
                              helper.make_node("QuantizeLinear", ["c", "s_k"], ["c_q"])])
@@ -324,7 +325,7 @@ def test_an_integer_op_on_a_float_tensor_is_a_float_kernel(op_type) -> None:
     it into an integer kernel (its input is no DequantizeLinear's), so it accumulates in float,
     in an order each ISA's kernel chooses. Described as such, and not portable; the same op
     reading the dequantised codes directly is an integer kernel. A float graph input, or a float
-    weight (an initializer or a Constant node's), makes it a float kernel too."""
+    weight or bias (an initializer or a Constant node's), makes it a float kernel too."""
     model = _graph()
     nodes = [*_q("x", "x"), _dq("x", "x_dq"), _dq("w", "w"), helper.make_node("Add", ["x_dq", "x_dq"], ["doubled"]),
              helper.make_node(op_type, ["doubled", "w"], ["t"]), *_q("m", "t"),
@@ -332,14 +333,18 @@ def test_an_integer_op_on_a_float_tensor_is_a_float_kernel(op_type) -> None:
              helper.make_node(op_type, ["x", "w"], ["t3"]), helper.make_node("QuantizeLinear", ["t3", "s_k"], ["t3_q"]),
              helper.make_node("Constant", [], ["w_const"], value=numpy_helper.from_array(np.ones((6, 4), np.float32))),
              helper.make_node(op_type, ["x_dq", "w_const"], ["t4"]), helper.make_node("QuantizeLinear", ["t4", "s_k"], ["t4_q"]),
-             helper.make_node(op_type, ["x_dq", "w_float"], ["t5"]), helper.make_node("QuantizeLinear", ["t5", "s_k"], ["t5_q"])]
+             helper.make_node(op_type, ["x_dq", "w_float"], ["t5"]), helper.make_node("QuantizeLinear", ["t5", "s_k"], ["t5_q"]),
+             helper.make_node(op_type, ["x_dq", "w", "b_float"], ["t6"]),
+             helper.make_node("QuantizeLinear", ["t6", "s_k"], ["t6_q"])]
     del model.graph.node[:]
     model.graph.node.extend(nodes)
-    model.graph.initializer.append(numpy_helper.from_array(np.ones((6, 4), np.float32), "w_float"))
+    model.graph.initializer.extend([numpy_helper.from_array(np.ones((6, 4), np.float32), "w_float"),
+                                    numpy_helper.from_array(np.ones(4, np.float32), "b_float")])
     segments = segment_ops(model)
     assert segments["t4_q"] == segments["t5_q"] == [f"{op_type} (float)"]  # float weights: a float kernel
+    assert segments["t6_q"] == [f"{op_type} (float)"]  # a float bias: not what the quantizer writes, not fused
     assert segments["m_q"] == ["Add", f"{op_type} (float)"] and not portable_segment(segments["m_q"])
     assert segments["k_q"] == [op_type] and portable_segment(segments["k_q"])
     assert segments["t3_q"] == [f"{op_type} (float)"]
     portable, removed = portable_qdq(model)
-    assert sorted(removed) == ["m_q", "t3_q", "t4_q", "t5_q"] and quantized_activations(portable) == ["x_q", "k_q"]
+    assert sorted(removed) == ["m_q", "t3_q", "t4_q", "t5_q", "t6_q"] and quantized_activations(portable) == ["x_q", "k_q"]

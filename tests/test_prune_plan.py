@@ -11,9 +11,9 @@ import torch
 import e3dpsm
 from _model_helpers import randomised_tiny
 from e3dpsm.compress.latency import LatencyProfile, UnitLatency
-from e3dpsm.compress.plan import (Candidate, _aligned, choose, count_macs, macs_per_stage, measure_candidates,
-                                  pose_distance_mm, total_macs)
-from e3dpsm.compress.units import ATTN_BLOCK, RES, prunable_units
+from e3dpsm.compress.plan import (Candidate, _aligned, candidate_widths, choose, count_macs, macs_per_stage,
+                                  measure_candidates, pose_distance_mm, total_macs)
+from e3dpsm.compress.units import ATTN_BLOCK, ATTN_FF, RES, Unit, prunable_units
 
 
 @pytest.mark.parametrize("width, shrink, align, expected", [
@@ -31,6 +31,18 @@ def test_narrowed_widths_keep_whole_groups_of_channels(width, shrink, align, exp
     assert _aligned(width, shrink, align) == expected
 
 
+@pytest.mark.parametrize("kind, width, removable, expected", [
+    (ATTN_BLOCK, 1, True, [0]),      # a block goes whole or stays
+    (RES, 16, True, [8, 0]),         # narrowed, then removed
+    (ATTN_FF, 32, False, [16]),      # narrowed only: a GEGLU keeps a channel
+    (RES, 1, True, [0]),             # one channel cannot narrow: no cut that changes nothing
+    (ATTN_FF, 1, False, []),
+])
+def test_the_widths_a_round_tries(kind, width, removable, expected) -> None:
+    unit = Unit("u", kind, 0, None, width, removable, "/u/")
+    assert candidate_widths(unit, shrink=0.5, align=8) == expected
+
+
 def test_pose_distance_is_the_mean_joint_distance() -> None:
     a = {"pose": torch.zeros(2, 3, 16, 3)}
     b = {"pose": torch.zeros(2, 3, 16, 3)}
@@ -45,11 +57,11 @@ def test_pose_distance_is_the_mean_joint_distance() -> None:
 @pytest.fixture(scope="module")
 def candidates():
     """The randomised tiny, stages.0.block1's channels 4-7 silenced (conv2 reads nothing from
-    them), its candidates at shrink 0.5 / align 8 on one window."""
+    them), its candidates at shrink 0.5 / align 8 over two causal windows."""
     model = randomised_tiny(11)
     with torch.no_grad():
         model.stages[0].block1.conv2.weight[:, 4:] = 0.0
-    frames = (torch.rand(1, 1, 2, 64, 96, generator=torch.Generator().manual_seed(2)) < 0.1).float()
+    frames = (torch.rand(1, 2, 2, 64, 96, generator=torch.Generator().manual_seed(2)) < 0.1).float()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     found = measure_candidates(model, frames, 20.0, shrink=0.5, align=8, profile=None)
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # the model is left as it was

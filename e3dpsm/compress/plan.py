@@ -94,6 +94,15 @@ def _aligned(width: int, shrink: float, align: int) -> int:
     return max(align, int(math.floor(target / align)) * align)
 
 
+def candidate_widths(unit: Unit, shrink: float, align: int) -> list[int]:
+    """The widths a round tries for `unit`: an attention block removed; any other unit narrowed
+    by `shrink` (aligned) where that narrows it, and removed where it may be."""
+    if unit.kind == ATTN_BLOCK:
+        return [0]
+    narrowed = _aligned(unit.width, shrink, align)
+    return [w for w, tried in ((narrowed, narrowed < unit.width), (0, unit.removable)) if tried]
+
+
 @torch.no_grad()
 def pose_distance_mm(a: Mapping[str, torch.Tensor], b: Mapping[str, torch.Tensor]) -> float:
     return float((a["pose"] - b["pose"]).norm(dim=-1).mean())
@@ -110,14 +119,7 @@ def measure_candidates(model: E3DPSM, frames: torch.Tensor, window_ms: float, sh
     base_macs = total_macs(model)
     out: list[Candidate] = []
     for unit in units:
-        widths = [0] if unit.kind == ATTN_BLOCK else []
-        if unit.kind != ATTN_BLOCK:
-            narrowed = _aligned(unit.width, shrink, align)
-            if narrowed < unit.width:
-                widths.append(narrowed)
-            if unit.removable:
-                widths.append(0)
-        for width in widths:
+        for width in candidate_widths(unit, shrink, align):
             pruned = prune_model(model, keep_lists(model, units, {unit.name: width})).eval()
             damage = pose_distance_mm(pruned.forward_sequence(frames, causal=True, window_ms=window_ms), reference)
             saved = profile.run_ms - predict_ms(profile, units, {unit.name: width}) if profile else 0.0

@@ -73,16 +73,17 @@ FLOAT_SUFFIX = " (float)"  # an integer-kernel op whose activation input is not 
 def segment_ops(model: onnx.ModelProto) -> dict[str, list[str]]:
     """Quantised activation -> the op types of its segment: the nodes between the quantised
     activations (or graph inputs, constants) it depends on and its QuantizeLinear, in graph
-    order, DequantizeLinear and QuantizeLinear left out. A Conv, MatMul or Gemm whose operands
-    are not both DequantizeLinear outputs (a float tensor, a float weight) cannot be fused into
-    an integer kernel: it is described as, e.g., `MatMul (float)`."""
+    order, DequantizeLinear and QuantizeLinear left out. A Conv, MatMul or Gemm with an operand
+    that is not a DequantizeLinear output (a float tensor, a float weight or bias) is not fused
+    into an integer kernel: it is described as, e.g., `MatMul (float)`."""
     producer = {o: n for n in model.graph.node for o in n.output}
 
     def describe(node: onnx.NodeProto) -> str:
-        # ONNX Runtime fuses DQ -> op -> Q into an integer kernel only when both operands (the
-        # activation and the weight; a bias may follow) are DequantizeLinear outputs.
+        # ONNX Runtime fuses DQ -> op -> Q into an integer kernel when its operands (activation,
+        # weight, and the int32 bias the quantizer writes) are DequantizeLinear outputs; anything
+        # else is taken for a float kernel, so that what is called portable surely is.
         float_input = any(name not in producer or producer[name].op_type != "DequantizeLinear"
-                          for name in node.input[:2])
+                          for name in node.input if name)
         return node.op_type + FLOAT_SUFFIX if node.op_type in INTEGER_FUSED_OPS and float_input else node.op_type
 
     order = {id(n): i for i, n in enumerate(model.graph.node)}
