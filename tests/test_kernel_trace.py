@@ -298,3 +298,11 @@ def test_a_trace_with_pickled_objects_is_refused(tmp_path) -> None:
     np.savez(tmp_path / "host.npz", **{"q.a": np.array([{"x": 1}], dtype=object)})
     with pytest.raises(ValueError, match="allow_pickle"):
         load_trace(tmp_path / "host.npz")
+
+
+def test_a_single_value_fraction_of_code_steps() -> None:
+    """One code over three steps, apart at one: every code of the step that parts."""
+    host = np.zeros((3, 1), np.uint8)
+    device = host.copy()
+    device[1, 0] = 1
+    assert compare_codes("t", host, device).fraction == 1.0

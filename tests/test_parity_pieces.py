@@ -177,7 +177,11 @@ def test_parity_reports_the_differences_it_was_given(tiny) -> None:
     assert [d.name for d in report.diffs if not d.passed] == ["pose"]
     assert set(by_name) == {"pose", "pose_direct", "pose_delta", *(s.name for s in tiny.state_spec())}
     assert by_name["pose_direct"].max_abs == 0.0
-    assert report.tolerances == {"pose_atol_mm": 0.01, "state_rtol": 1e-4}
+    assert report.tolerances == {"pose_atol_mm": 0.01, "state_rtol": 1e-4} and report.runtime == "onnxruntime"
+    assert report.to_dict()["tolerances"] == report.tolerances
+    assert {d.name: (d.kind, d.limit_kind) for d in report.diffs} == {
+        **{n: ("output", "abs") for n in ("pose", "pose_direct", "pose_delta")},
+        **{s.name: ("state", "rel") for s in tiny.state_spec()}}
 
 
 def test_a_state_off_by_more_than_its_relative_limit_fails_and_tolerances_are_read(tiny) -> None:
@@ -194,11 +198,11 @@ def test_a_state_off_by_more_than_its_relative_limit_fails_and_tolerances_are_re
 def test_checks_run_in_order_names_shapes_dtypes(tiny) -> None:
     runner = OffsetRunner(tiny, [0], [0])
     runner._outputs = [*runner._outputs, "extra"]
-    with pytest.raises(NameMismatchError, match="graph outputs .*'extra'.* differ from the model's"):
+    with pytest.raises(NameMismatchError, match=r"^graph outputs \[.*'extra'.*\] differ from the model's \[.*\]$"):
         run_parity(tiny, runner, _frames(tiny, 1), 20.0)
     runner = OffsetRunner(tiny, [0], [0])
     runner._inputs = runner._inputs[1:]
-    with pytest.raises(NameMismatchError, match="graph inputs"):
+    with pytest.raises(NameMismatchError, match=r"^graph inputs \[.*\] differ from the model's \['fusion_cov_in', "):
         run_parity(tiny, runner, _frames(tiny, 1), 20.0)
     import dataclasses
 
@@ -217,3 +221,54 @@ def test_checks_run_in_order_names_shapes_dtypes(tiny) -> None:
     runner.cast["pose"] = np.float64
     with pytest.raises(DtypeMismatchError, match="^pose: graph gives dtype float64, PyTorch float32$"):
         run_parity(tiny, runner, _frames(tiny, 1), 20.0)
+
+
+def test_fresh_differences_and_reports_start_from_nothing() -> None:
+    """A difference that saw no step: scale and spread 0 (not 1: a scale below 1 must show), and
+    a default limit of 0, so that nothing but equality passes; a report of no tensors is empty.
+    Tolerances are frozen: run_parity's default instance is shared by every call."""
+    import dataclasses
+
+    fresh = TensorDiff("x", "output")
+    assert (fresh.reference_scale, fresh.reference_spread, fresh.limit, fresh.passed) == (0.0, 0.0, 0.0, True)
+    fresh.update(0, np.full(2, 0.25, np.float32), np.full(2, 0.5, np.float32))
+    assert fresh.reference_scale == 0.5 and not fresh.passed
+    assert ParityReport(0, 20.0, "onnxruntime", {}).to_dict()["tensors"] == []
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Tolerances().pose_atol_mm = 1.0
+
+
+def test_differences_compare_and_print_without_their_arrays() -> None:
+    """The running minimum and maximum behind the spread are private: two differences of the same
+    figures are equal, and the repr shows the figures, not arrays."""
+    a, b = TensorDiff("s", "state", limit=1e-4, limit_kind="rel"), TensorDiff("s", "state", limit=1e-4, limit_kind="rel")
+    a.update(0, np.ones(3, np.float32), np.ones(3, np.float32))
+    b.update(0, np.ones(3, np.float32), np.full(3, 1.0, np.float32))
+    assert a == b and "_ref" not in repr(a) and "array" not in repr(a)
+
+
+
+def test_every_failing_tensor_is_named(tiny) -> None:
+    runner = OffsetRunner(tiny, [0.5], [0.5])  # one step: the scaled state moves nothing else yet
+    report = run_parity(tiny, runner, _frames(tiny, 1), 20.0)
+    first = tiny.state_spec()[0].name
+    with pytest.raises(ValueMismatchError, match=rf"^parity failed at 20 ms for pose, {first}: output pose "):
+        assert_parity(report)
+
+
+def test_progress_is_shown_only_when_asked(tiny, monkeypatch) -> None:
+    """A progress bar named after the runtime and window, over the frames, gone when done."""
+    import tqdm
+
+    shown = []
+
+    def bar(iterable, **kwargs):
+        shown.append(kwargs)
+        return iterable
+
+    monkeypatch.setattr(tqdm, "tqdm", bar)
+    frames = _frames(tiny, 2)
+    assert run_parity(tiny, OffsetRunner(tiny, [0, 0], [0, 0]), frames, 20.0).steps == 2 and shown == []
+    report = run_parity(tiny, OffsetRunner(tiny, [0, 0], [0, 0]), frames, 12.5, runtime="openvino", progress=True)
+    assert report.steps == 2 and report.passed
+    assert shown == [{"desc": "parity openvino 12.5 ms", "unit": "step", "leave": False, "disable": None}]
