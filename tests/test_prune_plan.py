@@ -63,7 +63,10 @@ def candidates():
         model.stages[0].block1.conv2.weight[:, 4:] = 0.0
     frames = (torch.rand(1, 2, 2, 64, 96, generator=torch.Generator().manual_seed(2)) < 0.1).float()
     before = {k: v.clone() for k, v in model.state_dict().items()}
-    found = measure_candidates(model, frames, 20.0, shrink=0.5, align=8, profile=None)
+    # one unit profiled: 2 ms of kernels over 5 nodes, in a 10 ms step of which 6 ms are kernels
+    # over 100 nodes (dispatch: 0.04 ms a node)
+    profile = LatencyProfile(run_ms=10.0, kernel_ms=6.0, nodes=100, units={"stages.0.block1": UnitLatency(2.0, 5)})
+    found = measure_candidates(model, frames, 20.0, shrink=0.5, align=8, profile=profile)
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # the model is left as it was
     return model, found
 
@@ -83,7 +86,10 @@ def test_every_unit_is_tried_narrowed_and_removable_ones_removed(candidates) -> 
             expected.append((unit.name, 0, unit.width))
     assert [(c.unit, c.width, c.old_width) for c in found] == expected
     assert any(c.width == 0 and c.old_width > 1 for c in found)  # a residual block removed
-    assert all(c.saved_ms == 0.0 for c in found)  # no latency profile: no time saving claimed
+    saved = {(c.unit, c.width): c.saved_ms for c in found}
+    assert saved.pop(("stages.0.block1", 4)) == pytest.approx(2.0 * (1 - 4 / 8))  # half its kernels
+    assert saved.pop(("stages.0.block1", 0)) == pytest.approx(2.0 + 5 * 0.04)   # its kernels and dispatch
+    assert set(saved.values()) == {0.0}  # the units the profile does not time save nothing measured
 
 
 def test_a_cut_of_silenced_channels_does_no_damage(candidates) -> None:
@@ -222,3 +228,19 @@ def test_macs_are_whole_numbers_over_any_kernel_shape_and_grouping() -> None:
     macs = count_macs(model)
     assert macs["stem.0"] == (8 * 32 * 48) * (2 // 2 * 1 * 3)
     assert all(isinstance(v, int) for v in macs.values())
+
+
+def test_candidates_are_values() -> None:
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        _cut("stages.0.block1", 1.0, 1).width = 2
+
+
+def test_a_largest_saving_of_one_mac_weighs_a_full_thousandth() -> None:
+    """The MAC term is the share of the largest MAC saving, even when that is 1 MAC: a cut of 1
+    MAC and no time (gain 1e-3) against one of 1 MAC and 7e-4 of a 1 ms step (gain 1.7e-3), at
+    1.0 and 1.8 mm: 1,000 against 1,059 mm per unit of gain, so the first."""
+    untimed = _cut("stages.1.block1", 0.0, 1, damage=1.0)
+    timed = _cut("stages.2.block1", 0.0007, 1, damage=1.8)
+    assert _first([timed, untimed], _profile(1.0)) == "stages.1.block1"
