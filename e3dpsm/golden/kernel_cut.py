@@ -67,7 +67,7 @@ def _code_types(model: onnx.ModelProto) -> dict[str, int]:
             for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] not in constants}
 
 
-FLOAT_SUFFIX = " (float)"  # an integer-kernel op whose activation input is not dequantised: a float kernel
+FLOAT_SUFFIX = " (float)"  # a Conv/MatMul/Gemm with an operand not dequantised runs as a float kernel
 
 
 def segment_ops(model: onnx.ModelProto) -> dict[str, list[str]]:
