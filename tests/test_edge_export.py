@@ -177,3 +177,28 @@ def test_edge_targets_say_what_is_missing(monkeypatch) -> None:
     lacking = availability(pte, {}, False)  # the runtime is here: the artifact is asked for
     assert not lacking.available and "--edge-models STEP.pte" in lacking.reason
     assert availability(pte, {"executorch/fp32": "step.pte"}, False).available
+
+
+def test_norms_without_affine_parameters_and_with_default_eps() -> None:
+    """No weight, no bias (`elementwise_affine=False`, `affine=False`), eps left at torch's
+    default 1e-5 (a scale near 0 shows it), and a 3-D group norm input [N, C, L]."""
+    x = torch.randn(3, 4, 24) * 1e-3
+    want = _numpy_norm(x.numpy().reshape(-1, 24), 1e-5).reshape(x.shape)
+    np.testing.assert_allclose(layer_norm_as_matmuls(x, [24]).numpy(), want, atol=2e-5)
+    np.testing.assert_allclose(torch.nn.functional.layer_norm(x, [24]).numpy(), want, atol=2e-5)
+    np.testing.assert_allclose(layer_norm_as_matmuls(x, [4, 24]).numpy(),
+                               _numpy_norm(x.numpy().reshape(3, 96), 1e-5).reshape(x.shape), atol=2e-5)
+    y = torch.randn(2, 6, 10)
+    groups = _numpy_norm(y.numpy().reshape(2 * 3, -1), 1e-5).reshape(y.shape)
+    np.testing.assert_allclose(group_norm_as_matmuls(y, 3).numpy(), groups, atol=2e-5)
+    weight, bias = torch.randn(6), torch.randn(6)
+    np.testing.assert_allclose(group_norm_as_matmuls(y, 3, weight, bias).numpy(),
+                               groups * weight.numpy()[None, :, None] + bias.numpy()[None, :, None], atol=2e-5)
+
+
+def test_the_decomposition_table_holds_the_two_norms_alone() -> None:
+    from e3dpsm.export.norm_decompositions import norm_decompositions
+
+    table = norm_decompositions()
+    assert table == {torch.ops.aten.layer_norm.default: layer_norm_as_matmuls,
+                     torch.ops.aten.group_norm.default: group_norm_as_matmuls}
