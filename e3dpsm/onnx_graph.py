@@ -2,10 +2,26 @@
 (which module a node belongs to) and the quantiser (which nodes carry state)."""
 from __future__ import annotations
 
+import os
 from collections import defaultdict
+from pathlib import Path
 from typing import Callable, Iterable
 
 import onnx
+
+from e3dpsm.errors import DataError
+
+
+def read_onnx(path: str | os.PathLike, load_external_data: bool = True) -> onnx.ModelProto:
+    """The ONNX model at `path`; DataError, one line, when it is missing or does not parse."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"model {path} does not exist")
+    try:
+        return onnx.load(str(path), load_external_data=load_external_data)
+    except Exception as exc:  # onnx raises DecodeError and friends on damaged files
+        first = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise DataError(f"{path} is not a readable ONNX file: {first[:300]}") from exc
 
 
 def with_outputs(model: onnx.ModelProto, names: Iterable[str]) -> onnx.ModelProto:

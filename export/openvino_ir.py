@@ -29,6 +29,7 @@ from typing import Any
 
 from e3dpsm.errors import ConfigError, DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
+from e3dpsm.onnx_graph import read_onnx
 from e3dpsm.runtime.openvino_session import DYNAMIC_QUANTIZATION_OFF, read_openvino_model
 from e3dpsm.runtime.openvino_stateful import RT_CONVERSION, RT_METADATA
 
@@ -51,17 +52,12 @@ class ConversionInfo:
 
 def read_step_graph(path: str | os.PathLike) -> tuple[Any, GraphMetadata, dict[str, str]]:
     """(openvino.Model, metadata, raw metadata_props) of an exported ONNX step graph."""
-    import onnx
-
     path = Path(path)
     if not path.is_file():
         raise DataError(f"model {path} does not exist")
     if path.suffix != ".onnx":
         raise InputError(f"{path} is not an ONNX step graph (.onnx), as written by e3dpsm export / quantize")
-    try:
-        proto = onnx.load(str(path), load_external_data=False)
-    except Exception as exc:  # onnx raises DecodeError and friends for corrupt files
-        raise DataError(f"cannot read {path} as ONNX: {str(exc).splitlines()[0][:300]}") from exc
+    proto = read_onnx(path, load_external_data=False)
     props = {p.key: p.value for p in proto.metadata_props}
     meta = GraphMetadata.from_props(props, str(path))  # MetadataError (exit 2) without e3dpsm metadata
     _, model = read_openvino_model(path)  # e3dpsm's OpenVINO read: its errors, the INT8 graph protected

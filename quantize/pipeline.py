@@ -18,9 +18,9 @@ from typing import Any, Sequence
 import onnx
 
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.errors import DataError
 from e3dpsm.export.onnx_export import op_histogram
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
+from e3dpsm.onnx_graph import read_onnx
 from e3dpsm.quantize.adaround import apply_rounding
 from e3dpsm.quantize.artifact import finalize, save_model
 from e3dpsm.quantize.dynamic import quantize_dynamic_int8
@@ -42,12 +42,7 @@ REPORT_FILE = "report.json"
 
 def load_source(path: str | os.PathLike) -> tuple[onnx.ModelProto, GraphMetadata]:
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"model {path} does not exist")
-    try:
-        model = onnx.load(str(path))
-    except Exception as exc:  # onnx raises DecodeError and friends on damaged files
-        raise DataError(f"{path} is not a readable ONNX file: {str(exc).splitlines()[0][:200]}") from exc
+    model = read_onnx(path)
     meta = GraphMetadata.from_onnx(model, source=str(path))
     if meta.quantization is not None:
         raise MetadataError(f"{path} is already quantised ({meta.quantization.get('mode')}); start from the fp32 export")

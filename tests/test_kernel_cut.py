@@ -190,7 +190,7 @@ def test_the_portable_command_refuses_what_is_not_a_qdq_graph(tmp_path, capsys, 
     assert main(["portable", str(source), str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("python -m e3dpsm.golden.kernel_report portable: error: ")
-    assert ("not a QDQ graph" if damaged in ("float", "") else "not a readable ONNX graph") in err
+    assert ("not a QDQ graph" if damaged in ("float", "") else f"{source} is not a readable ONNX file: ") in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.onnx"]
 
 

@@ -99,8 +99,13 @@ def candidate_widths(unit: Unit, shrink: float, align: int) -> list[int]:
     by `shrink` (aligned) where that narrows it, and removed where it may be."""
     if unit.kind == ATTN_BLOCK:
         return [0]
+    widths = []
     narrowed = _aligned(unit.width, shrink, align)
-    return [w for w, tried in ((narrowed, narrowed < unit.width), (0, unit.removable)) if tried]
+    if narrowed < unit.width:
+        widths.append(narrowed)
+    if unit.removable:
+        widths.append(0)
+    return widths
 
 
 @torch.no_grad()

@@ -123,14 +123,10 @@ def run_device(folder: str | os.PathLike, threads: int = 1, out: str | os.PathLi
 
 def _load_qdq_graph(graph: str | os.PathLike) -> Any:
     """The ONNX graph at `graph`; DataError unless it reads and quantises a computed tensor."""
-    import onnx
-
     from e3dpsm.golden.kernel_cut import quantized_activations
+    from e3dpsm.onnx_graph import read_onnx
 
-    try:
-        model = onnx.load(str(graph))
-    except Exception as exc:  # onnx raises DecodeError and friends on damaged files
-        raise DataError(f"{graph}: not a readable ONNX graph ({type(exc).__name__}: {exc})") from exc
+    model = read_onnx(graph)
     if not quantized_activations(model):
         raise DataError(f"{graph}: no QuantizeLinear on a computed tensor: not a QDQ graph (write one with "
                         "`e3dpsm quantize --mode int8`)")
