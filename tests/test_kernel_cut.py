@@ -348,3 +348,21 @@ def test_an_integer_op_on_a_float_tensor_is_a_float_kernel(op_type) -> None:
     assert segments["t3_q"] == [f"{op_type} (float)"]
     portable, removed = portable_qdq(model)
     assert sorted(removed) == ["m_q", "t3_q", "t4_q", "t5_q", "t6_q"] and quantized_activations(portable) == ["x_q", "k_q"]
+
+
+def test_the_shared_onnx_read_says_what_is_wrong_in_one_line(tmp_path, monkeypatch) -> None:
+    """`e3dpsm.onnx_graph.read_onnx` (quantize's source, the OpenVINO IR's graph, this command):
+    a missing file, and a parser error without text, each one line naming the file."""
+    from e3dpsm.errors import DataError
+    from e3dpsm.onnx_graph import read_onnx
+
+    with pytest.raises(DataError, match=rf"^model {tmp_path / 'absent.onnx'} does not exist$"):
+        read_onnx(tmp_path / "absent.onnx")
+    (tmp_path / "g.onnx").write_bytes(b"\x08")
+
+    def silent(*args, **kwargs):
+        raise ValueError()
+
+    monkeypatch.setattr(onnx, "load", silent)
+    with pytest.raises(DataError, match=rf"^{tmp_path / 'g.onnx'} is not a readable ONNX file: ValueError$"):
+        read_onnx(tmp_path / "g.onnx")
