@@ -366,3 +366,19 @@ def test_the_shared_onnx_read_says_what_is_wrong_in_one_line(tmp_path, monkeypat
     monkeypatch.setattr(onnx, "load", silent)
     with pytest.raises(DataError, match=rf"^{tmp_path / 'g.onnx'} is not a readable ONNX file: ValueError$"):
         read_onnx(tmp_path / "g.onnx")
+
+
+@pytest.mark.parametrize("argv", [["quantize", "--model", "{bad}", "--mode", "fp16", "--data", "{data}", "--out", "{out}"],
+                                  ["convert", "openvino", "--model", "{bad}", "--out", "{out}"]])
+def test_commands_on_a_damaged_graph_say_so_through_the_shared_read(tmp_path, capsys, argv) -> None:
+    """`e3dpsm quantize` and `e3dpsm convert openvino` read their graph with `read_onnx`: one line,
+    exit 2, nothing written."""
+    from e3dpsm.cli import main
+
+    bad, out, data = tmp_path / "bad.onnx", tmp_path / "out", tmp_path / "data"
+    bad.write_bytes(b"not onnx")
+    data.mkdir()
+    assert main([a.format(bad=bad, data=data, out=out) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad} is not a readable ONNX file: " in err
+    assert not out.exists()
