@@ -306,3 +306,25 @@ def test_a_single_value_fraction_of_code_steps() -> None:
     device = host.copy()
     device[1, 0] = 1
     assert compare_codes("t", host, device).fraction == 1.0
+
+
+def test_a_trace_without_steps_is_refused_in_one_line(tmp_path, capsys) -> None:
+    """A zero-step trace has nothing to compare: `--steps 0` is refused before anything is
+    written, a manifest that says 0 steps before its trace is read, and the comparison itself
+    names the activation instead of failing inside numpy."""
+    from e3dpsm.golden.kernel_report import ORDER, main
+
+    with pytest.raises(ValueError, match=r"^a: no steps to compare \(codes of shape \(0, 3\)\)$"):
+        compare_codes("a", np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.uint8))
+    _recurrent_qdq(tmp_path / "step.onnx")
+    out = tmp_path / "trace"
+    assert main(["host", str(tmp_path / "step.onnx"), str(tmp_path / "golden"), str(out), "--steps", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == "python -m e3dpsm.golden.kernel_report host: error: --steps must be at least 1, got 0\n"
+    assert not out.exists()
+    out.mkdir()
+    (out / ORDER).write_text('{"graph": "g.onnx", "codes": ["a_q"], "segments": {"a_q": []}, "steps": 0}')
+    assert main(["device", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the host trace holds no steps (0); record it again" in err
+    assert [p.name for p in out.iterdir()] == [ORDER]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import time
 
 import numpy as np
 import pytest
@@ -263,8 +264,6 @@ def test_a_live_chunk_is_stamped_with_its_arrival_and_the_reader_is_a_named_daem
 
 def _wait_until_steady(read, seconds: float = 0.4) -> int:
     """`read()` once it has not changed for `seconds` (a thread that stopped or blocked)."""
-    import time
-
     value, since = read(), time.monotonic()
     while time.monotonic() - since < seconds:
         time.sleep(0.02)
@@ -290,8 +289,6 @@ def test_a_live_reader_blocks_when_the_loop_falls_behind_and_loses_nothing() -> 
     def blocked() -> int:
         """The chunks read once the reader has filled the queue (waited for, however slow a
         loaded host makes it), then still after more than two of its 0.5 s polls."""
-        import time
-
         deadline = time.monotonic() + 30.0
         while len(read_so_far) < 1 + LIVE_QUEUE_CHUNKS + 1 and time.monotonic() < deadline:
             time.sleep(0.02)
@@ -333,3 +330,64 @@ def test_a_closed_live_feed_stops_reading_its_source() -> None:
     asyncio.run(take_two_then_close())
     stopped_at = _wait_until_steady(lambda: len(read_so_far))
     assert stopped_at <= 2 + LIVE_QUEUE_CHUNKS + 2  # it stopped, within a queue's worth
+
+
+def test_a_live_reader_ends_quietly_when_the_loop_stops_reading() -> None:
+    """The loop takes two chunks and drops the iterator without closing the feed, while the
+    source has more chunks than the queue holds: the reader thread ends on its own while the
+    loop still runs (it no longer waits for a slot nobody frees), and once the loop has ended
+    it raised nothing and left no coroutine unawaited (it hands chunks over without making any)."""
+    import gc
+    import threading
+    import warnings
+
+    from e3dpsm.serve.source import LIVE_READER_THREAD
+
+    class Plenty(FakeLive):
+        def __iter__(self):
+            for k in range(LIVE_QUEUE_CHUNKS * 4):
+                yield _stream([k])
+
+    class Slow(FakeLive):
+        def __iter__(self):
+            for k in range(LIVE_QUEUE_CHUNKS * 4):
+                time.sleep(0.2 if k >= 2 else 0)
+                yield _stream([k])
+
+    def reader_alive() -> bool:
+        return any(t.name == LIVE_READER_THREAD for t in threading.enumerate())
+
+    def wait_for_the_reader_to_end() -> bool:
+        deadline = time.monotonic() + 10.0
+        while reader_alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return not reader_alive()
+
+    raised: list[BaseException] = []
+    old_hook, threading.excepthook = threading.excepthook, lambda args: raised.append(args.exc_value)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+
+            async def take_two_then_leave() -> bool:
+                ticks = LiveFeed(Plenty([])).ticks()
+                for _ in range(2):
+                    await ticks.__anext__()
+                await ticks.aclose()
+                return await asyncio.get_running_loop().run_in_executor(None, wait_for_the_reader_to_end)
+
+            assert asyncio.run(take_two_then_leave()) is True
+
+            async def take_two_then_end() -> None:  # the loop ends while the reader is mid-chunk
+                ticks = LiveFeed(Slow([])).ticks()
+                for _ in range(2):
+                    await ticks.__anext__()
+                await ticks.aclose()
+
+            asyncio.run(take_two_then_end())
+            assert wait_for_the_reader_to_end()
+            gc.collect()
+        assert raised == []
+        assert [str(w.message) for w in caught if "never awaited" in str(w.message)] == []
+    finally:
+        threading.excepthook = old_hook

@@ -20,7 +20,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from e3dpsm.errors import DataError, E3DPSMError
+from e3dpsm.errors import DataError, E3DPSMError, InputError
 from e3dpsm.golden import kernel_trace as kt
 
 EXPOSED, CUT, HOST_TRACE, ORDER = "exposed.onnx", "cut.onnx", "host.npz", "codes.json"
@@ -61,6 +61,8 @@ def record_host(graph: str | os.PathLike, golden_dir: str | os.PathLike, out: st
     from e3dpsm.runtime.session import StepSession
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
+    if steps is not None and steps < 1:
+        raise InputError(f"--steps must be at least 1, got {steps}")
     model = _load_qdq_graph(graph)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
@@ -103,11 +105,13 @@ def run_device(folder: str | os.PathLike, threads: int = 1, out: str | os.PathLi
 
     folder = Path(folder)
     manifest = json.loads((folder / ORDER).read_text(encoding="utf-8"))
-    codes, segments = manifest["codes"], manifest["segments"]
+    codes, segments, steps = manifest["codes"], manifest["segments"], manifest["steps"]
+    if not isinstance(steps, int) or steps < 1:
+        raise DataError(f"{folder / ORDER}: the host trace holds no steps ({steps!r}); record it again with "
+                        "`python -m e3dpsm.golden.kernel_report host`")
     host = kt.load_trace(folder / HOST_TRACE)
     first_inputs = {k[len(kt.IN):]: v[0] for k, v in host.items() if k.startswith(kt.IN)}
     frame_keys = [k for k in first_inputs if k not in set(manifest["state_inputs"])]
-    steps = manifest["steps"]
     inputs = ({k: host[kt.IN + k][s] for k in (first_inputs if s == 0 else frame_keys)} for s in range(steps))
     propagated = kt.compare_traces(host, kt.rollout(folder / EXPOSED, inputs, codes, threads), codes)
     own = kt.compare_traces(host, kt.isolated(folder / CUT, host, codes, threads), codes)

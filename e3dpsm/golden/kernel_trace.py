@@ -50,6 +50,8 @@ def compare_codes(name: str, host: np.ndarray, device: np.ndarray) -> CodeDiff:
     """Exact comparison of one activation's codes, [steps, ...] on each side (one step or more)."""
     if host.shape != device.shape:
         raise ValueError(f"{name}: host codes {host.shape}, device codes {device.shape}")
+    if host.ndim == 0 or not len(host):
+        raise ValueError(f"{name}: no steps to compare (codes of shape {host.shape})")
     diff = device.astype(np.int32) - host.astype(np.int32)
     per_step = np.count_nonzero(diff.reshape(len(diff), -1), axis=1)
     apart_steps = np.flatnonzero(per_step)

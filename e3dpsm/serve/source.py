@@ -27,6 +27,7 @@ TICKS_PER_WINDOW = 4
 # Live chunks waiting for the estimation loop: past this the reader thread blocks (bounded
 # memory when the estimator falls behind; the source buffers or drops, as a camera does).
 LIVE_QUEUE_CHUNKS = 256
+LIVE_READER_THREAD = "e3dpsm-serve-live"
 
 
 @dataclass(frozen=True)
@@ -110,41 +111,51 @@ class LiveFeed:
 
     async def ticks(self) -> AsyncIterator[Tick]:
         loop = asyncio.get_running_loop()
-        queue: asyncio.Queue[Any] = asyncio.Queue(maxsize=LIVE_QUEUE_CHUNKS)
+        queue: asyncio.Queue[Any] = asyncio.Queue()
+        # Back-pressure, bounded memory: the reader thread takes a slot per chunk and waits when the
+        # estimator falls behind; the loop frees the slot as it takes the chunk. The thread hands
+        # chunks over with call_soon_threadsafe, so it never makes a coroutine a closed loop would drop.
+        slots = threading.Semaphore(LIVE_QUEUE_CHUNKS)
+        reader_gone = threading.Event()  # the loop stopped reading (generator closed): the thread ends
         done = object()
 
-        def put(item: Any) -> None:
-            # Blocks the reader thread when the estimator falls behind: back-pressure, bounded memory.
-            future = asyncio.run_coroutine_threadsafe(queue.put(item), loop)
-            while not self._stopping.is_set():
-                try:
-                    future.result(timeout=0.5)
-                    return
-                except TimeoutError:
-                    continue
-            future.cancel()
+        def hand_over(item: Any) -> bool:
+            try:
+                loop.call_soon_threadsafe(queue.put_nowait, item)
+                return True
+            except RuntimeError:  # the loop has closed: nobody reads any more
+                return False
+
+        def put(item: Any) -> bool:
+            while not (self._stopping.is_set() or reader_gone.is_set()):
+                if slots.acquire(timeout=0.5):
+                    return hand_over(item)
+            return False
 
         def read() -> None:
             try:
                 for chunk in self.source:
-                    if self._stopping.is_set():
+                    if self._stopping.is_set() or not put((chunk, time.time() * 1e3)):
                         break
-                    put((chunk, time.time() * 1e3))
                 self.stop_message = "the live source stopped"
             except DataError as exc:
                 self.stop_message = f"the live source stopped: {exc}"
             except Exception as exc:  # a reader bug must reach the page, not kill the thread silently
                 self.stop_message = f"the live source failed: {type(exc).__name__}: {exc}"
-            put(done)
+            hand_over(done)
 
-        thread = threading.Thread(target=read, name="e3dpsm-serve-live", daemon=True)
+        thread = threading.Thread(target=read, name=LIVE_READER_THREAD, daemon=True)
         thread.start()
-        while True:
-            item = await queue.get()
-            if item is done:
-                return
-            stream, arrived_ms = item
-            yield Tick((stream.x, stream.y, stream.t_us, stream.p), None, False, arrived_ms, 0)
+        try:
+            while True:
+                item = await queue.get()
+                if item is done:
+                    return
+                slots.release()
+                stream, arrived_ms = item
+                yield Tick((stream.x, stream.y, stream.t_us, stream.p), None, False, arrived_ms, 0)
+        finally:
+            reader_gone.set()
 
     def close(self) -> None:
         if not self._stopping.is_set():
