@@ -261,7 +261,14 @@ class PoseVideoWriter:
         if self.kind == "gif":
             first, *rest = self._gif_frames
             first.save(self._tmp, format="GIF", save_all=True, append_images=rest,
-                       duration=round(1000.0 / self.fps), loop=0, optimize=False)
+                       duration=gif_delay_ms(self.fps), loop=0, optimize=False)
+
+
+def gif_delay_ms(fps: float) -> int:
+    """A GIF frame's delay: GIF counts in hundredths of a second (Pillow truncates milliseconds
+    to them) and browsers play a delay under 2 hundredths at 10 Hz, so the nearest whole
+    hundredth, at least 2 (a 50 Hz ceiling)."""
+    return 10 * max(2, round(100.0 / fps))
 
 
 def render_poses(
