@@ -243,3 +243,40 @@ def test_markdown_lists_every_group_in_rank_order(toy_result) -> None:
     state_row = next(line for line in lines if line.startswith(f"| {STATE} |"))
     assert state_row.count("e-") + state_row.count("e+") == 3
     assert "## Noisiest quantised activations" in lines and f"| `{X1}` | stem |" in text
+
+
+def test_the_figure_plots_the_top_culprits_and_the_states_with_the_largest_final_error(toy_result, tmp_path) -> None:
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    from e3dpsm.golden.diagnose import TINY, diagnosis_figure, plot_diagnosis
+
+    result = dict(toy_result)
+    final = {"a": np.array([1.0, 0.1]), "b": np.array([0.0, 0.0]), "c": np.array([0.5, 0.3])}
+    result["_curves"] = {"group": toy_result["_curves"]["group"], "state": final}
+    fig = diagnosis_figure(result, top=2)
+    try:
+        groups, states = fig.axes
+        assert [line.get_label() for line in groups.lines] == toy_result["culprits"][:2]
+        assert [line.get_label() for line in states.lines] == ["c", "a"]  # by final error, largest first
+        first = toy_result["culprits"][0]
+        np.testing.assert_array_equal(groups.lines[0].get_ydata(), np.maximum(toy_result["_curves"]["group"][first], TINY))
+        assert (groups.get_yscale(), states.get_yscale()) == ("log", "log")
+        assert (groups.get_title(), states.get_title()) == ("top culprit groups (output error)", "states")
+        assert groups.get_xlabel() == states.get_xlabel() == "step"
+        assert groups.get_ylabel() == states.get_ylabel() == "relative L2 error"
+        assert [t.get_text() for t in states.get_legend().get_texts()] == ["c", "a"]
+        assert states.get_legend().get_texts()[0].get_fontsize() == 7
+        assert groups.lines[0].get_linewidth() == 1.0
+    finally:
+        plt.close(fig)
+    zero = dict(result, _curves={"group": result["_curves"]["group"], "state": {"b": np.zeros(3)}})
+    fig = diagnosis_figure(zero)
+    try:
+        assert fig.axes[1].lines[0].get_ydata().tolist() == [TINY] * 3  # zero error still plots on a log axis
+    finally:
+        plt.close(fig)
+    plot_diagnosis(toy_result, tmp_path / "d.png")
+    with Image.open(tmp_path / "d.png") as image:
+        assert image.size == (1320, 462)  # 12 x 4.2 inches at 110 dpi
+    assert plt.get_fignums() == []  # every figure closed

@@ -246,7 +246,9 @@ def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, f
     }
 
 
-def plot_diagnosis(result: dict[str, Any], path: Any, top: int = 6) -> None:
+def diagnosis_figure(result: dict[str, Any], top: int = 6) -> Any:
+    """The top `top` culprit groups' output error (left) and the `top` states with the largest
+    final error (right), per step on a log scale; a matplotlib Figure, closed by the caller."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -263,8 +265,17 @@ def plot_diagnosis(result: dict[str, Any], path: Any, top: int = 6) -> None:
         ax.set_ylabel("relative L2 error")
         ax.set_title("top culprit groups (output error)" if kind == "group" else "states")
         ax.legend(fontsize=7)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
+
+
+def plot_diagnosis(result: dict[str, Any], path: Any, top: int = 6) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = diagnosis_figure(result, top)
+    try:
+        fig.savefig(path, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def markdown(result: dict[str, Any], title: str) -> str:
