@@ -75,6 +75,8 @@ def test_feeds_name_every_input_and_broadcast_one_window_over_the_batch(meta) ->
     assert per_stream["window_ms"].tolist() == [10.0, 20.0, 30.0]
     single = build_feeds(meta, lnes[:1], {STATE: state64[:1]}, np.array([[7.5]]))
     assert single["window_ms"].shape == (1,) and single["window_ms"][0] == 7.5
+    short = build_feeds(meta, lnes, {STATE: state64}, 0.25)  # any positive length, however short
+    assert short["window_ms"].tolist() == [0.25] * 3
 
 
 @pytest.mark.parametrize("lnes, message", [
@@ -109,6 +111,12 @@ def test_a_session_is_bounded_and_computes_8_bit_weights_in_float(toy_path) -> N
     assert options.get_session_config_entry("session.qdq_matmulnbits_accuracy_level") == "1"
     assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
     assert session.get_providers() == ["CPUExecutionProvider"]
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:  # ONNX Runtime warns of a provider it does not know
+        warnings.simplefilter("always")
+        make_session(toy_path)
+    assert [str(w.message) for w in caught] == []
     default = make_session(toy_path).get_session_options()
     assert default.intra_op_num_threads == 0  # ONNX Runtime's own choice when no count is given
     assert default.get_session_config_entry("session.qdq_matmulnbits_accuracy_level") == "1"
@@ -133,8 +141,23 @@ def test_a_missing_or_damaged_graph_is_one_line(tmp_path) -> None:
     assert "\n" not in str(err.value) and len(str(err.value)) < 420
 
 
+def test_a_long_runtime_error_is_cut_to_its_first_300_characters(toy_path, monkeypatch) -> None:
+    import onnxruntime as ort
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("x" * 500 + "\nsecond line")
+
+    monkeypatch.setattr(ort, "InferenceSession", refuse)
+    with pytest.raises(DataError) as err:
+        make_session(toy_path)
+    assert str(err.value) == f"onnxruntime cannot load {toy_path}: " + "x" * 300
+
+
 def test_a_step_computes_what_numpy_does_and_returns_the_next_state(toy_path) -> None:
     session = StepSession(toy_path, threads=1)
+    assert session.path == toy_path and session.init_state()[STATE].shape == (1, 3)  # one stream unless asked
+    with pytest.raises(Exception):  # spinning left to ONNX Runtime unless asked
+        session.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning")
     assert session.input_names() == ["lnes", "window_ms", state_input_name(STATE)]
     assert session.output_names_all() == ["pose", state_output_name(STATE), "extra"]
     state = session.init_state(2)
