@@ -19,21 +19,33 @@ from e3dpsm.state import StateSpec, state_input_name, state_output_name
 
 STATE = "mem_a"  # family `mem`: a recurrent group
 S_IN, S_OUT = state_input_name(STATE), state_output_name(STATE)
-X1, POSE = "/stem/Flatten_output_0", "pose"
+X1, POSE = "/stem/Reshape_output_0", "pose"
 SCALE = 0.05  # both Q/DQ pairs: u8, zero point 0 (every quantised value is positive)
 WINDOW_MS = 50.0  # the decay is window_ms / 100
 
 
-def _toy(quantised: bool) -> onnx.ModelProto:
-    """x1 = flatten(softplus(frame)) [stem]; s' = (x1 + s) * window/100 [mem]; pose = softplus(s') [decoder].
-    Quantised: x1 and s' pass a Q/DQ pair before their readers (the state output stays float)."""
-    inits = [numpy_helper.from_array(np.array(0.01, np.float32), "hundredth")]
+def _toy(quantised: bool, state_pair: bool = True, decoder_pairs: int = 0,
+         rename_stem: bool = False) -> onnx.ModelProto:
+    """x1 = reshape(softplus(frame), [batch, -1]) [stem, its shape from unscoped int64 nodes:
+    group `other`]; s' = (x1 + s) * window/100 [mem]; pose = softplus(s') [decoder].
+    Quantised: x1 and (with `state_pair`) s' pass a Q/DQ pair before their readers (the state
+    output stays float); `decoder_pairs` Q/DQ'd multiplications by 1.01 follow the decoder's
+    Softplus; `rename_stem` gives the stem's Reshape another name than the reference's."""
+    inits = [numpy_helper.from_array(np.array(0.01, np.float32), "hundredth"),
+             numpy_helper.from_array(np.array(1.01, np.float32), "gain"),
+             numpy_helper.from_array(np.array([0], np.int64), "zero_i"),
+             numpy_helper.from_array(np.array([1], np.int64), "one_i"),
+             numpy_helper.from_array(np.array([-1], np.int64), "minus_one")]
     if quantised:
         inits += [numpy_helper.from_array(np.array(SCALE, np.float32), "scale"),
                   numpy_helper.from_array(np.array(0, np.uint8), "zero")]
     x1_read, s_read = X1, S_OUT
-    nodes = [helper.make_node("Softplus", ["lnes"], ["/stem/Softplus_output_0"], name="/stem/Softplus"),
-             helper.make_node("Flatten", ["/stem/Softplus_output_0"], [X1], name="/stem/Flatten"),
+    nodes = [helper.make_node("Shape", ["lnes"], ["lnes_shape"], name="Shape_0"),
+             helper.make_node("Slice", ["lnes_shape", "zero_i", "one_i"], ["batch"], name="Slice_0"),
+             helper.make_node("Concat", ["batch", "minus_one"], ["flat_shape"], name="Concat_0", axis=0),
+             helper.make_node("Softplus", ["lnes"], ["/stem/Softplus_output_0"], name="/stem/Softplus"),
+             helper.make_node("Reshape", ["/stem/Softplus_output_0", "flat_shape"], [X1],
+                              name="renamed" if quantised and rename_stem else "/stem/Reshape"),
              helper.make_node("Mul", ["window_ms", "hundredth"], ["decay"], name="/mem/decay")]
     if quantised:
         nodes += [helper.make_node("QuantizeLinear", [X1, "scale", "zero"], ["x1_q"], name="q_x1"),
@@ -41,11 +53,21 @@ def _toy(quantised: bool) -> onnx.ModelProto:
         x1_read = "x1_dq"
     nodes += [helper.make_node("Add", [x1_read, S_IN], ["/mem/sum"], name="/mem/Add"),
               helper.make_node("Mul", ["/mem/sum", "decay"], [S_OUT], name="/mem/Mul")]
-    if quantised:
+    if quantised and state_pair:
         nodes += [helper.make_node("QuantizeLinear", [S_OUT, "scale", "zero"], ["s_q"], name="q_s"),
                   helper.make_node("DequantizeLinear", ["s_q", "scale", "zero"], ["s_dq"], name="dq_s")]
         s_read = "s_dq"
-    nodes.append(helper.make_node("Softplus", [s_read], [POSE], name="/decoder/Softplus"))
+    last = "/decoder/Softplus_output_0" if decoder_pairs else POSE
+    nodes.append(helper.make_node("Softplus", [s_read], [last], name="/decoder/Softplus"))
+    for k in range(decoder_pairs):
+        out = f"/decoder/Mul_{k}_output_0"
+        nodes.append(helper.make_node("Mul", [last, "gain"], [out], name=f"/decoder/Mul_{k}"))
+        last = POSE if k == decoder_pairs - 1 else f"/decoder/dq_{k}"
+        if quantised:
+            nodes += [helper.make_node("QuantizeLinear", [out, "scale", "zero"], [f"q{k}"], name=f"q_{k}"),
+                      helper.make_node("DequantizeLinear", [f"q{k}", "scale", "zero"], [last], name=f"dq_{k}")]
+        else:
+            nodes.append(helper.make_node("Identity", [out], [last], name=f"/decoder/Identity_{k}"))
     value = lambda name, shape=(1, 4): helper.make_tensor_value_info(name, TensorProto.FLOAT, list(shape))  # noqa: E731
     graph = helper.make_graph(nodes, "toy", [value("lnes", (1, 1, 2, 2)), value("window_ms", (1,)), value(S_IN)],
                               [value(POSE), value(S_OUT)], inits)
@@ -145,7 +167,7 @@ def test_the_plan_pairs_each_boundary_tensor_with_what_its_readers_read() -> Non
     reference, model = _toy(False), _toy(True)
     meta = GraphMetadata.from_onnx(reference)
     groups = node_groups(reference, meta)
-    assert groups == {"/stem/Softplus": "stem", "/stem/Flatten": "stem", "/mem/decay": "mem", "/mem/Add": "mem", "/mem/Mul": "mem",
+    assert groups == {"/stem/Softplus": "stem", "/stem/Reshape": "stem", "/mem/decay": "mem", "/mem/Add": "mem", "/mem/Mul": "mem",
                       "/decoder/Softplus": "decoder"}
     plan = make_plan(reference, model, meta)
     assert plan.boundary == {X1: "stem", S_OUT: "mem", POSE: "decoder"}  # `/mem/sum` stays inside its group
@@ -161,7 +183,8 @@ def test_a_graph_sharing_no_tensor_names_is_refused() -> None:
     reference, model = _toy(False), _toy(True)
     for node in model.graph.node:
         node.output[:] = ["x" + o for o in node.output]
-    with pytest.raises(DataError, match="share no tensor names"):
+    with pytest.raises(DataError, match=r"^the two graphs share no tensor names; diagnose needs the compressed graph "
+                                        r"to come from the reference \(e3dpsm quantize --model REFERENCE\)$"):
         make_plan(reference, model, GraphMetadata.from_onnx(reference))
 
 
@@ -219,7 +242,8 @@ def test_graphs_with_other_states_or_no_frames_are_refused(toy_paths, tmp_path) 
     GraphMetadata(states=(StateSpec(STATE, (5,)),), inputs=meta.inputs, outputs=meta.outputs, config=meta.config,
                   joints=meta.joints).write_to(other)
     onnx.save(other, str(tmp_path / "other.onnx"))
-    with pytest.raises(DataError, match="carry different states; they are not the same model"):
+    with pytest.raises(DataError, match=r"^\S+other\.onnx and \S+reference\.onnx carry different states; "
+                                        r"they are not the same model$"):
         diagnose(reference, tmp_path / "other.onnx", FRAMES, WINDOW_MS)
     with pytest.raises(DataError, match="^no frames to diagnose$"):
         diagnose(reference, model, FRAMES[:0], WINDOW_MS)
@@ -280,3 +304,123 @@ def test_the_figure_plots_the_top_culprits_and_the_states_with_the_largest_final
     with Image.open(tmp_path / "d.png") as image:
         assert image.size == (1320, 462)  # 12 x 4.2 inches at 110 dpi
     assert plt.get_fignums() == []  # every figure closed
+
+
+def test_relative_l2_at_the_edge_of_tiny() -> None:
+    """Below or at TINY (1e-12) a norm counts as zero, above it divides."""
+    assert relative_l2(np.array([2e-12]), np.array([1.5e-12])) == pytest.approx(0.5e-12 / 1.5e-12)
+    assert relative_l2(np.array([3e-12]), np.array([1e-12])) == math.inf  # reference norm exactly TINY: zero
+    assert relative_l2(np.array([1e-12]), np.array([0.0])) == 0.0  # difference exactly TINY: none
+    assert relative_l2(np.array([1.5e-12]), np.array([0.0])) == math.inf
+
+
+def test_growth_at_the_edges() -> None:
+    base = np.full(40, 1e-12)  # early median exactly TINY: counts as zero
+    late = base.copy()
+    late[-4:] = 5e-12
+    assert Series("g", "group", late).growth == math.inf
+    assert Series("g", "group", base).growth == 1.0  # TINY late over TINY early: flat
+    zero_early = np.zeros(40)
+    zero_early[-4:] = 1e-12  # late exactly TINY: flat too
+    assert Series("g", "group", zero_early).growth == 1.0
+    halfway = np.concatenate([np.ones(30), np.full(10, 2.5)])
+    assert Series("g", "group", halfway).to_dict()["grows"] is True  # 2.5 > GROWTH_RATIO (2)
+    at_ratio = np.concatenate([np.ones(30), np.full(10, 2.0)])
+    entry = Series("g", "group", at_ratio).to_dict()
+    assert entry["growth"] == 2.0 and entry["grows"] is False  # growing means above the ratio
+
+
+def test_plans_are_values() -> None:
+    import dataclasses
+
+    reference = _toy(False)
+    plan = make_plan(reference, _toy(True), GraphMetadata.from_onnx(reference))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.states = {}
+
+
+def test_a_quantised_tensor_whose_producer_was_renamed_keeps_its_reference_group() -> None:
+    reference = _toy(False)
+    plan = make_plan(reference, _toy(True, rename_stem=True), GraphMetadata.from_onnx(reference))
+    assert plan.qdq[X1] == ("x1_dq", "stem")
+
+
+def test_groups_with_the_same_quantisation_noise_rank_by_added_error(toy_paths, tmp_path) -> None:
+    """Only x1 quantised: `mem` and `decoder` have no Q/DQ pair (noise 0) and rank between
+    themselves by mean added error, the larger first."""
+    reference, _ = toy_paths
+    onnx.save(_toy(True, state_pair=False), str(tmp_path / "model.onnx"))
+    result = diagnose(reference, tmp_path / "model.onnx", FRAMES, WINDOW_MS, threads=1)
+    added = {g["name"]: g["mean_added_error"] for g in result["groups"]}
+    assert result["culprits"][0] == "stem"
+    assert added["mem"] != added["decoder"]
+    assert result["culprits"][1:] == sorted(["mem", "decoder"], key=lambda g: -added[g])
+    assert [g["kind"] for g in result["groups"]] == ["group"] * 3
+    assert [s["kind"] for s in result["states"]] == ["state"] and [o["kind"] for o in result["outputs"]] == ["output"]
+
+
+def test_the_ten_noisiest_quantised_activations_are_listed(tmp_path) -> None:
+    onnx.save(_toy(False, decoder_pairs=12), str(tmp_path / "reference.onnx"))
+    onnx.save(_toy(True, decoder_pairs=12), str(tmp_path / "model.onnx"))
+    result = diagnose(tmp_path / "reference.onnx", tmp_path / "model.onnx", FRAMES[:5], WINDOW_MS, threads=1)
+    assert result["quantised_activations"] == 14
+    noise = [t["qdq_noise"] for t in result["noisiest_tensors"]]
+    assert len(noise) == 10 and noise == sorted(noise, reverse=True)
+
+
+def test_progress_goes_through_tqdm_only_when_asked(toy_paths, monkeypatch) -> None:
+    import sys
+    import types
+
+    calls: list[dict] = []
+
+    def fake_tqdm(iterable, **kwargs):
+        calls.append(kwargs)
+        return iter(iterable)
+
+    monkeypatch.setitem(sys.modules, "tqdm", types.SimpleNamespace(tqdm=fake_tqdm))
+    quiet = diagnose(*toy_paths, FRAMES[:3], WINDOW_MS, threads=1)
+    assert calls == [] and quiet["steps"] == 3
+    shown = diagnose(*toy_paths, FRAMES[:3], WINDOW_MS, threads=1, progress=True)
+    assert calls == [{"desc": "diagnose", "unit": "step", "leave": False, "disable": None}] and shown["steps"] == 3
+
+
+def _entry(name: str, errors: dict[str, float], growth: float, **extra) -> dict:
+    return {"name": name, "error_at_step": errors, "growth": growth, "grows": growth > GROWTH_RATIO, **extra}
+
+
+def test_markdown_written_out_whole() -> None:
+    result = {
+        "steps": 12, "window_ms": 33.3, "matched_tensors": 5, "quantised_activations": 1, "ranked_by": "qdq_noise",
+        "groups": [_entry("stem", {"1": 0.001, "10": 0.002, "12": 0.003}, 3.0, mean_added_error=0.0015,
+                          qdq_noise=0.01)],
+        "states": [_entry("mem_a", {"1": 0.1, "10": 0.2, "12": 0.25}, 1.5)],
+        "noisiest_tensors": [{"tensor": "x1", "group": "stem", "qdq_noise": 0.01}],
+    }
+    assert markdown(result, "toy") == """# toy
+
+12 steps at 33.3 ms, both graphs carrying their own states; 5 boundary tensors matched, 1 quantised activations.
+
+## Culprits (ranked by qdq noise)
+
+| rank | group | added | step 1 | step 10 | step 12 | QDQ noise | grows |
+|---:|---|---:|---:|---:|---:|---:|---|
+| 1 | stem | 1.50e-03 | 1.00e-03 | 2.00e-03 | 3.00e-03 | 1.00e-02 | yes (x3.00) |
+
+## States
+
+| state | step 1 | step 10 | step 12 | grows |
+|---|---:|---:|---:|---|
+| mem_a | 1.00e-01 | 2.00e-01 | 2.50e-01 | no (x1.50) |
+
+## Noisiest quantised activations
+
+| tensor | group | QDQ noise |
+|---|---|---:|
+| `x1` | stem | 1.00e-02 |
+"""
+    result["groups"][0]["grows"], result["states"][0]["grows"] = False, True
+    result["noisiest_tensors"] = []
+    text = markdown(result, "toy")
+    assert "| 3.00e-03 | 1.00e-02 | no (x3.00) |" in text and "| 2.50e-01 | yes (x1.50) |" in text
+    assert text.endswith("| mem_a | 1.00e-01 | 2.00e-01 | 2.50e-01 | yes (x1.50) |\n")
