@@ -269,27 +269,31 @@ def test_markdown_lists_every_group_in_rank_order(toy_result) -> None:
     assert "## Noisiest quantised activations" in lines and f"| `{X1}` | stem |" in text
 
 
-def test_the_figure_plots_the_top_culprits_and_the_states_with_the_largest_final_error(toy_result, tmp_path) -> None:
+def test_the_figure_plots_the_top_culprits_and_the_states_with_the_largest_final_error(toy_result, tmp_path,
+                                                                                       monkeypatch) -> None:
     import matplotlib.pyplot as plt
     from PIL import Image
 
     from e3dpsm.golden.diagnose import TINY, diagnosis_figure, plot_diagnosis
 
     result = dict(toy_result)
-    final = {"a": np.array([1.0, 0.1]), "b": np.array([0.0, 0.0]), "c": np.array([0.5, 0.3])}
+    final = {"a": np.array([1.0, 0.1, 0.2]), "b": np.zeros(3), "c": np.array([0.5, 0.3, 0.1])}
     result["_curves"] = {"group": toy_result["_curves"]["group"], "state": final}
     fig = diagnosis_figure(result, top=2)
     try:
         groups, states = fig.axes
         assert [line.get_label() for line in groups.lines] == toy_result["culprits"][:2]
-        assert [line.get_label() for line in states.lines] == ["c", "a"]  # by final error, largest first
+        assert [line.get_label() for line in states.lines] == ["a", "c"]  # by final error, largest first
         first = toy_result["culprits"][0]
         np.testing.assert_array_equal(groups.lines[0].get_ydata(), np.maximum(toy_result["_curves"]["group"][first], TINY))
         assert (groups.get_yscale(), states.get_yscale()) == ("log", "log")
         assert (groups.get_title(), states.get_title()) == ("top culprit groups (output error)", "states")
         assert groups.get_xlabel() == states.get_xlabel() == "step"
         assert groups.get_ylabel() == states.get_ylabel() == "relative L2 error"
-        assert [t.get_text() for t in states.get_legend().get_texts()] == ["c", "a"]
+        assert [t.get_text() for t in states.get_legend().get_texts()] == ["a", "c"]
+        from matplotlib.layout_engine import ConstrainedLayoutEngine
+
+        assert isinstance(fig.get_layout_engine(), ConstrainedLayoutEngine)
         assert states.get_legend().get_texts()[0].get_fontsize() == 7
         assert groups.lines[0].get_linewidth() == 1.0
     finally:
@@ -300,7 +304,19 @@ def test_the_figure_plots_the_top_culprits_and_the_states_with_the_largest_final
         assert fig.axes[1].lines[0].get_ydata().tolist() == [TINY] * 3  # zero error still plots on a log axis
     finally:
         plt.close(fig)
+    many = dict(result, culprits=[f"g{i}" for i in range(8)],
+                _curves={"group": {f"g{i}": np.ones(3) for i in range(8)}, "state": {f"s{i}": np.ones(3) for i in range(8)}})
+    fig = diagnosis_figure(many)
+    try:
+        assert [len(ax.lines) for ax in fig.axes] == [6, 6]  # the top six of each unless asked
+    finally:
+        plt.close(fig)
+    import e3dpsm.golden.diagnose as module
+
+    asked: list[int] = []
+    monkeypatch.setattr(module, "diagnosis_figure", lambda result, top: asked.append(top) or diagnosis_figure(result, top))
     plot_diagnosis(toy_result, tmp_path / "d.png")
+    assert asked == [6]
     with Image.open(tmp_path / "d.png") as image:
         assert image.size == (1320, 462)  # 12 x 4.2 inches at 110 dpi
     assert plt.get_fignums() == []  # every figure closed

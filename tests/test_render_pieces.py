@@ -36,18 +36,18 @@ def test_the_palette_holds_the_documented_colours() -> None:
     for pos in range(levels):
         for neg in range(levels):
             bright = [0.0 if k == 0 else 0.3 + 0.7 * (k - 1) / (levels - 2) for k in (pos, neg)]
-            expected = tuple(min(255, int(math.floor(bright[0] * r + bright[1] * b + 0.5)))
-                             for r, b in zip(RED_FULL, BLUE_FULL))
-            got = _rgb(pos * levels + neg)
-            assert all(abs(g - e) <= 1 for g, e in zip(got, expected)), (pos, neg, got, expected)  # half-way ties
+            mixed = np.array([bright[0] * r + bright[1] * b for r, b in zip(RED_FULL, BLUE_FULL)])
+            assert _rgb(pos * levels + neg) == tuple(np.clip(np.rint(mixed), 0, 255).astype(int).tolist()), (pos, neg)
     assert _rgb((levels - 1) * levels) == RED_FULL and _rgb(levels - 1) == BLUE_FULL
     assert _rgb(levels) == tuple(round(0.3 * c) for c in RED_FULL)  # the earliest event stays visible
 
 
 @pytest.mark.parametrize("scale, expected", [(1.0, (640, 480)), (0.5, (320, 240)), (0.1, (64, 48)),
-                                             (0.0041, (4, 2)), (0.001, (2, 2)), (1.0 / 3.0, (214, 160))])
+                                             (0.0041, (4, 2)), (0.001, (2, 2)), (1.0 / 3.0, (214, 160)),
+                                             (0.00625, (4, 4))])  # 3 rows: up to 4
 def test_canvas_size_is_the_sensor_scaled_rounded_up_to_even(scale, expected) -> None:
     assert canvas_size(ee3d_default(), scale) == expected
+    assert canvas_size(ee3d_default()) == (640, 480)  # the sensor's own size unless scaled
 
 
 @pytest.mark.parametrize("scale", [0.0, -1.0, math.nan, math.inf])
@@ -64,6 +64,7 @@ def test_projection_to_the_canvas_scales_pixel_centres_and_masks_what_cannot_be_
     xy, ok = project_to_canvas(points, camera, 1.0)
     np.testing.assert_allclose(xy[:2], uv, atol=1e-9)
     assert ok.tolist() == [True, True, False, False, False]  # NaN, behind the lens, infinite
+    assert np.array_equal(project_to_canvas(points, camera)[0], xy)  # scale 1 unless asked
     half, _ = project_to_canvas(points, camera, 0.5)
     np.testing.assert_allclose(half[:2], (uv + 0.5) * 0.5 - 0.5, atol=1e-9)
     odd, _ = project_to_canvas(points[:2], camera, 1.0 / 3.0)  # 213.33 columns round to 213, 160 rows
@@ -107,6 +108,8 @@ def test_each_canvas_pixel_shows_the_frame_pixel_its_sensor_pixel_fed() -> None:
                 sensor_row = min(int((row + 0.5) * 480 / height), 479)
                 sensor_col = min(int((col + 0.5) * 640 / width), 639)
                 assert got[row, col] == levels[sensor_row * 12 // 480, sensor_col * 16 // 640], (scale, row, col)
+    full = np.random.default_rng(0).integers(0, 225, (480, 640)).astype(np.uint8)  # a frame at sensor resolution
+    assert np.array_equal(render._on_sensor_grid(full, camera, 1.0), full)  # the last row and column included
 
 
 def _one_bone_pose(camera, shift_x: float = 0.0) -> np.ndarray:
@@ -256,3 +259,134 @@ def test_frame_labels() -> None:
     assert frame_label(0, None, False) == "#0  pred (gold)"
     assert frame_label(7, 1_234_567, True) == "t = 1.235 s  #7  pred (gold)  gt (green)"
     assert frame_label(3, 20_000, False) == "t = 0.020 s  #3  pred (gold)"
+
+
+def test_a_canvas_wider_than_the_events_is_black_where_they_end() -> None:
+    """At scale 1/3 the events cover 213 columns of a 214-column canvas (rounded up to even)."""
+    camera = ee3d_default()
+    image = np.asarray(draw_frame(np.ones((2, 12, 16), np.float32), camera, scale=1.0 / 3.0))
+    assert image.shape == (160, 214)
+    assert (image[:, 213] == 0).all() and (image[:, :213] == 14 * 15 + 14).all()
+
+
+@pytest.mark.parametrize("scale, radius, line", [(0.25, 2, 1), (1.0, 3, 2), (2.0, 6, 4)])
+def test_discs_and_lines_scale_with_a_floor(scale, radius, line) -> None:
+    """A joint's disc spans 2 r + 1 pixels (r = 3 x scale, at least 2); a bone is 2 x scale
+    pixels wide (at least 1), measured across a near-horizontal bone."""
+    camera = ee3d_default()
+    blank = np.zeros((2, 12, 16), np.float32)
+    pose = np.full((len(PARENTS), 3), np.nan)
+    pose[0] = [0.0, 0.0, 1000.0]
+    one = np.asarray(draw_frame(blank, camera, pose, scale=scale)) == render.PREDICTED_INDEX
+    rows, cols = np.nonzero(one)
+    assert rows.max() - rows.min() == cols.max() - cols.min() == 2 * radius
+    child = next(c for c, p in enumerate(PARENTS) if c != p)
+    bone = np.full((len(PARENTS), 3), np.nan)
+    bone[child], bone[PARENTS[child]] = [-400.0, 0.0, 1000.0], [400.0, 0.0, 1000.0]
+    drawn = np.asarray(draw_frame(blank, camera, bone, scale=scale)) == render.PREDICTED_INDEX
+    (x0, _), (x1, _) = project_to_canvas(bone[[child, PARENTS[child]]], camera, scale)[0]
+    middle = int(round((x0 + x1) / 2))
+    assert drawn[:, middle].sum() in (line, line + 1)  # a slanted line covers one more pixel at most
+
+
+def test_the_label_is_pillows_text_at_4_2_on_a_black_box() -> None:
+    from PIL import Image, ImageDraw
+
+    camera = ee3d_default()
+    label = "t = 1.000 s  #7  pred (gold)"
+    events = np.asarray(draw_frame(np.ones((2, 12, 16), np.float32), camera, label=label, scale=0.5))
+    reference = Image.new("P", events.shape[::-1], 0)
+    draw = ImageDraw.Draw(reference)
+    box = draw.textbbox((4, 2), label)
+    draw.text((4, 2), label, fill=render.TEXT_INDEX)
+    text = np.asarray(reference) == render.TEXT_INDEX
+    assert text.any() and np.array_equal(events == render.TEXT_INDEX, text)
+    inside = np.zeros_like(text)
+    inside[box[1]:box[3] + 1, box[0]:box[2] + 1] = True  # Pillow's rectangle includes its far corner
+    assert (events[inside & ~text] == 0).all()  # the box is black around the text
+    assert (events[~inside] == 14 * 15 + 14).all()  # and no larger: the events show around it
+
+
+def test_render_summaries_are_values() -> None:
+    import dataclasses
+
+    summary = render.RenderSummary(Path("a.gif"), 1, 0, 1)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        summary.frames = 2
+
+
+def test_the_writer_keeps_the_fixed_palette_in_the_file(tmp_path) -> None:
+    camera = ee3d_default()
+    rng = np.random.default_rng(1)
+    with PoseVideoWriter(tmp_path / "a.gif", camera, fps=50.0, scale=0.25) as video:
+        for k in range(3):
+            video.add((rng.random((2, 12, 16)) < 0.3).astype(np.float32) * rng.random((2, 12, 16)).astype(np.float32),
+                      _one_bone_pose(camera, 50.0 * k), label=f"#{k}")
+    with Image.open(tmp_path / "a.gif") as image:
+        assert image.n_frames == 3 and image.getpalette()[:len(PALETTE)] == PALETTE  # as drawn: not reordered
+
+
+def test_defaults_draw_at_sensor_size_and_replace_what_is_there(tmp_path) -> None:
+    camera = ee3d_default()
+    frames = np.zeros((2, 2, 12, 16), np.float32)
+    poses = np.stack([_one_bone_pose(camera)] * 2)
+    (tmp_path / "a.gif").write_bytes(b"old")
+    summary = render_poses(frames, poses, camera, tmp_path / "a.gif")
+    got, info = _gif(tmp_path / "a.gif")
+    assert summary.frames == 2 and got[0].shape == (480, 640, 3) and info["duration"] == 20  # 50 Hz
+    with PoseVideoWriter(tmp_path / "a.gif", camera, fps=10.0) as video:
+        video.add(frames[0], None)
+    got, _ = _gif(tmp_path / "a.gif")
+    assert len(got) == 1 and got[0].shape == (480, 640, 3)
+
+
+def test_each_frame_is_labelled_with_its_time_and_whether_ground_truth_is_drawn(tmp_path, monkeypatch) -> None:
+    labels: list[str] = []
+    original = PoseVideoWriter.add
+
+    def spy(self, lnes, pose_mm, gt_mm=None, *, label=None):
+        labels.append(label)
+        return original(self, lnes, pose_mm, gt_mm, label=label)
+
+    monkeypatch.setattr(PoseVideoWriter, "add", spy)
+    camera = ee3d_default()
+    poses = np.stack([_one_bone_pose(camera)] * 2)
+    render_poses(np.zeros((2, 2, 12, 16), np.float32), poses, camera, tmp_path / "a.gif", gt_mm=[poses[0], None],
+                 t_us=[20_000, 40_000], scale=0.25)
+    assert labels == ["t = 0.020 s  #0  pred (gold)  gt (green)", "t = 0.040 s  #1  pred (gold)"]
+
+
+class _FakeMp4:
+    def __init__(self, path, **kwargs) -> None:
+        self.path, self.kwargs, self.frames = Path(path), kwargs, []
+
+    def append_data(self, frame) -> None:
+        self.frames.append(frame)
+
+    def close(self) -> None:
+        self.path.write_bytes(b"mp4")
+
+
+def test_an_mp4_is_h264_in_yuv420p_at_the_window_rate_fed_rgb_frames(tmp_path, monkeypatch) -> None:
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio.v2 as imageio
+
+    writers: list[_FakeMp4] = []
+    monkeypatch.setattr(imageio, "get_writer", lambda path, **kw: writers.append(_FakeMp4(path, **kw)) or writers[-1])
+    camera = ee3d_default()
+    render_poses(np.zeros((2, 2, 12, 16), np.float32), np.stack([_one_bone_pose(camera)] * 2), camera,
+                 tmp_path / "a.mp4", scale=0.25)
+    (writer,) = writers
+    assert writer.kwargs == {"format": "FFMPEG", "mode": "I", "fps": 50.0, "codec": "libx264", "pixelformat": "yuv420p",
+                             "macro_block_size": 1, "quality": 7, "ffmpeg_log_level": "error",
+                             "output_params": ["-preset", "veryfast"]}
+    assert [f.shape for f in writer.frames] == [(120, 160, 3)] * 2 and writer.frames[0].dtype == np.uint8
+    assert (tmp_path / "a.mp4").read_bytes() == b"mp4"
+
+
+def test_an_mp4_error_names_the_flag_and_the_libraries(monkeypatch, tmp_path) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    with pytest.raises(ConfigError, match=r"^--render \S+a\.mp4: writing \.mp4 needs imageio and imageio-ffmpeg \("):
+        check_render_path(tmp_path / "a.mp4")
