@@ -77,8 +77,9 @@ def test_the_host_half_writes_both_graphs_its_trace_and_the_manifest(host_half) 
 
     graph, golden_dir, folder, manifest = host_half
     digest = hashlib.sha256(graph.read_bytes()).hexdigest()
-    assert folder == golden_dir / KERNELS_FOLDER / f"step_int8-{digest[:12]}"
-    assert sorted(p.name for p in folder.iterdir()) == sorted([EXPOSED, CUT, HOST_TRACE, ORDER])
+    assert folder == golden_dir / "kernels" / f"step_int8-{digest[:12]}" and KERNELS_FOLDER == "kernels"
+    # the names a device's copy of the folder is read by (the module doc): written out, not the constants
+    assert sorted(p.name for p in folder.iterdir()) == ["codes.json", "cut.onnx", "exposed.onnx", "host.npz"]
     assert manifest == json.loads((folder / ORDER).read_text())
     assert manifest == {"graph": str(graph), "sha256": digest, "codes": ["a_q", "h_q"],
                         "segments": {"a_q": ["ReduceMean", "Mul", "Add", "Mul", "Add"], "h_q": ["Mul"]},  # Reshape: bookkeeping
@@ -104,6 +105,7 @@ def test_the_device_half_on_the_same_host_finds_every_code_the_same(host_half, t
     _, _, folder, _ = host_half
     report = run_device(folder, out=tmp_path / "device.json")
     assert report == json.loads((tmp_path / "device.json").read_text())
+    assert report["graph"] == str(host_half[0])
     assert (report["steps"], report["codes"], report["isolated_identical"]) == (7, 2, 2)
     assert report["isolated"] == [] and report["first_departures"] == []
     assert [d["apart"] for d in report["propagated"]] == [0, 0]
@@ -128,6 +130,7 @@ def test_a_code_changed_in_the_host_trace_is_named_where_it_departs(host_half, t
         (work / name).write_bytes((folder / name).read_bytes())
     trace = kt.load_trace(folder / HOST_TRACE)
     trace[kt.CODE + "a_q"][3, 0, 2] += 1
+    trace[kt.CODE + "h_q"][5, 0, 4] += 1
     np.savez(work / HOST_TRACE, **trace)
     assert main(["device", str(work)]) == 0
     out = capsys.readouterr().out
@@ -138,7 +141,7 @@ def test_a_code_changed_in_the_host_trace_is_named_where_it_departs(host_half, t
     assert first["segment"] == ["ReduceMean", "Mul", "Add", "Mul", "Add"]
     propagated = {d["name"]: d for d in report["propagated"]}
     assert (propagated["a_q"]["first_step"], propagated["a_q"]["apart"]) == (3, 1)
-    assert report["first_departures"][0] == "a_q"
+    assert report["first_departures"] == ["a_q", "h_q"]  # the line names the first only
     assert report["isolated_identical"] == 2 - len(report["isolated"])
     assert f"{len(report['isolated'])} of 2 segments depart on their own" in out
 
@@ -151,6 +154,7 @@ def test_responsible_lines_name_the_segment_and_cut_the_list() -> None:
     assert lines[0] == "a_q (Conv Relu): 3 codes apart over 2 steps from step 5, at most 1"
     assert lines[1] == "b_q (data movement): 3 codes apart over 2 steps from step 5, at most 1"
     assert len(lines) == 7 and lines[-1] == "... and 2 more (check.json)"
+    assert responsible_lines(report, limit=7)[-1] == "... and 1 more (check.json)"
     assert len(responsible_lines(report, limit=8)) == 8 and "more" not in responsible_lines(report, limit=8)[-1]
     assert responsible_lines({"isolated": []}) == []
 
@@ -164,3 +168,51 @@ def test_the_host_command_records_and_says_what(tmp_path, capsys) -> None:
     assert json.loads((tmp_path / "trace" / ORDER).read_text())["steps"] == 4  # all of the golden's steps
     assert main(["host", str(graph), str(golden), str(tmp_path / "long"), "--steps", "50"]) == 0
     assert json.loads((tmp_path / "long" / ORDER).read_text())["steps"] == 4  # no more than the golden has
+
+
+def test_one_step_is_enough_and_a_folder_can_be_recorded_again(tmp_path, monkeypatch) -> None:
+    """The smallest trace (one step) records and checks; recording into the same folder
+    replaces it; both halves run one thread unless asked."""
+    threads: list[int] = []
+    for name in ("rollout", "isolated"):
+        original = getattr(kt, name)
+        monkeypatch.setattr(kt, name, lambda *a, _f=original, **k: threads.append(a[3]) or _f(*a, **k))
+    graph, golden = tmp_path / "step_int8.onnx", tmp_path / "golden"
+    _toy_qdq(graph)
+    _write_golden(golden, 3)
+    for _ in range(2):
+        manifest = record_host(graph, golden, tmp_path / "trace", steps=1)
+        assert manifest["steps"] == 1
+    report = run_device(tmp_path / "trace", out=tmp_path / "device.json")
+    assert report["steps"] == 1 and report["isolated_identical"] == 2
+    assert threads == [1, 1, 1, 1]  # host rollout twice, then the device's rollout and isolated run
+
+
+def test_a_graph_without_quantisation_and_a_trace_without_steps_say_how_to_fix_them(tmp_path) -> None:
+    from e3dpsm.errors import DataError
+
+    model = onnx.helper.make_model(onnx.helper.make_graph(
+        [helper.make_node("Relu", ["x"], ["y"])], "float", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])]), opset_imports=[helper.make_opsetid("", 13)])
+    onnx.save(model, str(tmp_path / "float.onnx"))
+    with pytest.raises(DataError, match=r"^\S+float\.onnx: no QuantizeLinear on a computed tensor: not a QDQ graph "
+                                        r"\(write one with `e3dpsm quantize --mode int8`\)$"):
+        record_host(tmp_path / "float.onnx", tmp_path / "golden", tmp_path / "trace")
+    (tmp_path / "trace").mkdir()
+    (tmp_path / "trace" / ORDER).write_text('{"codes": [], "segments": {}, "steps": "3"}')
+    with pytest.raises(DataError, match=r"^\S+codes\.json: the host trace holds no steps \('3'\); record it again "
+                                        r"with `python -m e3dpsm\.golden\.kernel_report host`$"):
+        run_device(tmp_path / "trace")
+
+
+def test_the_module_runs_as_a_command_and_needs_a_half(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    with pytest.raises(SystemExit) as exited:
+        main([])
+    assert exited.value.code == 2
+    (tmp_path / "bad.onnx").write_text("not onnx")
+    done = subprocess.run([sys.executable, "-m", "e3dpsm.golden.kernel_report", "portable", str(tmp_path / "bad.onnx"),
+                           str(tmp_path / "out.onnx")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.startswith("python -m e3dpsm.golden.kernel_report portable: error: ")
