@@ -316,6 +316,10 @@ def test_a_trace_without_steps_is_refused_in_one_line(tmp_path, capsys) -> None:
 
     with pytest.raises(ValueError, match=r"^a: no steps to compare \(codes of shape \(0, 3\)\)$"):
         compare_codes("a", np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"^a: no steps to compare \(codes of shape \(\)\)$"):
+        compare_codes("a", np.array(3, np.uint8), np.array(3, np.uint8))
+    one_code = compare_codes("a", np.array([1, 2, 3], np.uint8), np.array([1, 4, 3], np.uint8))  # one code a step
+    assert (one_code.first_step, one_code.apart, one_code.max_codes) == (1, 1, 2)
     _recurrent_qdq(tmp_path / "step.onnx")
     out = tmp_path / "trace"
     assert main(["host", str(tmp_path / "step.onnx"), str(tmp_path / "golden"), str(out), "--steps", "0"]) == 2

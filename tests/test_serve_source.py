@@ -343,9 +343,12 @@ def test_a_live_reader_ends_quietly_when_the_loop_stops_reading() -> None:
 
     from e3dpsm.serve.source import LIVE_READER_THREAD
 
+    read_so_far: list[int] = []
+
     class Plenty(FakeLive):
         def __iter__(self):
             for k in range(LIVE_QUEUE_CHUNKS * 4):
+                read_so_far.append(k)
                 yield _stream([k])
 
     class Slow(FakeLive):
@@ -377,6 +380,26 @@ def test_a_live_reader_ends_quietly_when_the_loop_stops_reading() -> None:
                 return await asyncio.get_running_loop().run_in_executor(None, wait_for_the_reader_to_end)
 
             assert asyncio.run(take_two_then_leave()) is True
+            assert len(read_so_far) <= 2 + LIVE_QUEUE_CHUNKS + 2  # it stopped reading, not read to the end
+
+            async def take_two_then_close_the_feed() -> bool:  # the iterator stays open
+                feed = LiveFeed(Plenty([]))
+                ticks = feed.ticks()
+                for _ in range(2):
+                    await ticks.__anext__()
+                feed.close()
+                ended = await asyncio.get_running_loop().run_in_executor(None, wait_for_the_reader_to_end)
+                await ticks.aclose()
+                return ended
+
+            assert asyncio.run(take_two_then_close_the_feed()) is True
+
+            loop = asyncio.new_event_loop()  # a loop closed under the iterator, which is never finalised
+            kept = LiveFeed(Plenty([])).ticks()
+            for _ in range(2):
+                loop.run_until_complete(kept.__anext__())
+            loop.close()
+            assert wait_for_the_reader_to_end()
 
             async def take_two_then_end() -> None:  # the loop ends while the reader is mid-chunk
                 ticks = LiveFeed(Slow([])).ticks()
