@@ -6,46 +6,19 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import pytest
-from onnx import TensorProto, helper, numpy_helper
 
+from _toy_step_graph import INIT, STATE, toy_lnes, toy_numpy_step, toy_step_graph
 from e3dpsm.errors import DataError, InputError
 from e3dpsm.graph_metadata import GraphMetadata
 from e3dpsm.runtime.session import (CarriedStateRunner, MetadataStepper, StepSession, build_feeds,
                                     exact_arithmetic_options, make_session)
 from e3dpsm.state import StateSpec, state_input_name, state_output_name
 
-STATE = "mem_a"
-INIT = (0.5, -1.0, 2.0)  # a non-zero initial state: a session that starts from zeros shows
-
-
-def _toy(states: tuple[StateSpec, ...] | None = None) -> onnx.ModelProto:
-    """s' = s + window_ms / 1000 + sum(lnes) per stream; pose = 2 s'; `extra` = s' - s, an output
-    the metadata does not list."""
-    inits = [numpy_helper.from_array(np.array([1, 2, 3], np.int64), "axes"),
-             numpy_helper.from_array(np.array([-1, 1], np.int64), "column"),
-             numpy_helper.from_array(np.array(1e-3, np.float32), "milli"),
-             numpy_helper.from_array(np.array(2.0, np.float32), "two")]
-    nodes = [helper.make_node("ReduceSum", ["lnes", "axes"], ["total"], keepdims=0),
-             helper.make_node("Mul", ["window_ms", "milli"], ["seconds"]),
-             helper.make_node("Add", ["total", "seconds"], ["drive"]),
-             helper.make_node("Reshape", ["drive", "column"], ["drive_col"]),
-             helper.make_node("Add", [state_input_name(STATE), "drive_col"], [state_output_name(STATE)]),
-             helper.make_node("Mul", [state_output_name(STATE), "two"], ["pose"]),
-             helper.make_node("Sub", [state_output_name(STATE), state_input_name(STATE)], ["extra"])]
-    value = lambda name, *shape: helper.make_tensor_value_info(name, TensorProto.FLOAT, ["B", *shape])  # noqa: E731
-    graph = helper.make_graph(nodes, "toy", [value("lnes", 2, 2, 3), value("window_ms"), value(state_input_name(STATE), 3)],
-                              [value("pose", 3), value(state_output_name(STATE), 3), value("extra", 3)], inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
-    GraphMetadata(states=states or (StateSpec(STATE, (3,), init=INIT),),
-                  inputs={"frame": {"name": "lnes", "shape": ["B", 2, 2, 3]}, "window": {"name": "window_ms", "shape": ["B"]}},
-                  outputs=[{"name": "pose"}], config={"variant": "toy"}, joints=["a", "b", "c"]).write_to(model)
-    return model
-
 
 @pytest.fixture(scope="module")
 def toy_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("session_toy") / "step.onnx"
-    onnx.save(_toy(), str(path))
+    onnx.save(toy_step_graph(), str(path))
     return path
 
 
@@ -54,16 +27,8 @@ def meta(toy_path) -> GraphMetadata:
     return GraphMetadata.from_onnx(onnx.load(str(toy_path)))
 
 
-def _lnes(batch: int, seed: int = 0) -> np.ndarray:
-    return np.random.default_rng(seed).uniform(0, 1, (batch, 2, 2, 3)).astype(np.float32)
-
-
-def _numpy_step(lnes: np.ndarray, state: np.ndarray, window_ms: np.ndarray) -> np.ndarray:
-    return state + (lnes.astype(np.float64).sum(axis=(1, 2, 3)) + np.asarray(window_ms) / 1000.0)[:, None]
-
-
 def test_feeds_name_every_input_and_broadcast_one_window_over_the_batch(meta) -> None:
-    lnes = _lnes(3)
+    lnes = toy_lnes(3)
     state64 = np.asfortranarray(np.arange(9, dtype=np.float64).reshape(3, 3))  # a caller's array, any layout
     feeds = build_feeds(meta, lnes, {STATE: state64}, 20.0)
     assert set(feeds) == {"lnes", "window_ms", state_input_name(STATE)}
@@ -94,14 +59,14 @@ def test_feeds_refuse_a_frame_of_another_shape_or_dtype(meta, lnes, message) -> 
 @pytest.mark.parametrize("window", [np.array([10.0, 20.0]), 0.0, -5.0, np.array([10.0, 0.0, 5.0]), np.nan])
 def test_feeds_refuse_windows_that_are_not_one_or_batch_positive_values(meta, window) -> None:
     with pytest.raises(InputError, match=r"^window_ms must hold one positive value or 3, got \["):
-        build_feeds(meta, _lnes(3), {STATE: np.zeros((3, 3), np.float32)}, window)
+        build_feeds(meta, toy_lnes(3), {STATE: np.zeros((3, 3), np.float32)}, window)
 
 
 def test_feeds_refuse_states_of_another_batch_or_name(meta) -> None:
     with pytest.raises(InputError, match=r"^state 'mem_a' has shape \[2, 3\], expected \[3, 3\]$"):
-        build_feeds(meta, _lnes(3), {STATE: np.zeros((2, 3), np.float32)}, 20.0)
+        build_feeds(meta, toy_lnes(3), {STATE: np.zeros((2, 3), np.float32)}, 20.0)
     with pytest.raises(InputError, match=r"^state is missing \['mem_a'\]"):
-        build_feeds(meta, _lnes(1), {"other": np.zeros((1, 3), np.float32)}, 20.0)
+        build_feeds(meta, toy_lnes(1), {"other": np.zeros((1, 3), np.float32)}, 20.0)
 
 
 def test_a_session_is_bounded_and_computes_8_bit_weights_in_float(toy_path) -> None:
@@ -162,9 +127,9 @@ def test_a_step_computes_what_numpy_does_and_returns_the_next_state(toy_path) ->
     assert session.output_names_all() == ["pose", state_output_name(STATE), "extra"]
     state = session.init_state(2)
     assert np.array_equal(state[STATE], np.tile(np.float32(INIT), (2, 1)))
-    lnes = _lnes(2, seed=1)
+    lnes = toy_lnes(2, seed=1)
     outputs, new_state = session.step(lnes, state, np.array([20.0, 40.0]))
-    expected = _numpy_step(lnes, state[STATE], [20.0, 40.0])
+    expected = toy_numpy_step(lnes, state[STATE], [20.0, 40.0])
     assert set(outputs) == {"pose"} and set(new_state) == {STATE}
     np.testing.assert_allclose(new_state[STATE], expected, rtol=1e-6)
     np.testing.assert_allclose(outputs["pose"], 2 * expected, rtol=1e-6)
@@ -174,11 +139,11 @@ def test_a_step_computes_what_numpy_does_and_returns_the_next_state(toy_path) ->
     raw = session.run_raw(session.feeds(lnes, state, 20.0))
     assert [r.shape for r in raw] == [(2, 3)] * 3
     again, next_state = session.collect(raw)
-    np.testing.assert_allclose(next_state[STATE], _numpy_step(lnes, state[STATE], [20.0, 20.0]), rtol=1e-6)
+    np.testing.assert_allclose(next_state[STATE], toy_numpy_step(lnes, state[STATE], [20.0, 20.0]), rtol=1e-6)
 
 
 def test_a_graph_whose_inputs_are_not_its_metadatas_is_refused(tmp_path) -> None:
-    other = _toy(states=(StateSpec("other_a", (3,)),))
+    other = toy_step_graph(states=(StateSpec("other_a", (3,)),))
     onnx.save(other, str(tmp_path / "other.onnx"))
     with pytest.raises(InputError, match=r"graph inputs \['lnes', 'mem_a_in', 'window_ms'\] do not match its "
                                          r"metadata \['lnes', 'other_a_in', 'window_ms'\]$"):
@@ -187,11 +152,11 @@ def test_a_graph_whose_inputs_are_not_its_metadatas_is_refused(tmp_path) -> None
 
 def test_a_runner_carries_its_own_state_and_resets(toy_path) -> None:
     runner = CarriedStateRunner(StepSession(toy_path), window_ms=50.0)
-    frames = [_lnes(1, seed=k) for k in range(4)]
+    frames = [toy_lnes(1, seed=k) for k in range(4)]
     state = np.float64(INIT)[None]
     for frame in frames:
         runner.step(frame)
-        state = _numpy_step(frame, state, [50.0])
+        state = toy_numpy_step(frame, state, [50.0])
     np.testing.assert_allclose(runner.state[STATE], state, rtol=1e-5)
     runner.reset()
     assert np.array_equal(runner.state[STATE], np.float32(INIT)[None])
@@ -206,4 +171,4 @@ def test_the_metadata_stepper_leaves_running_to_its_runtime(meta) -> None:
     assert bare.states == meta.states and bare.input_names() == ["a", "b"] and bare.output_names_all() == ["c"]
     assert bare.input_names() is not bare._inputs  # a copy: callers cannot change the runtime's list
     with pytest.raises(NotImplementedError):
-        bare.step(_lnes(1), bare.init_state(1), 20.0)
+        bare.step(toy_lnes(1), bare.init_state(1), 20.0)
