@@ -85,6 +85,7 @@ class SumStepper:
 
     def step(self, lnes, state, window_ms):
         assert lnes.dtype == np.float32 and lnes.shape == (1, 2, H, W) and window_ms == WINDOW_MS
+        assert state["s"].shape == (1, 3)  # one stream, as the graph's sessions check
         self.steps += 1
         new = (state["s"] / 2 + lnes.mean()).astype(np.float32)
         pose = (new[0, 0] + np.arange(J, dtype=np.float32))[None, :, None] * np.ones(3, np.float32)
@@ -143,6 +144,13 @@ def test_every_state_is_kept_when_asked_and_a_record_without_a_file_names_none(t
         record_golden(_reference(), tmp_path / "p", tmp_path / "golden", steps=4, window_ms=WINDOW_MS)
     again = record_golden(_reference(), tmp_path / "p", tmp_path / "golden", steps=2, window_ms=WINDOW_MS, force=True)
     assert again["steps"] == 2 and again["snapshot_steps"] == [0, 1]
+
+
+def test_references_are_values() -> None:
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        _reference().kind = "checkpoint"
 
 
 def test_frames_of_another_size_are_refused_before_any_step(tmp_path) -> None:
