@@ -60,7 +60,8 @@ def test_a_state_two_steps_old_is_overwritten_and_says_so(toy_path) -> None:
     assert s1.valid and s2.valid  # states k and k + 1 are both readable
     _, s3 = bound.step(toy_lnes(1, 2), s2, 20.0)
     assert not s1.valid and s2.valid and s3.valid
-    message = r"^this state was overwritten by a later step from the state after it .*keep state\.to_numpy\(\)"
+    message = (r"^this state was overwritten by a later step from the state after it \(each chain of states reuses "
+               r"two buffers\); keep state\.to_numpy\(\) to hold on to an older state$")
     with pytest.raises(InputError, match=message):
         s1[STATE]
     with pytest.raises(InputError, match=message):
@@ -121,7 +122,7 @@ def test_feeds_of_a_device_state_are_checked_like_numpy_ones(toy_path) -> None:
     assert feeds["window_ms"].tolist() == [25.0, 25.0] and feeds["window_ms"].dtype == np.float32
     per_row = bound.feeds(toy_lnes(2), state, [0.5, 30.0])
     assert per_row["window_ms"].tolist() == [0.5, 30.0]
-    with pytest.raises(NotImplementedError, match="steps through run_feeds / step only"):
+    with pytest.raises(NotImplementedError, match="^IOBindingStepSession steps through run_feeds / step only$"):
         bound.run_raw(feeds)
 
 
@@ -164,3 +165,51 @@ def test_where_each_provider_keeps_its_tensors(providers, options, expected) -> 
 def test_a_cpu_session_binds_on_the_host(toy_path) -> None:
     bound = IOBindingStepSession(toy_path, threads=1)
     assert (bound.device, bound.device_id) == ("cpu", 0)
+    with pytest.raises(Exception):  # spinning left to ONNX Runtime unless asked, as StepSession
+        bound.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning")
+
+
+def test_a_lane_stays_taken_while_any_state_of_it_is_held(toy_path) -> None:
+    """States k and k + 1 share a lane: dropping k leaves it taken (k + 1 still reads it), so
+    a new chain from numpy states gets a lane of its own and k + 1 is untouched."""
+    bound = IOBindingStepSession(toy_path, threads=1)
+    _, s1 = bound.step(toy_lnes(1), bound.init_state(1), 20.0)
+    _, s2 = bound.step(toy_lnes(1, 1), s1, 20.0)
+    kept = s2.to_numpy()
+    lane = s2._lane
+    del s1
+    _, other = bound.step(toy_lnes(1, 2), {STATE: np.full((1, 3), 7.0, np.float32)}, 20.0)
+    assert other._lane is not lane and s2.valid and np.array_equal(s2[STATE], kept[STATE])
+    del s2
+    _, again = bound.step(toy_lnes(1, 2), bound.init_state(1), 20.0)
+    assert again._lane is lane  # free once no state refers to it
+
+
+def test_the_every_step_case_skips_the_full_check(toy_path, monkeypatch) -> None:
+    """Feeding a DeviceState back with a well-formed frame and window (one window, one per
+    stream, however short) goes straight to the bound run; anything off goes through
+    build_feeds, which names it."""
+    import e3dpsm.runtime.iobinding as module
+
+    bound = IOBindingStepSession(toy_path, threads=1)
+    _, one = bound.step(toy_lnes(1), bound.init_state(1), 20.0)
+    _, two = bound.step(toy_lnes(2), bound.init_state(2), 20.0)
+    checked: list[int] = []
+    real = module.build_feeds
+    monkeypatch.setattr(module, "build_feeds", lambda *a: checked.append(1) or real(*a))
+    for state, window in ((one, 20.0), (one, [0.5]), (two, 20.0), (two, [0.5, 40.0]), (two, np.array([[7.5]]))):
+        feeds = bound.feeds(toy_lnes(state.batch), state, window)
+        assert feeds["window_ms"].shape == (state.batch,)
+    assert checked == []
+    with pytest.raises(InputError, match=r"^window_ms must hold one positive value or 2, got \[20\.0, 30\.0, 40\.0\]$"):
+        bound.feeds(toy_lnes(2), two, [20.0, 30.0, 40.0])
+    assert checked == [1]
+
+
+def test_poses_returned_earlier_keep_their_values(toy_path) -> None:
+    bound = IOBindingStepSession(toy_path, threads=1)
+    first, state = bound.step(toy_lnes(1), bound.init_state(1), 20.0)
+    copy = first["pose"].copy()
+    for k in range(4):
+        _, state = bound.step(toy_lnes(1, 10 + k), state, 20.0)
+    assert np.array_equal(first["pose"], copy)

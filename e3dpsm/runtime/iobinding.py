@@ -160,9 +160,8 @@ class IOBindingStepSession(StepSession):
             numpy_states = {s.name: feeds[s.input_name] for s in self.meta.states}
             batch = check_state_shapes(self.meta.states, {k: v.shape for k, v in numpy_states.items()})
             lane, source = self._free_lane(batch), 0
-            for name, value in numpy_states.items():
+            for name, value in numpy_states.items():  # a free lane: no DeviceState reads these buffers
                 lane.values[source][name].update_inplace(np.ascontiguousarray(value, dtype=np.float32))
-            lane.generation[source] += 1
         target = 1 - source
         binding = lane.bindings[source]
         binding.bind_cpu_input(self.frame_name, np.ascontiguousarray(lnes, dtype=np.float32))
