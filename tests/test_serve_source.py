@@ -357,8 +357,10 @@ def test_a_live_reader_ends_quietly_when_the_loop_stops_reading() -> None:
                 time.sleep(0.2 if k >= 2 else 0)
                 yield _stream([k])
 
+    before = set(threading.enumerate())  # readers of other tests in this process are not ours to wait for
+
     def reader_alive() -> bool:
-        return any(t.name == LIVE_READER_THREAD for t in threading.enumerate())
+        return any(t.name == LIVE_READER_THREAD and t not in before for t in threading.enumerate())
 
     def wait_for_the_reader_to_end() -> bool:
         deadline = time.monotonic() + 10.0
