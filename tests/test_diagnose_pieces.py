@@ -11,6 +11,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from _qdq_reference import qdq_u8
 from e3dpsm.errors import DataError
 from e3dpsm.golden.diagnose import (GROWTH_RATIO, Series, diagnose, make_plan, markdown, node_groups,
                                     relative_l2)
@@ -79,7 +80,7 @@ def _toy(quantised: bool, state_pair: bool = True, decoder_pairs: int = 0,
 
 
 def _qdq(x: np.ndarray) -> np.ndarray:
-    return (np.clip(np.rint(x / np.float32(SCALE)), 0, 255) * np.float32(SCALE)).astype(np.float32)
+    return qdq_u8(x, SCALE, 0)[1]
 
 
 def _rel(got: np.ndarray, ref: np.ndarray) -> float:

@@ -14,6 +14,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from _golden_fakes import FRAME, STATE, STATE_SHAPE, golden_writer
+from _qdq_reference import qdq_u8
 from e3dpsm.golden import kernel_trace as kt
 from e3dpsm.golden.kernel_report import (CUT, EXPOSED, HOST_TRACE, KERNELS_FOLDER, ORDER, find_trace, main,
                                          record_host, responsible_lines, run_device, trace_folder)
@@ -67,11 +68,6 @@ def host_half(tmp_path_factory):
     return graph, golden, folder, record_host(graph, golden, folder, steps=7)
 
 
-def _qdq(x: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    codes = np.clip(np.rint(x / np.float32(scale)) + 128, 0, 255).astype(np.uint8)
-    return codes, ((codes.astype(np.float32) - 128) * np.float32(scale)).astype(np.float32)
-
-
 def test_the_host_half_writes_both_graphs_its_trace_and_the_manifest(host_half) -> None:
     from e3dpsm.golden.store import load_golden
 
@@ -94,8 +90,8 @@ def test_the_host_half_writes_both_graphs_its_trace_and_the_manifest(host_half) 
         assert np.array_equal(trace[kt.IN + "lnes"][step], frame)
         assert np.array_equal(trace[kt.IN + S_IN][step], state)
         drive = frame.astype(np.float32).mean(axis=(1, 2, 3)) + np.float32(20.0) * np.float32(0.01)
-        a_codes, a = _qdq(state * np.float32(0.5) + drive[:, None], 0.05)
-        h_codes, state = _qdq(a * np.float32(0.5), 0.02)
+        a_codes, a = qdq_u8(state * np.float32(0.5) + drive[:, None], 0.05, 128)
+        h_codes, state = qdq_u8(a * np.float32(0.5), 0.02, 128)
         assert np.array_equal(trace[kt.CODE + "a_q"][step], a_codes), step
         assert np.array_equal(trace[kt.CODE + "h_q"][step], h_codes), step
     assert len(np.unique(trace[kt.CODE + "a_q"])) > 3  # the codes move: the check below is not of constants

@@ -9,6 +9,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from _qdq_reference import qdq_u8
 from _quantize_helpers import full_integer_dir, quant_data, trained_graph  # noqa: F401
 from e3dpsm.golden.kernel_cut import (FEED_SUFFIX, cut_at_quantized, expose_quantized, integer_only,
                                       quantized_activations, segment_ops)
@@ -192,9 +193,8 @@ def _recurrent_qdq(path) -> None:
 
 
 def _qdq(value: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """(codes, dequantised) of ONNX's u8 QuantizeLinear with zero point 128: half to even, saturated."""
-    codes = np.clip(np.rint(value / np.float32(scale)) + 128, 0, 255).astype(np.uint8)
-    return codes, ((codes.astype(np.float32) - 128) * np.float32(scale)).astype(np.float32)
+    """(codes, dequantised) with zero point 128, as the toy graphs quantise."""
+    return qdq_u8(value, scale, 128)
 
 
 def test_rollout_carries_the_states_and_keeps_every_code(tmp_path) -> None:
