@@ -248,6 +248,11 @@ def test_graphs_with_other_states_or_no_frames_are_refused(toy_paths, tmp_path) 
         diagnose(reference, tmp_path / "other.onnx", FRAMES, WINDOW_MS)
     with pytest.raises(DataError, match="^no frames to diagnose$"):
         diagnose(reference, model, FRAMES[:0], WINDOW_MS)
+    (tmp_path / "damaged.onnx").write_bytes(b"\x08\x07garbage")
+    with pytest.raises(DataError, match=r"^\S+damaged\.onnx is not a readable ONNX file: "):
+        diagnose(reference, tmp_path / "damaged.onnx", FRAMES, WINDOW_MS)
+    with pytest.raises(DataError, match=r"^model \S+absent\.onnx does not exist$"):
+        diagnose(tmp_path / "absent.onnx", model, FRAMES, WINDOW_MS)
 
 
 def test_markdown_lists_every_group_in_rank_order(toy_result) -> None:

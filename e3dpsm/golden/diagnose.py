@@ -38,7 +38,7 @@ import onnx
 
 from e3dpsm.errors import DataError
 from e3dpsm.graph_metadata import GraphMetadata
-from e3dpsm.onnx_graph import with_outputs
+from e3dpsm.onnx_graph import read_onnx, with_outputs
 from e3dpsm.onnx_groups import OTHER, module_scopes, recurrent_groups
 from e3dpsm.runtime.session import StepSession
 
@@ -173,8 +173,8 @@ class Series:
 def diagnose(reference_path: str | os.PathLike, model_path: str | os.PathLike, frames: Iterable[np.ndarray],
              window_ms: float, *, threads: int | None = None, progress: bool = False) -> dict[str, Any]:
     """Run both graphs over `frames` (float32 [C, H, W]); per-group and per-state errors, ranked."""
-    reference = onnx.load(str(reference_path))
-    model = onnx.load(str(model_path))
+    reference = read_onnx(reference_path)
+    model = read_onnx(model_path)
     meta = GraphMetadata.from_onnx(reference, source=str(reference_path))
     model_meta = GraphMetadata.from_onnx(model, source=str(model_path))
     if [s.to_metadata() for s in meta.states] != [s.to_metadata() for s in model_meta.states]:
