@@ -20,8 +20,9 @@ Per variant (initial weights, seed 0: latency does not depend on training), in o
    and the profile's OpenVINO runner beside a bare `infer(feeds)` loop.
 
 Checks (reported, not asserted; the machine's load is recorded beside them): each profile
-figure within 10% of its outside timer (both timed in turns; the fastest burst against the
-fastest turn, profiles.agreement.best_turn_agreement, the medians' ratio beside it); the profile's OpenVINO / ONNX
+figure within 10% of its outside timer (both timed in turns; each turn against the two bursts
+around it, profiles.agreement.turn_paired_agreement; the fastest burst over the fastest turn and the
+medians' ratio beside it); the profile's OpenVINO / ONNX
 Runtime ratio within 10% of the bare loops' ratio on each graph (the runners timed in turns
 with the loops; the `e3dpsm profile` run's own ratio shown beside). Writes OUT/profile_agreement_<isa kind>.json and .md.
 """
@@ -241,14 +242,16 @@ def _holds(check: dict[str, Any] | None) -> str:
 
 
 def variant_rows(variant: str, result: dict[str, Any]) -> list[str]:
+    from e3dpsm.profiles.report import turn_paired_cell
+
     rows = [f"### `{variant}`", "",
             "| target | profile p50 ms (step, side by side) | runtime p50 ms (side by side) | Python p50 ms | "
             "runtime p50 ms in turns with the tool (each burst) | outside timer | outside p50 ms (each turn) | "
-            "runtime / outside: fastest burst / fastest turn | within 10% | medians |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+            "runtime / outside, turn-paired | within 10% | fastest burst / fastest turn | medians |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for t in result["profile"]["targets"]:
         if not t.get("latency_ms"):
-            rows.append(f"| {t['name']} | - | - | - | - | - | - | - | {t.get('reason') or ''} | - |")
+            rows.append(f"| {t['name']} | - | - | - | - | - | - | - | {t.get('reason') or ''} | - | - |")
             continue
         o = t.get("outside") or {}
         check = result["checks"]["outside"].get(t["name"])
@@ -260,10 +263,11 @@ def variant_rows(variant: str, result: dict[str, Any]) -> list[str]:
         beside = "-" if t.get("beside_ms") is None else format(t["beside_ms"], ".2f")
         if t.get("beside_burst_ms"):
             beside += " (" + ", ".join(format(v, ".2f") for v in t["beside_burst_ms"]) + ")"
-        median = t.get("agreement_median")
+        median, fastest = t.get("agreement_median"), t.get("agreement_fastest")
         rows.append(f"| {t['name']} | {t['latency_ms']['p50']:.2f} | {t['runtime_ms']['p50']:.2f} | "
                     f"{t['overhead_ms']['p50']:.3f} | {beside} | {o.get('tool', '-')} | {figure} | "
-                    f"{'-' if check is None else format(check['ratio'], '.3f')} | {_holds(check)} | "
+                    f"{turn_paired_cell(t)} | {_holds(check)} | "
+                    f"{'-' if fastest is None else format(fastest, '.3f')} | "
                     f"{'-' if median is None else format(median, '.3f')} |")
     rows += ["", "| graph | OpenVINO / ONNX Runtime speed (turn-paired): the profile's runners | bare loops | runners / bare | "
              "within 10% | the `e3dpsm profile` run's ratio of whole-run p50s (minutes earlier) | its / bare |",

@@ -106,7 +106,10 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
         outside = entry.get("outside") or {}
         if outside.get("p50_ms") is not None:
             line += (f"; {outside['tool']} {outside['p50_ms']:.2f} ms against runtime {entry['beside_ms']:.2f} "
-                     f"in turns with it ({entry['agreement']:.2f}x)")
+                     "in turns with it")
+            # No ratio where the tool executed another graph than the runner (profiles.agreement).
+            line += f" ({entry['agreement']:.2f}x)" if entry.get("agreement") is not None else \
+                f" ({outside.get('note') or 'no ratio: the host changed speed across every turn'})"
         lines.append(line)
     lines += [f"  {name}: {ratio:.2f}x" for name, ratio in report["ratios"].items()]
     return lines

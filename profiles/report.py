@@ -75,12 +75,22 @@ def cpu_time_sentence(cpu_time: Mapping[str, Any] | None) -> str:
     return f" The machine's CPU time during {'; during '.join(parts)}." if parts else ""
 
 
+def turn_paired_cell(entry: Mapping[str, Any]) -> str:
+    """The turn-paired agreement and the turns it is over ("1.01 (3 of 4 turns)"), or why there is none."""
+    steady, turns = entry.get("agreement_steady_turns"), (entry.get("outside") or {}).get("round_p50_ms") or ()
+    if steady is None:
+        return _g(entry.get("agreement"))
+    if entry.get("agreement") is None:
+        return f"- (the runner's speed changed across each of the {len(turns)} turns)" if steady == 0 else "-"
+    return f"{_g(entry['agreement'])} ({steady} of {len(turns)} turns)"
+
+
 def agreement_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
     """Each measured target's runtime figure beside its outside timer's median, both timed in
     turns (profiles.agreement), with the side-by-side figures for reference."""
     rows = ["| target | profile p50 ms (step, side by side) | runtime p50 ms (side by side) | runtime p50 ms "
-            "(in turns with the tool; each burst) | outside timer | outside p50 ms (each turn) | runtime / outside: "
-            "fastest burst / fastest turn | medians |", "|---|---|---|---|---|---|---|---|"]
+            "(in turns with the tool; each burst) | outside timer | outside p50 ms (each turn) | runtime / outside, "
+            "turn-paired | fastest burst / fastest turn | medians |", "|---|---|---|---|---|---|---|---|---|"]
     for t in targets:
         outside = t.get("outside")
         if not t.get("latency_ms") or outside is None:
@@ -94,8 +104,8 @@ def agreement_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:
         bursts = t.get("beside_burst_ms") or ()
         beside = _g(t.get("beside_ms")) + (f" ({', '.join(_g(v) for v in bursts)})" if len(bursts) > 1 else "")
         rows.append(f"| {t['name']} | {_g(t['latency_ms']['p50'])} | {_g((t.get('runtime_ms') or {}).get('p50'))} | "
-                    f"{beside} | {outside['tool']} | {figure} | {_g(t.get('agreement'))} | "
-                    f"{_g(t.get('agreement_median'))} |")
+                    f"{beside} | {outside['tool']} | {figure} | {turn_paired_cell(t)} | "
+                    f"{_g(t.get('agreement_fastest'))} | {_g(t.get('agreement_median'))} |")
     return rows if len(rows) > 2 else []
 
 
@@ -138,9 +148,10 @@ def profile_markdown(report: Mapping[str, Any]) -> str:
                   "whose median `model_run` includes its own per-node cost; its kernels' sum is noted beside it). "
                   f"Each tool runs {inputs.get('outside_seconds', '?')} s in {inputs.get('outside_turns', 1)} turns, the "
                   "target's own runner timing a burst of steps before each turn and after the last, so the two "
-                  "figures compared are taken over the same minutes. The agreement compares the fastest burst with "
-                  "the fastest turn (load from outside only adds time, so each side's fastest is its least "
-                  "disturbed, as Python's `timeit` reasons); the ratio of the medians is beside it.", "",
+                  "figures compared are taken over the same minutes. The agreement is turn-paired: each turn's "
+                  "median against the mean of the two bursts around it, the median over the turns whose two "
+                  "bursts are within 10% of each other (the host kept one speed across them); the fastest burst "
+                  "over the fastest turn and the ratio of the medians are beside it.", "",
                   *agreement, ""]
     if report.get("ratios"):
         lines += ["Speed-ups over the baselines, round by round (the median over the side-by-side rounds of each "

@@ -12,7 +12,7 @@ import pytest
 
 from _timing_helpers import ManualClock
 from e3dpsm.profiles.agreement import (NO_AGREEMENT, agreement_ratio, best_turn_agreement, combine_turns,
-                                      measure_agreement, time_in_turns)
+                                      measure_agreement, steady_turns, time_in_turns, turn_paired_agreement)
 from e3dpsm.profiles.outside import (OutsideFigure, OutsideToolError, _run, benchmark_app_args,
                                      parse_benchmark_app_report, parse_perf_test_output, perf_test_args)
 from e3dpsm.profiles.profiler import _record_times
@@ -290,6 +290,43 @@ def test_runner_bursts_bracket_the_tools_turns_on_an_injected_clock() -> None:
     assert best_turn_agreement(bursts, figure) == pytest.approx(6.5 / 8.0)
     assert best_turn_agreement(bursts, OutsideFigure("profiler", 13.0)) == pytest.approx(6.5 / 13.0)  # no turns
     assert best_turn_agreement([], figure) is None and best_turn_agreement(bursts, OutsideFigure("x")) is None
+    # Turn-paired: the bursts around either turn differ by more than 10% (6.5 and 9.5; 9.5 and 20.5).
+    assert turn_paired_agreement(bursts, figure) is None
+
+
+def test_turn_paired_agreement_is_over_the_turns_with_steady_bursts_around_them() -> None:
+    """The pipeline profile's `openvino-cpu-bf16` of 2026-12-05 (vnni host): the last burst ran at
+    the host's fast speed, which none of the tool's turns reached. Fastest over fastest reads 0.745;
+    the turn-paired figure leaves out turn 2 (bursts 12.70 and 8.90 differ by more than 10%) and
+    is the median of the two pairs written out here."""
+    bursts, turns = [12.56, 12.36, 12.70, 8.90], (12.19, 11.95, 12.09)
+    figure = OutsideFigure("benchmark_app", float(np.median(turns)), round_p50_ms=turns)
+    assert steady_turns(bursts) == [0, 1]
+    pairs = [(12.56 + 12.36) / 2 / 12.19, (12.36 + 12.70) / 2 / 11.95]
+    assert turn_paired_agreement(bursts, figure) == pytest.approx(np.mean(pairs)) == pytest.approx(1.0354, abs=1e-4)
+    assert best_turn_agreement(bursts, figure) == pytest.approx(8.90 / 11.95)
+    # A fast turn between steady bursts (a switch and a switch back within it) moves one pair only.
+    fast = OutsideFigure("benchmark_app", 10.0, round_p50_ms=(10.0, 7.0, 10.0))
+    assert turn_paired_agreement([10.0, 10.0, 10.0, 10.0], fast) == pytest.approx(1.0)
+    # Which bursts a turn pairs with: the bursts before and after it, not any two.
+    ordered = OutsideFigure("benchmark_app", 4.0, round_p50_ms=(2.0, 2.1, 2.2))
+    assert turn_paired_agreement([2.0, 2.0, 2.2, 2.2], ordered) == pytest.approx(1.0)
+    # Two speeds, each turn timed at the speed of the bursts around it when they are steady: the
+    # 2026-12-05 `paper` stateful target (bursts 36.64, 25.30, 25.38, 36.72, 36.68 ms).
+    paper = OutsideFigure("benchmark_app", 25.2, round_p50_ms=(25.06, 25.18, 25.23, 36.49))
+    bursts = [36.64, 25.30, 25.38, 36.72, 36.68]
+    assert steady_turns(bursts) == [1, 3]
+    assert turn_paired_agreement(bursts, paper) == pytest.approx(np.mean([25.34 / 25.18, 36.70 / 36.49]))
+    # Steady means within 10%, either way round: 10% apart is steady, a little more is not.
+    assert steady_turns([10.0, 11.0, 10.0, 11.0001, 10.0]) == [0, 1]
+    assert steady_turns([11.0, 10.0]) == [0] and steady_turns([11.0001, 10.0]) == []
+    # No steady turn: no figure. No per-turn medians (ONNX Runtime's profiler): the bursts' median over
+    # its one figure; turns and bursts that do not bracket each other, or no bursts: no figure.
+    assert turn_paired_agreement([10.0, 20.0, 10.0], OutsideFigure("x", 10.0, round_p50_ms=(10.0, 10.0))) is None
+    assert turn_paired_agreement([6.0, 9.0, 30.0], OutsideFigure("profiler", 12.0)) == pytest.approx(9.0 / 12.0)
+    assert turn_paired_agreement([], OutsideFigure("profiler", 12.0)) is None
+    assert turn_paired_agreement([1.0, 1.0], figure) is None
+    assert turn_paired_agreement([1.0, 1.0], OutsideFigure("x", 1.0, round_p50_ms=(0.0,))) is None
 
 
 def test_a_failed_turn_ends_the_turns_and_gives_no_figure() -> None:
@@ -345,7 +382,10 @@ def test_onnxruntime_profiler_in_turns_on_the_tiny_static_graph(tiny_static_grap
     assert 0 < outside["p50_ms"] < 1e3 and outside["note"].startswith("kernels alone ")
     assert 0 < result["beside_ms"] < 1e3 and len(result["beside_burst_ms"]) == 4
     assert result["agreement_median"] == pytest.approx(result["beside_ms"] / outside["p50_ms"])
-    assert result["agreement"] == pytest.approx(min(result["beside_burst_ms"]) / outside["p50_ms"])
+    assert result["agreement_fastest"] == pytest.approx(min(result["beside_burst_ms"]) / outside["p50_ms"])
+    # The profiler has no per-turn medians: the bursts' median over its figure.
+    assert result["agreement"] == pytest.approx(np.median(result["beside_burst_ms"]) / result["outside"]["p50_ms"])
+    assert result["agreement_steady_turns"] is None
     unphased = measure_agreement(StepOnlyRunner(ManualClock(), 0.001), target, tiny_static_graph, frames, 1.0, 6, 2,
                                  turns=3)
     assert unphased["outside"] == OutsideFigure(ORT_PROFILER, reason="the runner has no separate runtime call").to_dict()
@@ -457,7 +497,8 @@ def test_cpu_only_and_runs_without_a_count(tiny_step_graph) -> None:
 
 
 def test_agreement_in_milliseconds_on_an_injected_clock(monkeypatch) -> None:
-    """measure_agreement's figures in ms from the runner's seconds: bursts 6.5, 9.5, 20.5 ms."""
+    """measure_agreement's figures in ms from the runner's seconds: bursts 6.5, 7.0, 7.0 ms around
+    turns of 8 and 12 ms."""
     import e3dpsm.profiles.agreement as agreement
     from e3dpsm.profiles.inputs import Frames
     from e3dpsm.profiles.targets import load_targets
@@ -465,12 +506,15 @@ def test_agreement_in_milliseconds_on_an_injected_clock(monkeypatch) -> None:
     clock, log = ManualClock(), []
     tool = ScriptedTool(log, [8.0, 12.0])
     monkeypatch.setattr(agreement, "outside_timer", lambda *args, **kwargs: tool)
-    runner = LoggedRunner(clock, log, [6, 7, 9, 10, 11, 30])
+    runner = LoggedRunner(clock, log, [6, 7, 6.5, 7.5, 7, 7])
     frames = Frames(np.zeros((3, 1, 1, 1), np.float32), 20.0, "test")
     result = measure_agreement(runner, load_targets()["openvino-cpu-fp32"], Path("g.onnx"), frames, 4.0, 0, 2,
                                turns=2, clock=clock)
-    assert result["beside_ms"] == pytest.approx(9.5) and result["beside_burst_ms"] == pytest.approx([6.5, 9.5, 20.5])
-    assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["agreement_median"] == pytest.approx(9.5 / 10.0)
+    assert result["beside_ms"] == pytest.approx(7.0) and result["beside_burst_ms"] == pytest.approx([6.5, 7.0, 7.0])
+    assert result["agreement"] == pytest.approx(np.mean([(6.5 + 7.0) / 2 / 8.0, (7.0 + 7.0) / 2 / 12.0]))
+    assert result["agreement_steady_turns"] == 2
+    assert result["agreement_fastest"] == pytest.approx(6.5 / 8.0)
+    assert result["agreement_median"] == pytest.approx(7.0 / 10.0)
     assert tuple(result["outside"]["round_p50_ms"]) == (8.0, 12.0)
 
 
@@ -531,9 +575,11 @@ def test_a_tool_that_executed_another_graph_is_not_compared(monkeypatch, runner_
     assert result["beside_burst_ms"] == pytest.approx([6.5, 9.5, 20.5])
     assert result["outside"]["p50_ms"] == pytest.approx(10.0)
     if runner_counts is None:
-        assert result["agreement"] == pytest.approx(6.5 / 8.0) and result["outside"]["note"] is None
+        assert result["agreement"] is None and result["agreement_steady_turns"] == 0  # no steady turn (6.5, 9.5, 20.5)
+        assert result["agreement_fastest"] == pytest.approx(6.5 / 8.0) and result["outside"]["note"] is None
     else:
-        assert result["agreement"] is None and result["agreement_median"] is None
+        assert result["agreement"] is None and result["agreement_median"] is None and result["agreement_fastest"] is None
+        assert result["agreement_steady_turns"] is None
         assert result["outside"]["note"] == ("not compared: tool executed another graph (Convolution u8 x2, "
                                              f"FullyConnected f32 x1) than the runner ({runner_counts})")
 
@@ -552,7 +598,7 @@ def test_a_runner_without_phases_gets_the_tools_name_and_a_reason(monkeypatch) -
                                Path("g.onnx"), frames, 4.0, 0, 2)
     assert result == {"outside": OutsideFigure("benchmark_app", reason="the runner has no separate runtime call")
                       .to_dict(), "beside_ms": None, "beside_burst_ms": None, "agreement": None,
-                      "agreement_median": None}
+                      "agreement_steady_turns": None, "agreement_fastest": None, "agreement_median": None}
 
 
 def test_the_profiled_session_steps_its_frames_in_order(tiny_static_graph, tmp_path) -> None:
@@ -606,3 +652,35 @@ def test_the_stateful_ir_benchmark_app_reads_is_batch_one(tiny_static_graph, tmp
     eager = outside_timer(load_targets()["torch-eager-cpu"], tiny_static_graph, moving_edge_frames(1, 192, 256, 20.0),
                           1.0, tmp_path, profiler_steps=3)
     assert eager == OutsideFigure("-", reason="no outside timer for torch")
+
+
+def test_the_printed_summary_gives_the_turn_paired_ratio_or_why_there_is_none() -> None:
+    """`e3dpsm profile`'s printed lines: the turn-paired agreement where there is one; where the tool
+    executed another graph than the runner (no ratio), the note saying so instead of a crash."""
+    from e3dpsm.profiles.command import summary_lines
+
+    def entry(name: str, agreement: float | None, note: str | None) -> dict:
+        return {"name": name, "available": True, "latency_ms": {"p50": 10.0, "p90": 11.0, "p99": 12.0}, "hz": 100.0,
+                "outside": {"tool": "benchmark_app", "p50_ms": 9.0, "note": note}, "beside_ms": 9.5,
+                "agreement": agreement, "agreement_fastest": 0.5, "agreement_median": 0.7}
+
+    note = "not compared: benchmark_app executed another graph (Convolution u8 x2) than the runner (Convolution f32 x2)"
+    report = {"targets": [entry("openvino-cpu-fp32", 1.0234, None), entry("openvino-cpu-int8", None, note),
+                          entry("openvino-cpu-bf16", None, None)], "ratios": {}}
+    lines = summary_lines(report)
+    assert lines[1].endswith("benchmark_app 9.00 ms against runtime 9.50 in turns with it (1.02x)")
+    assert lines[2].endswith(f"benchmark_app 9.00 ms against runtime 9.50 in turns with it ({note})")
+    assert lines[3].endswith("in turns with it (no ratio: the host changed speed across every turn)")
+
+
+def test_the_report_cell_names_the_turns_the_agreement_is_over() -> None:
+    from e3dpsm.profiles.report import turn_paired_cell
+
+    outside = {"tool": "benchmark_app", "p50_ms": 9.0, "round_p50_ms": [9.0, 9.1, 12.0, 9.2]}
+    assert turn_paired_cell({"outside": outside, "agreement": 1.01234, "agreement_steady_turns": 3}) == \
+        "1.01 (3 of 4 turns)"
+    assert turn_paired_cell({"outside": outside, "agreement": None, "agreement_steady_turns": 0}) == \
+        "- (the runner's speed changed across each of the 4 turns)"
+    profiler = {"tool": "onnxruntime profiler (model_run)", "p50_ms": 9.0, "round_p50_ms": None}
+    assert turn_paired_cell({"outside": profiler, "agreement": 0.83456, "agreement_steady_turns": None}) == "0.835"
+    assert turn_paired_cell({"outside": outside, "agreement": None, "agreement_steady_turns": None}) == "-"
