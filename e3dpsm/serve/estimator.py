@@ -12,7 +12,7 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from e3dpsm.serve.clients import ClientHub
 
 RECENT_STEPS = 50  # the stats message's median step is over the latest ones
+SERVER_HZ_SPAN_MS = 1e3  # the stats message's server_hz counts the poses sent within the latest second
 
 
 @dataclass
@@ -72,10 +73,17 @@ class _Graph:
 
 
 class ServeEngine:
+    graph_type = _Graph  # one per graph and pass (tests substitute scripted graphs)
+
     def __init__(self, source: Any, hub: ClientHub, session: StepSession, *, window_ms: float,
                  compare: StepSession | None = None, ground_truth: GroundTruthTrack | None = None,
-                 frame_hz: float = 10.0, frame_max_width: int = 128, stats_period_s: float = 1.0) -> None:
+                 frame_hz: float = 10.0, frame_max_width: int = 128, stats_period_s: float = 1.0,
+                 wall_clock: Callable[[], float] = time.time, interval_clock: Callable[[], float] = time.perf_counter) -> None:
+        """`wall_clock`: seconds since the epoch, the time base of ticks' `wall_ms` and of the
+        messages' wall times; `interval_clock`: monotonic seconds, for the stats period. Tests
+        inject both."""
         self.source, self.hub = source, hub
+        self.wall_clock, self.interval_clock = wall_clock, interval_clock
         self.window_ms = window_ms
         self.session, self.compare_session = session, compare
         self.ground_truth = ground_truth
@@ -85,7 +93,7 @@ class ServeEngine:
         self.stats = EngineStats()
         self._recent_wall: deque[float] = deque(maxlen=256)
         self._last_frame_ms = -float("inf")
-        self._last_stats = 0.0
+        self._last_stats = -float("inf")
         self._seq = 0
         self._graphs: list[_Graph] = []
         self._new_pass(0)
@@ -95,9 +103,9 @@ class ServeEngine:
         for graph in self._graphs:
             graph.close()
         sensor_hw = tuple(self.source.sensor_hw)
-        self._graphs = [_Graph(self.session, self.window_ms, sensor_hw, keep_frames=True)]
+        self._graphs = [self.graph_type(self.session, self.window_ms, sensor_hw, keep_frames=True)]
         if self.compare_session is not None:
-            self._graphs.append(_Graph(self.compare_session, self.window_ms, sensor_hw, keep_frames=False))
+            self._graphs.append(self.graph_type(self.compare_session, self.window_ms, sensor_hw, keep_frames=False))
         self._pass = pass_index
         self.stats.passes = pass_index + 1
 
@@ -112,7 +120,7 @@ class ServeEngine:
                     self.hub.set_status(protocol.status("loop", f"recording restarted (pass {tick.pass_index + 1}), fresh state"))
                 await self._handle(tick)
             if self.source.live:  # the live source ended: close what its last events completed
-                await self._handle(Tick(None, None, True, time.time() * 1e3, self._pass))
+                await self._handle(Tick(None, None, True, self._wall_ms(), self._pass))
                 return "source stopped"
             return "recording ended"
         finally:
@@ -129,7 +137,7 @@ class ServeEngine:
         if not poses:
             self._maybe_stats()
             return
-        lateness_ms = time.time() * 1e3 - tick.wall_ms
+        lateness_ms = self._wall_ms() - tick.wall_ms
         if lateness_ms > self.window_ms:
             self.stats.late_ticks += 1
         per_pose_ms = step_s * 1e3 / len(poses)
@@ -140,7 +148,7 @@ class ServeEngine:
             gt = None if self.ground_truth is None else self.ground_truth.at(estimate.t_us, self.window_us)
             # A window closed by this tick ended at its scheduled time, or earlier when a tick
             # closes several (a live chunk, a late loop): the tick's time is the arrival time.
-            now_ms = time.time() * 1e3
+            now_ms = self._wall_ms()
             message = protocol.pose(
                 seq=self._seq, t_us=estimate.t_us + offset, pose_mm=estimate.pose, compare_mm=cmp_pose, gt_mm=gt,
                 window_end_wall_ms=tick.wall_ms, sent_wall_ms=now_ms, step_ms=per_pose_ms,
@@ -158,8 +166,11 @@ class ServeEngine:
         await self._maybe_frame(poses[-1], offset)
         self._maybe_stats()
 
+    def _wall_ms(self) -> float:
+        return self.wall_clock() * 1e3
+
     async def _maybe_frame(self, estimate: PoseEstimate, offset: int) -> None:
-        now_ms = time.time() * 1e3
+        now_ms = self._wall_ms()
         if estimate.lnes is None or now_ms - self._last_frame_ms < self.frame_period_ms or not self.hub.count_open():
             return
         self._last_frame_ms = now_ms
@@ -170,12 +181,12 @@ class ServeEngine:
         self.hub.broadcast_frame(text)
 
     def _maybe_stats(self) -> None:
-        now = time.perf_counter()
+        now = self.interval_clock()
         if now - self._last_stats < self.stats_period_s:
             return
         self._last_stats = now
-        wall = time.time() * 1e3
-        recent = [t for t in self._recent_wall if wall - t <= 1e3]
+        wall = self._wall_ms()
+        recent = [t for t in self._recent_wall if wall - t <= SERVER_HZ_SPAN_MS]
         recent_steps = list(self.stats.recent_step_ms)
         self.hub.broadcast_stats(poses=self.stats.poses, server_hz=len(recent),
                                  step_ms=float(np.median(recent_steps)) if recent_steps else None,
