@@ -82,7 +82,7 @@ def turn_paired_cell(entry: Mapping[str, Any]) -> str:
         return _g(entry.get("agreement"))
     if entry.get("agreement") is None:
         return f"- (the runner's speed changed across each of the {len(turns)} turns)" if steady == 0 else "-"
-    return f"{_g(entry['agreement'])} ({steady} of {len(turns)} turns)"
+    return f"{entry['agreement']:.3f} ({steady} of {len(turns)} turns)"
 
 
 def agreement_table(targets: Sequence[Mapping[str, Any]]) -> list[str]:

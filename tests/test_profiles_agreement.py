@@ -678,7 +678,7 @@ def test_the_report_cell_names_the_turns_the_agreement_is_over() -> None:
 
     outside = {"tool": "benchmark_app", "p50_ms": 9.0, "round_p50_ms": [9.0, 9.1, 12.0, 9.2]}
     assert turn_paired_cell({"outside": outside, "agreement": 1.01234, "agreement_steady_turns": 3}) == \
-        "1.01 (3 of 4 turns)"
+        "1.012 (3 of 4 turns)"
     assert turn_paired_cell({"outside": outside, "agreement": None, "agreement_steady_turns": 0}) == \
         "- (the runner's speed changed across each of the 4 turns)"
     profiler = {"tool": "onnxruntime profiler (model_run)", "p50_ms": 9.0, "round_p50_ms": None}
