@@ -89,6 +89,10 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
     from e3dpsm.runtime.litert_session import LiteRTStepSession, read_tflite
     from e3dpsm.utils.isa import detect_isa
 
+    from e3dpsm.errors import InputError
+
+    if steps is not None and steps < 1:
+        raise InputError(f"--steps {steps}: a trace needs at least one step")
     content, codes = with_exposed_codes(read_tflite(model))
     golden = load_golden(golden_dir)
     count = golden.steps if steps is None else min(steps, golden.steps)
@@ -103,6 +107,31 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
             digests.append([hashlib.blake2b(np.ascontiguousarray(raw[c["name"]]).tobytes(), digest_size=8).hexdigest()
                             for c in codes])
     return {"model": str(model), "steps": count, "codes": codes, "digests": digests, "isa": detect_isa().to_dict()}
+
+
+TRACE_FIELDS = ("model", "steps", "codes", "digests", "isa")
+
+
+def read_trace(path: str | os.PathLike) -> dict[str, Any]:
+    """A record written by `record`, checked for what `compare` reads: a DataError naming the
+    file and what is wrong, not a KeyError or an IndexError from inside the comparison."""
+    from e3dpsm.errors import DataError
+
+    try:
+        trace = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: not a JSON trace ({exc})") from exc
+    if not isinstance(trace, dict) or any(field not in trace for field in TRACE_FIELDS):
+        raise DataError(f"{path}: not a tflite_trace record (it needs {', '.join(TRACE_FIELDS)})")
+    steps, codes, digests = trace["steps"], trace["codes"], trace["digests"]
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise DataError(f"{path}: a trace of {steps!r} steps compares nothing")
+    if not isinstance(codes, list) or not all(isinstance(c, dict) and "name" in c for c in codes):
+        raise DataError(f"{path}: its codes are not a list of named code tensors")
+    if (not isinstance(digests, list) or len(digests) != steps
+            or not all(isinstance(row, list) and len(row) == len(codes) for row in digests)):
+        raise DataError(f"{path}: its digests are not {steps} steps of {len(codes)} code tensors each")
+    return trace
 
 
 def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
@@ -168,7 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             write_json_atomic(args.out, record(args.model, args.golden, args.steps, args.threads))
             return 0
-        report = compare(*(json.loads(Path(p).read_text()) for p in (args.host, args.device)))
+        report = compare(read_trace(args.host), read_trace(args.device))
     except (E3DPSMError, OSError, ValueError, KeyError) as exc:
         print(f"tflite_trace: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
