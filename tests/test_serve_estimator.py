@@ -122,12 +122,13 @@ def engine_for(source: Source, hub: Hub, clock: ManualClock, *, compare: bool = 
 
 
 def test_every_pose_message_field_comes_from_its_tick_graphs_and_clock() -> None:
-    """Two ticks: the first closes two windows (one runtime call of 6 ms for both: 3 ms each),
-    the second none; the compare graph returns one pose for the two (its second gets None)."""
+    """Two ticks: the first closes three windows (runtime calls of 9 ms for the three: 3 ms
+    each), the second none; the compare graph returns two poses for them in 8 ms (4 ms each;
+    the third pose gets None)."""
     clock = ManualClock()
-    ScriptedGraph.scripts[True] = [([estimate(40_000, 1.0, events=5), estimate(60_000, 2.0, events=0)], 0.006),
-                                   ([], 0.0)]
-    ScriptedGraph.scripts[False] = [([estimate(40_000, -1.0)], 0.004), ([], 0.0)]
+    ScriptedGraph.scripts[True] = [([estimate(40_000, 1.0, events=5), estimate(60_000, 2.0, events=0),
+                                     estimate(80_000, 3.0, events=2)], 0.009), ([], 0.0)]
+    ScriptedGraph.scripts[False] = [([estimate(40_000, -1.0), estimate(60_000, -2.0)], 0.008), ([], 0.0)]
 
     class Truth:
         def at(self, t_us: int, window_us: int) -> np.ndarray | None:
@@ -140,19 +141,19 @@ def test_every_pose_message_field_comes_from_its_tick_graphs_and_clock() -> None
     assert asyncio.run(engine.run()) == "recording ended"
 
     poses = hub.of("pose")
-    assert [p["seq"] for p in poses] == [0, 1] and [p["t_us"] for p in poses] == [40_000, 60_000]
-    assert poses[0]["pose"] == [[1.0] * 3] * 2 and poses[1]["pose"] == [[2.0] * 3] * 2
-    assert poses[0]["compare"] == [[-1.0] * 3] * 2 and poses[1]["compare"] is None
-    assert poses[0]["gt"] is None and poses[1]["gt"] == [[9.0] * 3] * 2
-    assert [p["events"] for p in poses] == [5, 0]
+    assert [p["seq"] for p in poses] == [0, 1, 2] and [p["t_us"] for p in poses] == [40_000, 60_000, 80_000]
+    assert [p["pose"] for p in poses] == [[[v] * 3] * 2 for v in (1.0, 2.0, 3.0)]
+    assert [p["compare"] for p in poses] == [[[-1.0] * 3] * 2, [[-2.0] * 3] * 2, None]
+    assert [p["gt"] for p in poses] == [None, [[9.0] * 3] * 2, None]
+    assert [p["events"] for p in poses] == [5, 0, 2]
     for p in poses:
         assert p["window_end_wall_ms"] == 100_000.0 and p["sent_wall_ms"] == pytest.approx(100_010.0)
         assert p["step_ms"] == pytest.approx(3.0) and p["compare_step_ms"] == pytest.approx(4.0)
     stats = engine.stats
-    assert (stats.poses, stats.events, stats.passes, stats.late_ticks) == (2, 14, 1, 0)
+    assert (stats.poses, stats.events, stats.passes, stats.late_ticks) == (3, 14, 1, 0)
     for histogram, value in ((stats.step_ms, 3.0), (stats.compare_step_ms, 4.0), (stats.ready_latency_ms, 10.0)):
-        assert histogram.count == 2 and (histogram.min, histogram.max) == pytest.approx((value, value))
-    assert list(stats.recent_step_ms) == pytest.approx([3.0, 3.0])
+        assert histogram.count == 3 and (histogram.min, histogram.max) == pytest.approx((value, value))
+    assert list(stats.recent_step_ms) == pytest.approx([3.0, 3.0, 3.0])
     # Both graphs saw both ticks, the main graph keeps its frames, the compare graph does not.
     main, cmp = ScriptedGraph.made
     assert (main.session, main.keep_frames, cmp.session, cmp.keep_frames) == ("main-session", True, "cmp-session", False)
@@ -177,17 +178,19 @@ def test_a_tick_is_late_when_its_poses_go_out_more_than_one_window_after_it() ->
     """Exactly one window late is on time; a microsecond more is late; a tick without poses is
     never counted."""
     clock = ManualClock()
-    ScriptedGraph.scripts[True] = [([estimate(20_000, 1.0)], 0.001), ([estimate(40_000, 1.0)], 0.001), ([], 0.0)]
-    ticks = [(1.020, tick(1_000.0)), (2.020_001, tick(2_000.0)), (9.0, tick(3_000.0))]
+    ScriptedGraph.scripts[True] = [([estimate(20_000, 1.0)], 0.001), ([estimate(40_000, 1.0)], 0.001), ([], 0.0),
+                                   ([estimate(60_000, 1.0)], 0.001)]
+    ticks = [(1.020, tick(1_000.0)), (2.020_001, tick(2_000.0)), (9.0, tick(3_000.0)), (9.0, tick(4_000.0))]
     engine = engine_for(Source(clock, ticks), Hub(clients=0), clock)
     asyncio.run(engine.run())
-    assert engine.stats.late_ticks == 1 and engine.stats.poses == 2
+    assert engine.stats.late_ticks == 2 and engine.stats.poses == 3
 
 
 def test_a_new_pass_gets_fresh_graphs_a_status_and_its_time_offset() -> None:
     clock = ManualClock()
-    ScriptedGraph.scripts[True] = [([estimate(20_000, 1.0)], 0.001), ([estimate(20_000, 5.0)], 0.001)]
-    hub = Hub(clients=0)
+    lnes = np.ones((2, 2, 2), np.float32)
+    ScriptedGraph.scripts[True] = [([estimate(20_000, 1.0)], 0.001), ([estimate(20_000, 5.0, lnes=lnes)], 0.001)]
+    hub = Hub(clients=1)
     ticks = [(1.0, tick(1_000.0, pass_index=0)), (2.0, tick(2_000.0, pass_index=1))]
     engine = engine_for(Source(clock, ticks), hub, clock)
     asyncio.run(engine.run())
@@ -196,7 +199,8 @@ def test_a_new_pass_gets_fresh_graphs_a_status_and_its_time_offset() -> None:
     assert [p["t_us"] for p in hub.of("pose")] == [20_000, 1_020_000] and [p["seq"] for p in hub.of("pose")] == [0, 1]
     assert hub.of("status") == [{"type": "status", "state": "loop",
                                  "message": "recording restarted (pass 2), fresh state"}]
-    assert [kind for kind, _ in hub.sent if kind != "stats"] == ["pose", "status", "pose"]
+    assert [kind for kind, _ in hub.sent if kind != "stats"] == ["pose", "status", "pose", "frame"]
+    assert [(f["seq"], f["t_us"]) for f in hub.of("frame")] == [(1, 1_020_000)]  # the frame in the pass's time too
     assert engine.stats.passes == 2
 
 
@@ -277,6 +281,11 @@ def test_server_hz_leaves_out_poses_older_than_a_second_and_step_ms_is_the_recen
     wall.now = 2.0
     engine._maybe_stats()
     assert hub.of("stats")[-1]["server_hz"] == 3  # exactly 1000 ms old still counts
+    # The last 256 poses are kept: server_hz counts at most 256 (memory stays bounded at any rate).
+    engine._recent_wall.extend([2_000.0] * 300)
+    interval.now = 52.0
+    engine._maybe_stats()
+    assert hub.of("stats")[-1]["server_hz"] == 256
     fresh = engine_for(Source(wall, []), Hub(clients=0), wall, interval=ManualClock(0.0))
     fresh._maybe_stats()
     assert fresh.hub.of("stats") == [{"poses": 0, "server_hz": 0, "step_ms": None, "clients": 0, "passes": 1}]
@@ -328,3 +337,72 @@ def test_the_graph_worker_pushes_flushes_and_finishes_a_tick(toy_graph) -> None:
         graph.close()
     with pytest.raises(RuntimeError):
         graph.worker.submit(lambda: None)
+
+
+def _events(*t_us: int) -> tuple[np.ndarray, ...]:
+    n = len(t_us)
+    return (np.arange(n) % 3, np.arange(n) % 2, np.array(t_us, np.int64), np.arange(n) % 2)
+
+
+@pytest.mark.parametrize("closing", ["flush", "finish"])
+def test_one_tick_gives_the_windows_its_events_complete_and_those_it_closes(toy_graph, closing) -> None:
+    """Events in windows 0 and 1: the chunk itself completes window 0 (an event past its end),
+    the tick's flush or finish closes window 1; the tick returns both poses."""
+    from e3dpsm.runtime import StepSession
+
+    graph = _Graph(StepSession(toy_graph, threads=1), WINDOW_MS, (2, 3), keep_frames=False)
+    try:
+        chunk = _events(0, 10_000, 25_000, 2 * WINDOW_US - 1)
+        flush = 2 * WINDOW_US if closing == "flush" else None
+        poses, seconds = asyncio.run(graph.run(Tick(chunk, flush, closing == "finish", 0.0, 0)))
+        assert [p.t_us for p in poses] == [WINDOW_US, 2 * WINDOW_US] and [p.events for p in poses] == [2, 2]
+        assert seconds == pytest.approx(graph.estimator.stats.step_seconds) and poses[0].lnes is None
+    finally:
+        graph.close()
+
+
+def test_closing_a_graph_never_waits_for_its_step_and_drops_queued_work(toy_graph) -> None:
+    """A new pass or the end of a session closes graphs from the event loop: it must not block
+    on a step in flight, and work queued behind it is cancelled."""
+    import threading
+    import time
+
+    from e3dpsm.runtime import StepSession
+
+    graph = _Graph(StepSession(toy_graph, threads=1), WINDOW_MS, (2, 3), keep_frames=False)
+    release, started = threading.Event(), threading.Event()
+    running = graph.worker.submit(lambda: (started.set(), release.wait(10)))
+    queued = graph.worker.submit(lambda: "never")
+    assert started.wait(5)
+    began = time.perf_counter()
+    graph.close()
+    assert time.perf_counter() - began < 1.0 and not running.done()
+    assert queued.cancelled()
+    release.set()
+    assert running.result(timeout=5)[1] is True
+
+
+def test_the_engine_steps_a_real_graph_with_the_documented_defaults(toy_graph) -> None:
+    """ServeEngine with its own graphs (not scripted) over the toy: the poses the toy computes,
+    in order, with the state carried; frames at most 128 columns and stats about once a second
+    (docs/serve.md)."""
+    from e3dpsm.runtime import StepSession
+
+    clock = ManualClock()
+
+    class ToySource(Source):
+        sensor_hw = (2, 3)
+    ticks = [(0.01, Tick(_events(0, 10_000, 25_000), None, False, 10.0, 0)),
+             (0.05, Tick(_events(45_000), 2 * WINDOW_US, False, 50.0, 0))]
+    hub = Hub(clients=0)
+    engine = ServeEngine(ToySource(clock, ticks), hub, StepSession(toy_graph, threads=1), window_ms=WINDOW_MS,
+                         wall_clock=clock, interval_clock=clock)
+    assert (engine.frame_max_width, engine.stats_period_s, engine.window_us) == (128, 1.0, WINDOW_US)
+    assert asyncio.run(engine.run()) == "recording ended"
+    poses = hub.of("pose")
+    assert [p["t_us"] for p in poses] == [WINDOW_US, 2 * WINDOW_US] and [p["events"] for p in poses] == [2, 1]
+    first, second = (np.asarray(p["pose"], np.float64) for p in poses)
+    # pose = 2 s'; s' = s + window_s + sum(LNES); the second step starts from the first's state.
+    assert np.all(first > 2 * (np.asarray(INIT) + WINDOW_MS / 1e3)) and np.ptp(first - 2 * np.asarray(INIT)) < 1e-3
+    step = second - first
+    assert np.ptp(step) < 1e-3 and step[0] > 2 * WINDOW_MS / 1e3  # the same increment for every element

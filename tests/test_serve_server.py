@@ -4,8 +4,10 @@ get, and the report it writes; and the session's small pieces (config, socket, U
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
+import re
 import signal
 import socket
 from pathlib import Path
@@ -13,7 +15,9 @@ from typing import Any
 
 import pytest
 
+from _timing_helpers import ManualClock
 from e3dpsm.errors import ConfigError
+from e3dpsm.serve import protocol
 from e3dpsm.serve import server as server_module
 from e3dpsm.serve.clients import ClientHub
 from e3dpsm.serve.estimator import EngineStats
@@ -29,6 +33,8 @@ def test_the_config_in_the_report_never_holds_the_token() -> None:
     assert written["token"] == "(set)" and written["allow_origins"] == ["http://a:1"]
     assert "s3cret" not in json.dumps(written)
     assert ServeConfig(model="m", source="s", out="o").for_report()["token"] is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.token = "other"  # a session's settings do not change under it
     assert {k: v for k, v in written.items() if k not in ("token", "allow_origins")} == {
         "model": "m.onnx", "source": "r.h5", "out": "o", "host": "127.0.0.1", "port": 8765, "speed": 1.0,
         "compare": None, "threads": None, "window_ms": None, "duration_s": None, "loop": False, "wait_clients": 0,
@@ -47,12 +53,23 @@ def test_the_listening_socket_is_bound_non_blocking_and_listening() -> None:
         # A name with IPv4 and IPv6 addresses gets the IPv4 one.
         with listen_socket("localhost", 0) as named:
             assert named.family == socket.AF_INET
-        with pytest.raises(ConfigError, match=rf"^cannot listen on 127\.0\.0\.1:{port}: "):
+        with pytest.raises(ConfigError, match=rf"^cannot listen on 127\.0\.0\.1:{port}: Address already in use$"):
             listen_socket("127.0.0.1", port)  # taken by the first
     finally:
         sock.close()
-    with pytest.raises(ConfigError, match=r"^cannot listen on no-such-host\.invalid:0: "):
+    with pytest.raises(ConfigError, match=r"^cannot listen on no-such-host\.invalid:0: [^\[]") as refused:
         listen_socket("no-such-host.invalid", 0)
+    assert "Errno" not in str(refused.value)  # the system's words, not Python's repr of the error
+
+
+def test_a_name_with_both_families_listens_on_ipv4(monkeypatch) -> None:
+    """getaddrinfo lists IPv6 first on many systems; the socket takes the IPv4 address."""
+    real = socket.getaddrinfo
+    v4 = real("127.0.0.1", 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    v6 = [(socket.AF_INET6, socket.SOCK_STREAM, 6, "", ("::1", 0, 0, 0))]
+    monkeypatch.setattr(socket, "getaddrinfo", lambda *args, **kwargs: v6 + v4)
+    with listen_socket("both.example", 0) as sock:
+        assert sock.family == socket.AF_INET and sock.getsockname()[0] == "127.0.0.1"
 
 
 def test_the_page_url_names_a_host_others_can_reach_and_carries_the_token(monkeypatch) -> None:
@@ -65,22 +82,40 @@ def test_the_page_url_names_a_host_others_can_reach_and_carries_the_token(monkey
     assert page_url(config(host="::1", token="t"), 9) == "http://[::1]:9/?token=t"
 
 
-def test_the_rss_samples_are_bounded_and_summarised(monkeypatch) -> None:
-    monkeypatch.setattr(server_module, "MAX_RSS_SAMPLES", 3)
-    rss = _RssSampler()
-    assert rss.summary() == {"start": None, "end": None, "max": None, "period_s": 1.0, "samples": []}
-    readings = iter([100 * 2**20, 300 * 2**20, 200 * 2**20, 999 * 2**20])
+class Memory:
+    readings: list[float] = []
 
-    class Memory:
-        def __init__(self) -> None:
-            self.rss = next(readings)
+    def __init__(self) -> None:
+        self.rss = Memory.readings.pop(0)
+
+
+def test_the_rss_samples_are_bounded_and_summarised(monkeypatch) -> None:
+    """Seconds since the sampler began and MB, two decimals each; at most MAX_RSS_SAMPLES."""
+    monkeypatch.setattr(server_module, "MAX_RSS_SAMPLES", 3)
+    clock = ManualClock(50.0)
+    rss = _RssSampler(clock)
+    assert rss.summary() == {"start": None, "end": None, "max": None, "period_s": 1.0, "samples": []}
+    Memory.readings = [100.123456 * 2**20, 300.5 * 2**20, 200.004 * 2**20, 999 * 2**20]
     monkeypatch.setattr(rss.process, "memory_info", Memory)
     for _ in range(5):
+        clock.advance(1.23456)
         rss.sample()
     summary = rss.summary()
-    assert [mb for _, mb in summary["samples"]] == [100.0, 300.0, 200.0]  # the fourth reading is never taken
-    assert (summary["start"], summary["end"], summary["max"]) == (100.0, 200.0, 300.0)
-    assert all(0 <= s <= 60 for s, _ in summary["samples"]) and MAX_RSS_SAMPLES == 7200
+    assert summary["samples"] == [[1.23, 100.12], [2.47, 300.5], [3.7, 200.0]]  # the fourth reading is never taken
+    assert (summary["start"], summary["end"], summary["max"]) == (100.12, 200.0, 300.5)
+    assert MAX_RSS_SAMPLES == 7200 and len(Memory.readings) == 1
+
+
+def test_the_rss_sampler_samples_every_period_until_cancelled(monkeypatch) -> None:
+    monkeypatch.setattr(server_module, "RSS_PERIOD_S", 0.01)
+
+    async def scenario() -> int:
+        rss = _RssSampler()
+        task = asyncio.create_task(rss.run())
+        await asyncio.sleep(0.2)
+        task.cancel()
+        return len(rss.samples)
+    assert asyncio.run(scenario()) >= 3
 
 
 class Hub:
@@ -214,12 +249,49 @@ def session(tmp_path: Path, engine: Engine, source: Source, *, interrupt_when: A
     return result, lines, hub
 
 
+@pytest.fixture
+def endings(monkeypatch) -> list[tuple[str, Any]]:
+    """What the session handed to drain_clients (its timeout) and close_all (code, reason);
+    both still run."""
+    seen: list[tuple[str, Any]] = []
+    drain, close = server_module.drain_clients, server_module.close_all
+
+    async def recorded_drain(hub, timeout_s):
+        seen.append(("drain", timeout_s))
+        await drain(hub, timeout_s)
+
+    async def recorded_close(app, code, reason):
+        seen.append(("close", (code, reason)))
+        await close(app, code, reason)
+    monkeypatch.setattr(server_module, "drain_clients", recorded_drain)
+    monkeypatch.setattr(server_module, "close_all", recorded_close)
+    return seen
+
+
+@pytest.mark.parametrize("outcome, drain_s", [("recording ended", 1.0), ("source stopped", 1.0), (None, 0.2)])
+def test_clients_get_a_second_to_drain_at_the_end_of_a_source_and_less_on_a_stop(tmp_path, endings, outcome,
+                                                                                  drain_s) -> None:
+    engine = Engine(outcome)
+    interrupt = None if outcome else (lambda hub: engine.started)
+    report, _, _ = session(tmp_path, engine, Source(live=outcome == "source stopped"), interrupt_when=interrupt)
+    assert endings == [("drain", drain_s), ("close", (protocol.CLOSE_GOING_AWAY, report["stop_reason"]))]
+
+
+def test_the_close_reason_is_cut_to_100_characters(tmp_path, endings) -> None:
+    """A WebSocket close frame holds at most 123 bytes of reason."""
+    error, _, _ = session(tmp_path, Engine(RuntimeError("x" * 300)), Source())
+    assert isinstance(error, RuntimeError)
+    (code, reason), = [value for kind, value in endings if kind == "close"]
+    assert code == protocol.CLOSE_GOING_AWAY and reason == ("error: " + "x" * 300)[:100] and len(reason) == 100
+
+
 def test_a_session_announces_its_url_and_writes_its_report(tmp_path) -> None:
     source, engine = Source(), Engine("recording ended")
     engine.stats.poses = 7
     report, lines, hub = session(tmp_path, engine, source)
     (line,) = lines
-    assert line.startswith("serving http://127.0.0.1:") and "/?token=tok-123 (Ctrl-C stops; report -> " in line
+    port = re.match(r"^serving http://127\.0\.0\.1:(\d+)/\?token=tok-123 \(Ctrl-C stops; report -> ", line)
+    assert port and 0 < int(port.group(1)) < 65536  # the port it was bound to (--port 0)
     assert line.endswith(f"{tmp_path / 'report' / REPORT_NAME})")
     written = json.loads((tmp_path / "report" / REPORT_NAME).read_text())
     assert written == json.loads(json.dumps(report))

@@ -82,16 +82,17 @@ def page_url(config: ServeConfig, port: int) -> str:
 
 
 class _RssSampler:
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
         import psutil
 
         self.process = psutil.Process()
         self.samples: list[tuple[float, float]] = []
-        self.began = time.perf_counter()
+        self.clock = clock
+        self.began = clock()
 
     def sample(self) -> None:
         if len(self.samples) < MAX_RSS_SAMPLES:
-            self.samples.append((round(time.perf_counter() - self.began, 2),
+            self.samples.append((round(self.clock() - self.began, 2),
                                  round(self.process.memory_info().rss / 2**20, 2)))
 
     async def run(self) -> None:
