@@ -16,6 +16,7 @@ pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) 
 from _golden_fakes import FRAME, STATE, golden_writer  # noqa: E402
 from _toy_tflite import LNES_SCALE, LNES_ZERO, STATE_SCALE, STATE_ZERO, quantize_i8, toy_tflite  # noqa: E402
 from e3dpsm.errors import DataError, InputError  # noqa: E402
+from e3dpsm.golden import tflite_trace  # noqa: E402
 from e3dpsm.runtime.tflite_metadata import read_metadata  # noqa: E402
 from e3dpsm.state import state_input_name, state_output_name  # noqa: E402
 from e3dpsm.golden.tflite_trace import (CODE_PREFIX, compare, describe, main, read_trace, record, summary,  # noqa: E402
@@ -46,9 +47,9 @@ def _schema_model(content: bytes):
 def test_every_quantize_output_becomes_a_graph_and_signature_output(toy) -> None:
     content = toy.read_bytes()
     exposed, codes = with_exposed_codes(content)
-    assert codes == [
-        {"name": f"{CODE_PREFIX}0", "tensor": 4, "tensor_name": "s_codes", "operator": 1, "fed_by": "ADD", "read_by": []},
-        {"name": f"{CODE_PREFIX}1", "tensor": 5, "tensor_name": "lnes_codes", "operator": 2, "fed_by": "(graph input)",
+    assert codes == [  # the names the module docstring documents: e3dpsm_code_<k>
+        {"name": "e3dpsm_code_0", "tensor": 4, "tensor_name": "s_codes", "operator": 1, "fed_by": "ADD", "read_by": []},
+        {"name": "e3dpsm_code_1", "tensor": 5, "tensor_name": "lnes_codes", "operator": 2, "fed_by": "(graph input)",
          "read_by": ["DEQUANTIZE"]}]
     before, after = _schema_model(content), _schema_model(exposed)
     assert list(after.subgraphs[0].outputs) == [*before.subgraphs[0].outputs, 4, 5]
@@ -58,6 +59,14 @@ def test_every_quantize_output_becomes_a_graph_and_signature_output(toy) -> None
     assert [i.name for i in signature.inputs] == [i.name for i in before.signatureDefs[0].inputs]
     assert len(after.subgraphs[0].operators) == len(before.subgraphs[0].operators)  # nothing else changed
     assert read_metadata(exposed) == read_metadata(content)  # the contract travels with the copy
+
+
+def test_an_operator_the_schema_does_not_name_reads_custom(toy, monkeypatch) -> None:
+    """An operator code newer than the installed schema (here: ADD hidden from the names)."""
+    names = tflite_trace._op_names()
+    monkeypatch.setattr(tflite_trace, "_op_names", lambda: {k: v for k, v in names.items() if v != "ADD"})
+    _, codes = with_exposed_codes(toy.read_bytes())
+    assert [c["fed_by"] for c in codes] == ["CUSTOM", "(graph input)"]
 
 
 def test_a_code_that_is_already_a_graph_output_is_not_listed_twice() -> None:
@@ -166,7 +175,7 @@ def test_several_codes_parting_at_one_step_are_all_first_departures() -> None:
 
 def test_traces_of_different_graphs_are_refused() -> None:
     renamed = {**HOST, "codes": [code(0), code(1), code(7)]}
-    with pytest.raises(ValueError, match="different graphs"):
+    with pytest.raises(ValueError, match=r"^the two traces are of different graphs \(their code tensors differ\)$"):
         compare(HOST, renamed)
     with pytest.raises(ValueError, match="different graphs"):
         compare(HOST, trace([["a", "b"]] * 4, codes=2))
@@ -206,6 +215,7 @@ def write(path: Path, value) -> Path:
     ({**HOST, "steps": "4"}, r"a trace of '4' steps compares nothing"),
     ({**HOST, "codes": ["e3dpsm_code_0"]}, r"its codes are not a list of named code tensors"),
     ({**HOST, "codes": {"name": "x"}}, r"its codes are not a list of named code tensors"),
+    ({**HOST, "codes": [code(0), {"tensor": 3}, code(2)]}, r"its codes are not a list of named code tensors"),
     ({**HOST, "steps": 5}, r"its digests are not 5 steps of 3 code tensors each"),
     ({**HOST, "digests": [["a", "b"]] * 4}, r"its digests are not 4 steps of 3 code tensors each"),
     ({**HOST, "digests": "abc"}, r"its digests are not 4 steps"),
@@ -219,6 +229,8 @@ def test_a_broken_trace_is_one_data_error_naming_the_file(tmp_path, broken, mess
 
 def test_a_good_trace_reads_back_as_written(tmp_path) -> None:
     assert read_trace(write(tmp_path / "t.json", HOST)) == HOST
+    one_step = trace([["a", "b", "c"]])
+    assert read_trace(write(tmp_path / "one.json", one_step)) == one_step  # one step is a trace
     (tmp_path / "bad.json").write_bytes(b"\xff\xfe{")
     with pytest.raises(DataError, match="not a JSON trace"):
         read_trace(tmp_path / "bad.json")
@@ -258,3 +270,20 @@ def test_record_writes_the_trace_it_returns(toy, golden, tmp_path, capsys) -> No
     assert main(["record", str(toy), str(golden), str(out), "--steps", "2"]) == 0
     assert json.loads(out.read_text()) == json.loads(json.dumps(record(toy, golden, steps=2)))
     assert read_trace(out)["steps"] == 2 and capsys.readouterr().out == ""
+
+
+def test_the_module_runs_as_a_command_and_names_itself_in_its_usage(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    host = write(tmp_path / "host.json", HOST)
+    done = subprocess.run([sys.executable, "-m", "e3dpsm.golden.tflite_trace", "compare", str(host), str(host)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "all 3 code tensors the same at every one of 4 steps\n"
+    for argv in ([], ["record"]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+    usage = subprocess.run([sys.executable, "-m", "e3dpsm.golden.tflite_trace"], capture_output=True, text=True,
+                           timeout=120)
+    assert usage.returncode == 2 and usage.stderr.startswith("usage: python -m e3dpsm.golden.tflite_trace ")
