@@ -274,21 +274,40 @@ def test_server_hz_leaves_out_poses_older_than_a_second_and_step_ms_is_the_recen
     hub = engine.hub
     engine._recent_wall.extend([1_000.0, 1_500.0, 2_000.0])
     engine.stats.recent_step_ms.extend([1.0, 9.0, 2.0, 3.0])
-    wall.now, interval.now = 2.0000001, 50.0
+    wall.now, interval.now = 2.0, 50.0
     engine._maybe_stats()
-    assert hub.of("stats")[-1]["server_hz"] == 2 and hub.of("stats")[-1]["step_ms"] == pytest.approx(2.5)
+    assert hub.of("stats")[-1]["server_hz"] == 3 and hub.of("stats")[-1]["step_ms"] == pytest.approx(2.5)
     interval.now = 51.0
-    wall.now = 2.0
+    wall.now = 2.0000001
     engine._maybe_stats()
-    assert hub.of("stats")[-1]["server_hz"] == 3  # exactly 1000 ms old still counts
-    # The last 256 poses are kept: server_hz counts at most 256 (memory stays bounded at any rate).
-    engine._recent_wall.extend([2_000.0] * 300)
+    assert hub.of("stats")[-1]["server_hz"] == 2  # exactly 1000 ms old counted; a little older does not
+    # Any rate counts in full (a replay at --speed 10 of 20 ms windows makes 500 poses a second),
+    # and what is older than a second is forgotten, so the count never holds more than a second.
+    engine._recent_wall.extend([2_000.0] * 500)
     interval.now = 52.0
     engine._maybe_stats()
-    assert hub.of("stats")[-1]["server_hz"] == 256
+    assert hub.of("stats")[-1]["server_hz"] == 502
+    wall.now, interval.now = 3.0005, 53.0
+    engine._maybe_stats()
+    assert hub.of("stats")[-1]["server_hz"] == 0 and len(engine._recent_wall) == 0
     fresh = engine_for(Source(wall, []), Hub(clients=0), wall, interval=ManualClock(0.0))
     fresh._maybe_stats()
     assert fresh.hub.of("stats") == [{"poses": 0, "server_hz": 0, "step_ms": None, "clients": 0, "passes": 1}]
+
+
+def test_server_hz_is_the_poses_sent_within_the_last_second() -> None:
+    """Poses sent at 2 ms intervals for 1.5 s (750): the stats message counts the 501 sent in the
+    last second, ends included; the engine keeps no more than that second."""
+    clock = ManualClock()
+    ScriptedGraph.scripts[True] = [([estimate(20_000 * (k + 1), 1.0)], 0.001) for k in range(750)]
+    ticks = [(10.0 + 0.002 * k, tick(1e4 + 2.0 * k)) for k in range(750)]
+    hub = Hub(clients=0)
+    engine = engine_for(Source(clock, ticks), hub, clock, interval=ManualClock(0.0), stats_period_s=1e9)
+    asyncio.run(engine.run())
+    assert len(engine._recent_wall) <= 501
+    engine.stats_period_s, clock.now = 0.0, 10.0 + 0.002 * 749
+    engine._maybe_stats()
+    assert hub.of("stats")[-1]["server_hz"] == 501
 
 
 def test_the_recent_step_median_covers_the_last_recent_steps_only() -> None:
@@ -298,7 +317,8 @@ def test_the_recent_step_median_covers_the_last_recent_steps_only() -> None:
     ticks = [(float(k), tick(1e3 * k)) for k in range(RECENT_STEPS + 1)]
     engine = engine_for(Source(clock, ticks), Hub(clients=0), clock)
     asyncio.run(engine.run())
-    assert len(engine.stats.recent_step_ms) == RECENT_STEPS and max(engine.stats.recent_step_ms) == pytest.approx(1.0)
+    # docs/serve.md: "median step time of the last 50 windows".
+    assert len(engine.stats.recent_step_ms) == 50 == RECENT_STEPS and max(engine.stats.recent_step_ms) == pytest.approx(1.0)
     assert engine.stats.step_ms.count == RECENT_STEPS + 1
 
 

@@ -91,7 +91,7 @@ class ServeEngine:
         self.frame_max_width = frame_max_width
         self.stats_period_s = stats_period_s
         self.stats = EngineStats()
-        self._recent_wall: deque[float] = deque(maxlen=256)
+        self._recent_wall: deque[float] = deque()  # send times within the last second (server_hz), oldest first
         self._last_frame_ms = -float("inf")
         self._last_stats = -float("inf")
         self._seq = 0
@@ -158,6 +158,7 @@ class ServeEngine:
             self._seq += 1
             self.stats.poses += 1
             self._recent_wall.append(now_ms)
+            self._forget_before(now_ms - SERVER_HZ_SPAN_MS)
             self.stats.step_ms.add(per_pose_ms)
             self.stats.recent_step_ms.append(per_pose_ms)
             self.stats.ready_latency_ms.add(now_ms - tick.wall_ms)
@@ -165,6 +166,11 @@ class ServeEngine:
                 self.stats.compare_step_ms.add(cmp_ms)
         await self._maybe_frame(poses[-1], offset)
         self._maybe_stats()
+
+    def _forget_before(self, oldest_ms: float) -> None:
+        """Drop the send times before `oldest_ms`: the deque holds one second of poses at any rate."""
+        while self._recent_wall and self._recent_wall[0] < oldest_ms:
+            self._recent_wall.popleft()
 
     def _wall_ms(self) -> float:
         return self.wall_clock() * 1e3
@@ -186,8 +192,8 @@ class ServeEngine:
             return
         self._last_stats = now
         wall = self._wall_ms()
-        recent = [t for t in self._recent_wall if wall - t <= SERVER_HZ_SPAN_MS]
+        self._forget_before(wall - SERVER_HZ_SPAN_MS)
         recent_steps = list(self.stats.recent_step_ms)
-        self.hub.broadcast_stats(poses=self.stats.poses, server_hz=len(recent),
+        self.hub.broadcast_stats(poses=self.stats.poses, server_hz=len(self._recent_wall),
                                  step_ms=float(np.median(recent_steps)) if recent_steps else None,
                                  clients=self.hub.count_open(), passes=self.stats.passes)
