@@ -327,6 +327,9 @@ def test_turn_paired_agreement_is_over_the_turns_with_steady_bursts_around_them(
     assert turn_paired_agreement([], OutsideFigure("profiler", 12.0)) is None
     assert turn_paired_agreement([1.0, 1.0], figure) is None
     assert turn_paired_agreement([1.0, 1.0], OutsideFigure("x", 1.0, round_p50_ms=(0.0,))) is None
+    # Sub-millisecond tools count (a turn's median of 0.5 ms is a figure, not a failure).
+    fast_tool = OutsideFigure("x", 0.5, round_p50_ms=(0.5, 0.5))
+    assert turn_paired_agreement([0.55, 0.55, 0.55], fast_tool) == pytest.approx(1.1)
 
 
 def test_a_failed_turn_ends_the_turns_and_gives_no_figure() -> None:
@@ -684,3 +687,33 @@ def test_the_report_cell_names_the_turns_the_agreement_is_over() -> None:
     profiler = {"tool": "onnxruntime profiler (model_run)", "p50_ms": 9.0, "round_p50_ms": None}
     assert turn_paired_cell({"outside": profiler, "agreement": 0.83456, "agreement_steady_turns": None}) == "0.835"
     assert turn_paired_cell({"outside": outside, "agreement": None, "agreement_steady_turns": None}) == "-"
+    assert turn_paired_cell({"outside": outside, "agreement": None, "agreement_steady_turns": 2}) == "-"
+
+
+def test_the_agreement_table_rows() -> None:
+    from e3dpsm.profiles.report import agreement_table
+
+    ov = {"name": "openvino-cpu-fp32", "latency_ms": {"p50": 10.0}, "runtime_ms": {"p50": 9.5}, "beside_ms": 9.25,
+          "beside_burst_ms": [9.0, 9.5, 9.25], "agreement": 1.0123, "agreement_steady_turns": 2,
+          "agreement_fastest": 0.98765, "agreement_median": 1.0049,
+          "outside": {"tool": "benchmark_app", "p50_ms": 9.2, "round_p50_ms": [9.1, 9.3], "note": None}}
+    profiler = {"name": "ort-cpu-fp32", "latency_ms": {"p50": 8.0}, "runtime_ms": None, "beside_ms": 7.5,
+                "beside_burst_ms": [7.5], "agreement": 0.75, "agreement_steady_turns": None,
+                "agreement_fastest": 0.75, "agreement_median": 0.75,
+                "outside": {"tool": "onnxruntime profiler (model_run)", "p50_ms": 10.0, "round_p50_ms": None,
+                            "note": "kernels alone 9 ms per step"}}
+    failed = {**ov, "name": "openvino-cpu-int8", "agreement": None, "agreement_steady_turns": None,
+              "agreement_fastest": None, "agreement_median": None,
+              "outside": {"tool": "benchmark_app", "p50_ms": None, "reason": "exit 1: no model"}}
+    rows = agreement_table([ov, profiler, failed, {"name": "ort-cuda-fp32", "latency_ms": None},
+                            {"name": "torch-eager-cpu", "latency_ms": {"p50": 3.0}}])
+    assert rows == [
+        "| target | profile p50 ms (step, side by side) | runtime p50 ms (side by side) | runtime p50 ms (in turns with "
+        "the tool; each burst) | outside timer | outside p50 ms (each turn) | runtime / outside, turn-paired | "
+        "fastest burst / fastest turn | medians |", "|---|---|---|---|---|---|---|---|---|",
+        "| openvino-cpu-fp32 | 10 | 9.5 | 9.25 (9, 9.5, 9.25) | benchmark_app | 9.2 (9.1, 9.3) | 1.012 (2 of 2 turns) | "
+        "0.988 | 1 |",
+        "| ort-cpu-fp32 | 8 | - | 7.5 | onnxruntime profiler (model_run) | 10; kernels alone 9 ms per step | 0.75 | "
+        "0.75 | 0.75 |",
+        "| openvino-cpu-int8 | 10 | 9.5 | 9.25 (9, 9.5, 9.25) | benchmark_app | - (exit 1: no model) | - | - | - |"]
+    assert agreement_table([{"name": "ort-cuda-fp32", "latency_ms": None}]) == []
