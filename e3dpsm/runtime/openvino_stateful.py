@@ -46,8 +46,8 @@ def metadata_from_ir(model: Any, source: str = "IR") -> GraphMetadata:
 class OpenVINOStatefulSession:
     """A stateful IR: `step(lnes, window_ms) -> outputs`, `reset()`, `states()`.
 
-    One infer request is one set of streams (the IR's fixed batch, 1 by default); open one
-    session per concurrent stream set.
+    One infer request is one stream (the IR's batch is 1, checked on opening); open one session
+    per concurrent stream.
     """
 
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None, device: str = "CPU",
@@ -86,8 +86,15 @@ class OpenVINOStatefulSession:
         wanted = {self.meta.frame_input["name"], self.meta.window_input["name"]}
         if not wanted <= inputs or len(model.inputs) != 2:
             raise InputError(f"{self.path}: inputs {sorted(inputs)}, expected exactly {sorted(wanted)}")
-        if not model.input(self.meta.frame_input["name"]).get_partial_shape()[0].is_static:
+        batch = model.input(self.meta.frame_input["name"]).get_partial_shape()[0]
+        if not batch.is_static:
             raise InputError(f"{self.path}: the batch axis is dynamic; a stateful IR needs a fixed batch")
+        if batch.get_length() != 1:
+            # Measured (OpenVINO 2026.4, CPU, fp32): with a static batch of 2 every step starts
+            # again from the initialisers and the request reports empty variables: no error, wrong poses.
+            raise InputError(f"{self.path}: a stateful IR of batch {batch.get_length()}, whose variables "
+                             "OpenVINO's CPU plugin does not carry from step to step; convert with batch 1 "
+                             "(`e3dpsm convert openvino --stateful`) and open one session per stream")
 
     def input_names(self) -> list[str]:
         return [port.get_any_name() for port in self._compiled.inputs]
@@ -111,10 +118,8 @@ class OpenVINOStatefulSession:
         if lnes.dtype != np.float32:
             raise InputError(f"LNES has dtype {lnes.dtype}, expected float32")
         window = np.asarray(window_ms, dtype=np.float32).reshape(-1)
-        if window.shape[0] == 1 and self.batch > 1:
-            window = np.repeat(window, self.batch)
-        if window.shape[0] != self.batch or not np.all(window > 0):
-            raise InputError(f"window_ms must hold one positive value or {self.batch}, got {window.tolist()}")
+        if window.shape != (1,) or not window[0] > 0:
+            raise InputError(f"window_ms must be one positive value, got {window.tolist()}")
         self._request.infer({self.meta.frame_input["name"]: np.ascontiguousarray(lnes),
                              self.meta.window_input["name"]: window})
         return {name: self._request.get_tensor(self._output_ports[name]).data.copy()
