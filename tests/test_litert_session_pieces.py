@@ -104,3 +104,43 @@ def test_a_file_that_is_not_a_step_model_is_one_error_naming_it(tmp_path, conten
     with pytest.raises(error, match=message.format(path=str(path).replace(".", r"\."))) as refused:
         LiteRTStepSession(path)
     assert "\n" not in str(refused.value)
+
+
+def test_two_streams_are_two_rows(toy) -> None:
+    session = LiteRTStepSession(toy, threads=1)
+    lnes = np.stack([np.zeros(FRAME, np.float32), np.ones(FRAME, np.float32)])
+    outputs, state = session.run_feeds(session.feeds(lnes, session.init_state(2), np.float32([20.0, 30.0])))
+    np.testing.assert_allclose(outputs["pose"], dequantized(lnes), rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(state[STATE], [[20.0] * 6, [30.0] * 6])
+
+
+def test_without_ai_edge_litert_the_error_names_the_extra(toy, monkeypatch) -> None:
+    import sys
+
+    from e3dpsm.errors import ConfigError
+
+    monkeypatch.setitem(sys.modules, "ai_edge_litert", None)
+    with pytest.raises(ConfigError, match=r"^ai_edge_litert is not installed \(to run \.tflite models\): .*litert"):
+        LiteRTStepSession(toy)
+
+
+def test_a_runtimes_long_message_is_cut_to_one_short_line(toy, tmp_path, monkeypatch) -> None:
+    """The loader's message: its first line, at most 300 characters; the schema reader's: 200."""
+    import e3dpsm.runtime.litert_session as litert_session
+    import e3dpsm.runtime.tflite_metadata as tflite_metadata
+
+    class Interpreter:
+        def __init__(self, **kwargs) -> None:
+            raise ValueError("x" * 400 + "\nsecond line")
+
+    monkeypatch.setattr(litert_session, "require", lambda module, purpose: type("M", (), {"Interpreter": Interpreter}))
+    with pytest.raises(DataError) as refused:
+        LiteRTStepSession(toy)
+    assert str(refused.value) == f"LiteRT cannot load {toy}: " + "x" * 300
+
+    def unreadable(content: bytes) -> dict:
+        raise RuntimeError("y" * 250 + "\nmore")
+    monkeypatch.setattr(tflite_metadata, "read_metadata", unreadable)
+    with pytest.raises(DataError) as refused:
+        LiteRTStepSession(toy)
+    assert str(refused.value) == f"{toy} is not a readable TFLite model: " + "y" * 200
