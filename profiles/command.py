@@ -107,7 +107,8 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
         if outside.get("p50_ms") is not None:
             line += (f"; {outside['tool']} {outside['p50_ms']:.2f} ms against runtime {entry['beside_ms']:.2f} "
                      "in turns with it")
-            # No ratio where the tool executed another graph than the runner (profiles.agreement).
+            # No ratio where the tool executed another graph than the runner, or no turn was
+            # steady (profiles.agreement): the note, or the reason.
             line += f" ({entry['agreement']:.2f}x)" if entry.get("agreement") is not None else \
                 f" ({outside.get('note') or 'no ratio: the host changed speed across every turn'})"
         lines.append(line)

@@ -76,7 +76,7 @@ def cpu_time_sentence(cpu_time: Mapping[str, Any] | None) -> str:
 
 
 def turn_paired_cell(entry: Mapping[str, Any]) -> str:
-    """The turn-paired agreement and the turns it is over ("1.01 (3 of 4 turns)"), or why there is none."""
+    """The turn-paired agreement and the turns it is over ("1.012 (3 of 4 turns)"), or why there is none."""
     steady, turns = entry.get("agreement_steady_turns"), (entry.get("outside") or {}).get("round_p50_ms") or ()
     if steady is None:
         return _g(entry.get("agreement"))

@@ -78,7 +78,8 @@ class ServeEngine:
     def __init__(self, source: Any, hub: ClientHub, session: StepSession, *, window_ms: float,
                  compare: StepSession | None = None, ground_truth: GroundTruthTrack | None = None,
                  frame_hz: float = 10.0, frame_max_width: int = 128, stats_period_s: float = 1.0,
-                 wall_clock: Callable[[], float] = time.time, interval_clock: Callable[[], float] = time.perf_counter) -> None:
+                 wall_clock: Callable[[], float] = time.time,
+                 interval_clock: Callable[[], float] = time.perf_counter) -> None:
         """`wall_clock`: seconds since the epoch, the time base of ticks' `wall_ms` and of the
         messages' wall times; `interval_clock`: monotonic seconds, for the stats period. Tests
         inject both."""
