@@ -150,6 +150,8 @@ def _row_split_cases() -> list:
         pytest.param(_gemm_reshape(16, 2, [-1, 4, 2]), True, id="two-channels"),
         pytest.param(_gemm_reshape(16, 3, [-1, 6]), True, id="two-axis-target"),
         pytest.param(_gemm_reshape(16, 24, [-1, 32, 16], trans_b=False), True, id="gemm-without-transB"),
+        # W [16, 24] without transB: 24 channels, so a second axis of 20 is below them (not 16).
+        pytest.param(_gemm_reshape(16, 24, [-1, 20, 24], trans_b=False), False, id="gemm-without-transB-below"),
         pytest.param(_gemm_reshape(16, 32, ATTENTION, bias=True), True, id="gemm-with-bias"),
         pytest.param(_gemm_reshape(16, 32, ATTENTION, rows=None), True, id="gemm-of-unknown-shape"),
         pytest.param(_gemm_reshape(16, 32, ATTENTION, rows=None, op="MatMul"), False, id="matmul-of-unknown-shape"),
