@@ -134,14 +134,16 @@ def test_an_ir_that_is_not_a_one_stream_stateful_step_is_refused(toy_onnx, tmp_p
     assert refused(explicit) == (f"{explicit}: variables [] do not match the metadata's states ['{STATE}']; is it a "
                                  "stateful IR (`e3dpsm convert openvino --stateful`)?")
     two = _ir(toy_onnx, "batch2.xml", batch=2)
-    assert refused(two).startswith(f"{two}: a stateful IR of batch 2, whose variables OpenVINO's CPU plugin does "
-                                   "not carry from step to step; convert with batch 1")
+    assert refused(two) == (f"{two}: a stateful IR of batch 2, whose variables OpenVINO's CPU plugin does not carry "
+                            "from step to step; convert with batch 1 (`e3dpsm convert openvino --stateful`) and open "
+                            "one session per stream")
     bare = _ir(toy_onnx, "bare.xml", metadata=False)
     assert refused(bare, MetadataError) == (f"{bare} carries no e3dpsm metadata in its rt_info; convert the step "
                                             "graph with `e3dpsm convert openvino`")
     onnx_file = tmp_path / "step.onnx"
     onnx_file.write_bytes(toy_onnx.read_bytes())
-    assert refused(onnx_file).startswith(f"{onnx_file} is not an OpenVINO IR (.xml); convert the step graph first")
+    assert refused(onnx_file) == (f"{onnx_file} is not an OpenVINO IR (.xml); convert the step graph first with "
+                                  "`e3dpsm convert openvino --model STEP.onnx --out DIR --stateful`")
 
 
 def test_an_ir_with_an_extra_input_or_a_dynamic_batch_is_refused(toy_onnx) -> None:
@@ -176,3 +178,25 @@ def test_the_rt_info_sections_read_as_strings(toy_ir) -> None:
     assert read_rt_section(model, "no_such_section") == {}
     meta = metadata_from_ir(model, "toy IR")
     assert [s.name for s in meta.states] == [STATE] and meta.frame_input["name"] == "lnes"
+    # The section names are the IR's file format (module docstring): an IR outlives the code that wrote it.
+    assert model.has_rt_info(["e3dpsm"]) and model.has_rt_info(["e3dpsm_openvino"])
+    assert model.get_rt_info(["e3dpsm_openvino", "stateful"]).astype(str) == "true"
+
+
+def test_an_ir_without_metadata_is_named_ir_when_no_source_is_given(toy_onnx) -> None:
+    import openvino as ov
+
+    model = ov.Core().read_model(str(_ir(toy_onnx, "no_meta.xml", metadata=False)))
+    with pytest.raises(MetadataError, match=r"^IR carries no e3dpsm metadata in its rt_info"):
+        metadata_from_ir(model)
+
+
+def test_the_session_exposes_its_compiled_model_and_takes_any_positive_window(toy_ir) -> None:
+    session = OpenVINOStatefulSession(toy_ir, threads=1)
+    assert {port.get_any_name() for port in session.compiled.outputs} >= {"pose"}
+    frame = np.full(FRAME, 0.5, np.float32)
+    poses, _ = toy_reference(frame[None], [0.5])
+    np.testing.assert_allclose(session.step(frame, 0.5)["pose"][0], poses[0], rtol=1e-5)  # half a millisecond
+    view = ExplicitStateView(session)
+    assert view.meta is session.meta
+    np.testing.assert_array_equal(view.init_state()[STATE], [INIT])  # batch 1 by default
