@@ -109,8 +109,9 @@ class _RssSampler:
 
 async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: ClientHub,
                 hello_fields: dict[str, Any], graphs: dict[str, Any],
-                announce: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run the session to its end; returns the report (also written to `config.out`)."""
+                announce: Callable[[str], None] = print, stop: asyncio.Event | None = None) -> dict[str, Any]:
+    """Run the session to its end; returns the report (also written to `config.out`). SIGINT
+    and SIGTERM set `stop` (a new event unless given: a caller may stop the session itself)."""
     from aiohttp import web
 
     from e3dpsm.utils.io import write_json_atomic
@@ -133,7 +134,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
     announce(f"serving {page_url(config, port)} ({no_token}Ctrl-C stops; report -> {report_path(config.out)})")
 
     loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
+    stop = stop or asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     rss_task = asyncio.create_task(rss.run())
