@@ -257,3 +257,25 @@ def test_prepare_reads_camera_recordings_in_place_of_events_h5(dataset, prepared
     shutil.copy(dataset[0] / "walk_01" / "events.h5", root / "walk_01")
     with pytest.raises(DataError, match=r"walk_01: holds events.h5, events.raw; keep one event file"):
         read_synthetic_sequence(root / "walk_01")
+
+
+def test_a_damaged_archive_in_a_sequence_or_a_prepared_folder_is_one_error(dataset, prepared_20ms, tmp_path):
+    """A zip that is not one (a zipfile.BadZipFile escaped both readers before): one DataError
+    naming the file. The bytes start as a zip does, so numpy hands them to zipfile."""
+    import shutil
+
+    from e3dpsm.data.layout import GT_FILE
+    from e3dpsm.data.prepared import POSE_FILE
+
+    root, _ = dataset
+    sequence = tmp_path / "walk_01"
+    shutil.copytree(root / "walk_01", sequence)
+    (sequence / GT_FILE).write_bytes(b"PK\x03\x04" + b"\x00" * 60)
+    with pytest.raises(DataError, match=rf"^{sequence / GT_FILE}: cannot read ground truth \(truncated or corrupted\?\)"):
+        read_synthetic_sequence(sequence)
+    prepared = tmp_path / "prepared"
+    shutil.copytree(prepared_20ms[0], prepared)
+    name = json.loads((prepared / "meta.json").read_text())["sequences"][0]["name"]
+    (prepared / name / POSE_FILE).write_bytes(b"PK\x03\x04" + b"\x00" * 60)
+    with pytest.raises(DataError, match=rf"^{prepared / name / POSE_FILE}: cannot read \(.*\); re-run `e3dpsm prepare`$"):
+        PreparedData.open(prepared).split("train")

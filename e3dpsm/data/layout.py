@@ -27,6 +27,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from e3dpsm.data.formats.npz import READ_ERRORS
 from e3dpsm.data.readers import read_events_with_frames, write_events_h5
 from e3dpsm.data.sequence import Sequence
 from e3dpsm.errors import DataError, InputError
@@ -109,7 +110,7 @@ def read_synthetic_sequence(folder: str | os.PathLike) -> Sequence:
             arrays = {k: gt[k] for k in ("j3d_m", "j2d_px", "visible", "t_us", "action", "action_names")}
     except FileNotFoundError as exc:
         raise DataError(f"{gt_path} does not exist") from exc
-    except (OSError, EOFError, ValueError, KeyError) as exc:
+    except READ_ERRORS as exc:  # what numpy, zipfile and zlib raise on a damaged archive
         raise DataError(f"{gt_path}: cannot read ground truth (truncated or corrupted?): {exc}") from exc
     camera = _read_json(folder / CAMERA_FILE) if (folder / CAMERA_FILE).is_file() else None
     seq = Sequence(

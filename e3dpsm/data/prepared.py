@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from e3dpsm.data.formats.npz import READ_ERRORS
 from e3dpsm.errors import DataError
 from e3dpsm.events import LNES_CHANNELS
 from e3dpsm.joints import NUM_JOINTS
@@ -169,7 +170,7 @@ def _open_sequence(root: Path, entry: dict[str, Any], frame_shape: tuple[int, in
     try:
         with np.load(pose_path, allow_pickle=False) as archive:
             pose = {k: archive[k] for k in POSE_ARRAYS}
-    except (OSError, ValueError, KeyError, EOFError) as exc:
+    except READ_ERRORS as exc:  # what numpy, zipfile and zlib raise on a damaged archive
         raise DataError(f"{pose_path}: cannot read ({exc}); re-run `e3dpsm prepare`") from exc
     for key, (dtype, tail) in POSE_ARRAYS.items():
         if pose[key].shape != (frames, *tail) or pose[key].dtype != dtype:

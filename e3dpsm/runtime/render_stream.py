@@ -48,11 +48,10 @@ def ground_truth_beside(events_path: str | os.PathLike) -> GroundTruthTrack | No
     events = Path(events_path)
     folder = events.parent
     if (folder / GT_FILE).is_file():
-        try:
-            with np.load(folder / GT_FILE, allow_pickle=False) as gt:
-                t_us, j3d_m = np.asarray(gt["t_us"], np.int64), np.asarray(gt["j3d_m"], np.float64)
-        except (OSError, EOFError, ValueError, KeyError) as exc:
-            raise DataError(f"{folder / GT_FILE}: cannot read ground truth: {exc}") from exc
+        from e3dpsm.data.formats.npz import load_arrays
+
+        gt = load_arrays(folder / GT_FILE, ("t_us", "j3d_m"), what="ground truth")  # bounded, as every .npz read
+        t_us, j3d_m = np.asarray(gt["t_us"], np.int64), np.asarray(gt["j3d_m"], np.float64)
     elif (folder / EE3D_GT_FILE).is_file() and events.name == EVENTS_FILE:
         from e3dpsm.data.ee3d import read_ee3d_sequence
 
