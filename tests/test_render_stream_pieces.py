@@ -36,6 +36,8 @@ def test_the_synthetic_layouts_ground_truth_is_read_in_millimetres(tmp_path) -> 
     assert track.joints_mm.dtype == np.float32
     np.testing.assert_allclose(track.joints_mm, j3d * 1000.0, rtol=1e-6)
     assert ground_truth_beside(tmp_path / "empty" / "rec.npz") is None
+    with pytest.raises(AttributeError):  # frozen: a track shared by every frame of a clip does not change
+        track.t_us = np.zeros(3, np.int64)
 
 
 def test_the_ee3d_layouts_ground_truth_is_read_for_its_events_file_only(tmp_path) -> None:
