@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("openvino", reason="openvino (pip extra openvino) is not installed")
 
-from _toy_step_graph import INIT, STATE, toy_step_graph  # noqa: E402
+from _toy_step_graph import INIT, STATE, toy_numpy_step, toy_step_graph  # noqa: E402
 from e3dpsm.errors import InputError  # noqa: E402
 from e3dpsm.graph_metadata import MetadataError  # noqa: E402
 from e3dpsm.runtime.openvino_stateful import (RT_CONVERSION, ExplicitStateView, OpenVINOStatefulSession,  # noqa: E402
@@ -24,13 +24,12 @@ FRAME = (1, 2, 2, 3)
 
 
 def toy_reference(frames: np.ndarray, windows: list[float]) -> tuple[np.ndarray, np.ndarray]:
-    """The toy's recurrence: s' = s + window_ms / 1000 + sum(lnes), pose = 2 s'."""
-    state, poses, states = np.asarray(INIT, np.float64), [], []
+    """The toy's recurrence over one stream's frames [N, 1, ...] (toy_numpy_step), pose = 2 s'."""
+    state, states = np.asarray([INIT], np.float64), []
     for frame, window in zip(frames, windows):
-        state = state + window / 1e3 + float(frame.astype(np.float64).sum())
-        poses.append(2 * state)
-        states.append(state)
-    return np.array(poses), np.array(states)
+        state = toy_numpy_step(frame, state, window)
+        states.append(state[0])
+    return 2 * np.array(states), np.array(states)
 
 
 @pytest.fixture(scope="module")
