@@ -85,8 +85,8 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
            threads: int | None = 1) -> dict[str, Any]:
     """Step the code-exposing copy of `model` over the golden's frames (states carried by this
     runtime); every code tensor's digest at every step, and where this ran."""
-    from e3dpsm.golden.store import load_golden
     from e3dpsm.errors import InputError
+    from e3dpsm.golden.store import load_golden
     from e3dpsm.runtime.litert_session import LiteRTStepSession, read_tflite
     from e3dpsm.utils.isa import detect_isa
 

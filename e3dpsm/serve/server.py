@@ -134,7 +134,7 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
     announce(f"serving {page_url(config, port)} ({no_token}Ctrl-C stops; report -> {report_path(config.out)})")
 
     loop = asyncio.get_running_loop()
-    stop = stop or asyncio.Event()
+    stop = asyncio.Event() if stop is None else stop
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     rss_task = asyncio.create_task(rss.run())
