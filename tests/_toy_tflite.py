@@ -24,6 +24,11 @@ def quantize_i8(values: np.ndarray, scale: float, zero: int) -> np.ndarray:
     return np.clip(np.sign(scaled) * np.floor(np.abs(scaled) + 0.5) + zero, -128, 127).astype(np.int8)
 
 
+def toy_pose(lnes: np.ndarray) -> np.ndarray:
+    """The toy's pose output in numpy: the LNES quantised (code 1) and dequantised."""
+    return (quantize_i8(lnes, LNES_SCALE, LNES_ZERO).astype(np.float32) - LNES_ZERO) * np.float32(LNES_SCALE)
+
+
 def toy_tflite() -> bytes:
     import flatbuffers
     from ai_edge_litert import schema_py_generated as schema

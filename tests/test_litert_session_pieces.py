@@ -12,14 +12,10 @@ import pytest
 pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) is not installed")
 
 from _golden_fakes import FRAME, STATE  # noqa: E402
-from _toy_tflite import LNES_SCALE, LNES_ZERO, quantize_i8, toy_tflite  # noqa: E402
+from _toy_tflite import toy_pose, toy_tflite  # noqa: E402
 from e3dpsm.errors import DataError, InputError  # noqa: E402
 from e3dpsm.graph_metadata import MetadataError  # noqa: E402
 from e3dpsm.runtime.litert_session import LiteRTStepSession  # noqa: E402
-
-
-def dequantized(lnes: np.ndarray) -> np.ndarray:
-    return (quantize_i8(lnes, LNES_SCALE, LNES_ZERO).astype(np.float32) - LNES_ZERO) * np.float32(LNES_SCALE)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +35,7 @@ def test_a_step_gives_the_toys_pose_and_carries_its_state(toy) -> None:
         lnes = rng.uniform(0, 1, (1, *FRAME)).astype(np.float32)
         outputs, new_state = session.step(lnes, state, window)
         assert list(outputs) == ["pose"]
-        np.testing.assert_allclose(outputs["pose"], dequantized(lnes), rtol=0, atol=1e-7)
+        np.testing.assert_allclose(outputs["pose"], toy_pose(lnes), rtol=0, atol=1e-7)
         np.testing.assert_array_equal(new_state[STATE], state[STATE] + np.float32(window))
         state = new_state
 
@@ -110,7 +106,7 @@ def test_two_streams_are_two_rows(toy) -> None:
     session = LiteRTStepSession(toy, threads=1)
     lnes = np.stack([np.zeros(FRAME, np.float32), np.ones(FRAME, np.float32)])
     outputs, state = session.run_feeds(session.feeds(lnes, session.init_state(2), np.float32([20.0, 30.0])))
-    np.testing.assert_allclose(outputs["pose"], dequantized(lnes), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(outputs["pose"], toy_pose(lnes), rtol=0, atol=1e-7)
     np.testing.assert_array_equal(state[STATE], [[20.0] * 6, [30.0] * 6])
 
 

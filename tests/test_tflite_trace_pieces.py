@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) is not installed")
 
 from _golden_fakes import FRAME, STATE, golden_writer  # noqa: E402
-from _toy_tflite import LNES_SCALE, LNES_ZERO, STATE_SCALE, STATE_ZERO, quantize_i8, toy_tflite  # noqa: E402
+from _toy_tflite import LNES_SCALE, LNES_ZERO, STATE_SCALE, STATE_ZERO, quantize_i8, toy_pose, toy_tflite  # noqa: E402
 from e3dpsm.errors import DataError, InputError  # noqa: E402
 from e3dpsm.golden import tflite_trace  # noqa: E402
 from e3dpsm.runtime.tflite_metadata import read_metadata  # noqa: E402
@@ -97,8 +97,7 @@ def test_the_exposed_copy_hands_out_the_codes_numpy_computes(toy, tmp_path) -> N
     got = runner(lnes=lnes, window_ms=np.array([20.0], np.float32), **{state_input_name(STATE): state})
     np.testing.assert_array_equal(got[f"{CODE_PREFIX}0"], quantize_i8(state + 20.0, STATE_SCALE, STATE_ZERO))
     np.testing.assert_array_equal(got[f"{CODE_PREFIX}1"], quantize_i8(lnes, LNES_SCALE, LNES_ZERO))
-    np.testing.assert_allclose(got["pose"], (quantize_i8(lnes, LNES_SCALE, LNES_ZERO).astype(np.float32) - LNES_ZERO)
-                               * np.float32(LNES_SCALE), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(got["pose"], toy_pose(lnes), rtol=0, atol=1e-7)
 
 
 def _digest(codes: np.ndarray) -> str:
