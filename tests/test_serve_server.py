@@ -333,6 +333,22 @@ def test_a_stop_while_waiting_for_clients_ends_the_session_as_interrupted(tmp_pa
     assert json.loads(hub.status)["state"] == "waiting"  # the replay never started
 
 
+def test_the_session_puts_back_the_signal_handlers_it_found(tmp_path) -> None:
+    """An application embedding serve() keeps its own SIGINT and SIGTERM handlers afterwards
+    (asyncio alone would put Python's defaults back)."""
+    def mine(signum, frame):  # pragma: no cover - never called
+        raise AssertionError("not to be called")
+    old = {sig: signal.signal(sig, handler) for sig, handler in ((signal.SIGINT, signal.SIG_IGN),
+                                                                  (signal.SIGTERM, mine))}
+    try:
+        report, _, _ = session(tmp_path, Engine("recording ended"), Source())
+        assert report["stop_reason"] == "recording ended"
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN and signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 def test_a_stop_during_the_replay_ends_it(tmp_path) -> None:
     engine = Engine(None)
     report, _, hub = session(tmp_path, engine, Source(), interrupt_when=lambda hub: engine.started)

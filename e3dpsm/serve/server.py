@@ -24,6 +24,7 @@ from e3dpsm.serve.security import WILDCARD_HOSTS, Access, Refusals
 DRAIN_S = 1.0  # at the end of a recording, how long clients get to receive what is queued
 RSS_PERIOD_S = 1.0
 MAX_RSS_SAMPLES = 7200
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # each ends a session cleanly (Ctrl-C, a service manager)
 
 
 @dataclass(frozen=True)
@@ -135,7 +136,10 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event() if stop is None else stop
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    # asyncio's remove_signal_handler puts Python's defaults back, not what was there before
+    # (an embedding application's handler, or SIG_IGN in a test worker): restored by hand below.
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, stop.set)
     rss_task = asyncio.create_task(rss.run())
     started = time.time()
@@ -151,8 +155,10 @@ async def serve(config: ServeConfig, source: Any, engine: ServeEngine, hub: Clie
         stats.stop_reason = f"error: {exc}"
         hub.set_status(protocol.status("stopping", f"stopped by an error: {exc}"))
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             loop.remove_signal_handler(sig)
+            if previous[sig] is not None:  # None: a handler not installed from Python, left as it is
+                signal.signal(sig, previous[sig])
         await drain_clients(hub, DRAIN_S if stats.stop_reason in ("recording ended", "source stopped") else 0.2)
         await close_all(app, protocol.CLOSE_GOING_AWAY, str(stats.stop_reason)[:100])
         await runner.cleanup()
