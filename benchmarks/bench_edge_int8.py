@@ -41,6 +41,9 @@ def coverage_line(convert: dict[str, Any]) -> str:
         return (f"XNNPACK INT8: {coverage['xnnpack_int8']}; XNNPACK float: {coverage['xnnpack_float']}; "
                 f"portable: {coverage['portable']}.")
     artifact = convert["artifact"]
+    if artifact.get("arithmetic") == "float":  # --quantize int8-weights
+        return (f"8-bit weights, float arithmetic: {artifact['int8_operators']} CONV_2D / FULLY_CONNECTED; "
+                f"operators: {convert['ops']['mac_ops']}.")
     return (f"8-bit CONV_2D / FULLY_CONNECTED: {artifact['int8_operators']}; float by rule: {artifact['coverage']['float_by_rule']}; "
             f"groups kept float: {artifact['keep_float'] or 'none'}; operators: {convert['ops']['mac_ops']}.")
 
@@ -55,6 +58,8 @@ def markdown(report: dict[str, Any]) -> str:
                     f"{m['upper_pct']:+.3f} | +{m['limit_pct']:g} | {'yes' if m['within'] else '**no**'} |")
     interval = timing["interval"]
     kind = {"executorch": "ExecuTorch program", "litert": "LiteRT model"}[convert["format"]]
+    if convert["artifact"].get("arithmetic") == "float":
+        kind += " (weights only)"
     return "\n".join([
         f"# INT8 {kind} of `{convert['variant']}` ({report['isa']['kind']})", "",
         f"Budget on {budget['frames']} held-out frames ({budget['data']}): "
@@ -72,7 +77,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--int8", required=True, help="folder written by convert executorch|litert --quantize int8")
+    parser.add_argument("--int8", required=True, help="folder written by convert executorch|litert --quantize int8 (or litert --quantize int8-weights)")
     parser.add_argument("--fp32", required=True, help="the fp32 step.pte / step.tflite of the same checkpoint")
     parser.add_argument("--data", required=True, help="prepared folder (its test split's first sequence is timed)")
     parser.add_argument("--steps", type=int, default=300)

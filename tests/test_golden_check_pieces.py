@@ -56,6 +56,35 @@ def test_growth_passes_up_to_its_limit_inclusive(growth_limit, passed) -> None:
     assert check.growth == 3.0 and check.growth_passed is passed and check.passed is passed
 
 
+@pytest.mark.parametrize("early, late, floor, growth", [
+    (0.001, 0.007, 0.0, 7.0),     # no floor: a tiny error's rise counts in full
+    (0.001, 0.007, 0.05, 1.0),    # both under the floor: no growth
+    (0.001, 0.25, 0.05, 5.0),     # started tiny, ended at a quarter of the state: judged against the floor
+    (0.04, 0.3, 0.05, 6.0),       # the early median raised to the floor
+    (0.1, 0.3, 0.05, 3.0),        # both over it: the plain ratio
+])
+def test_growth_raises_both_medians_to_the_floor(early, late, floor, growth) -> None:
+    errors = [early] * 5 + [1.0] * 10 + [late] * 5
+    check = TensorCheck("s5", "state", "rel_rms", np.asarray(errors), math.inf, growth_limit=4.0, growth_floor=floor)
+    assert check.growth == pytest.approx(growth)
+    assert check.passed is (growth <= 4.0)
+
+
+def test_the_floor_sets_the_first_late_step_over_the_growth_bound() -> None:
+    """Early median 0.001 raised to 0.05: the bound is 4 x 0.05 = 0.2, so the late step at
+    0.19 is within and the one at 0.25 is the first over (without the floor: the first late step)."""
+    errors = np.array([0.001] * 5 + [0.1] * 10 + [0.19, 0.25, 0.3, 0.3, 0.3])
+    floored = TensorCheck("s5", "state", "rel_rms", errors, math.inf, growth_limit=4.0, growth_floor=0.05)
+    assert floored.first_failing_step == 16
+    assert TensorCheck("s5", "state", "rel_rms", errors, math.inf, growth_limit=4.0).first_failing_step == 15
+
+
+def test_the_profiles_growth_floors() -> None:
+    """A tenth of the state bound of each compressed profile; fp32 judges no growth."""
+    assert PROFILES["int8"].growth_floor == PROFILES["bf16"].growth_floor == 0.05
+    assert PROFILES["fp16"].growth_floor == 0.005 and PROFILES["fp32"].growth_floor is None
+
+
 def _first_over_growth(errors, limit):
     """The first step of the last quarter over limit x the first quarter's median: a loop."""
     n = len(errors)

@@ -419,3 +419,44 @@ def test_the_tolerance_and_a_host_rollout_are_frozen():
         KernelParity().other_kind_mean_mm = 5.0
     with pytest.raises(dataclasses.FrozenInstanceError):
         HostRollout({}, {}).entry = {"isa": {"kind": "vnni"}}
+
+
+@pytest.mark.parametrize("mode, shift, passed", [("int8-weights", 0.009, True), ("int8-weights", 0.011, False),
+                                                 ("int8", 0.011, True), (None, 0.49, True), ("int8", 0.51, False)])
+def test_a_float_arithmetic_graph_gets_the_same_kind_tolerance_on_any_isa(mode, shift, passed):
+    """Weight-only INT8 rounds no activation, so another ISA's kernels may differ from the
+    host's by what fp32's do: 0.01 mm (mean) on another kind too, where INT8 gets 0.5."""
+    from e3dpsm.golden.host import kernel_parity_for
+
+    parity = kernel_parity_for({"mode": mode} if mode else None)
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="arm", parity=parity)
+    assert result.questions["same_as_host"] is passed
+    assert parity.limits(True) == KernelParity().limits(True)  # the host's own kind: unchanged
+
+
+@pytest.mark.parametrize("mode, passed", [("int8-weights", False), ("int8", True)])
+def test_a_float_arithmetic_graph_gets_the_same_kind_step_limit_on_any_isa(mode, passed):
+    """One step 0.2 mm off (the mean stays under 0.01 mm): over the 0.1 mm step limit a float
+    graph keeps on another kind, within the 5 mm an INT8 one gets."""
+    from e3dpsm.golden.host import kernel_parity_for
+
+    shift = np.zeros(STEPS)
+    shift[11] = 0.2
+    assert shift.mean() < 0.01
+    result = _run("int8", np.zeros(STEPS), np.zeros(STEPS), host=_host(shift), isa_kind="arm",
+                  parity=kernel_parity_for({"mode": mode}))
+    assert result.questions["same_as_host"] is passed
+    assert passed or result.first_failure["step"] == 11
+
+
+def test_check_golden_raises_the_state_medians_to_the_profiles_floor():
+    """An S5 state 0.1% from fp32 early and 0.7% late (x7) is judged against the int8
+    profile's floor, 0.05: no growth; the same errors with no floor fail from the last quarter."""
+    from dataclasses import replace
+
+    rel = np.concatenate([np.full(10, 0.001), np.full(20, 0.004), np.full(10, 0.007)])
+    assert _tensor(_run("int8", np.zeros(STEPS), rel), "state").growth == pytest.approx(1.0)
+    unfloored = check_golden(FakeRunner(np.zeros(STEPS), rel), make_golden(STEPS),
+                             replace(PROFILES["int8"], growth_floor=0.0))
+    state = _tensor(unfloored, "state")
+    assert state.growth == pytest.approx(7.0, rel=1e-3) and state.first_failing_step == 30 and not unfloored.passed

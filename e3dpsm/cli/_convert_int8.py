@@ -17,8 +17,10 @@ REPORT_NAME = "convert.json"
 
 def add_int8_options(p: argparse.ArgumentParser) -> None:
     group = p.add_argument_group("INT8", "static 8-bit quantisation, checked on held-out data")
-    group.add_argument("--quantize", choices=("int8",), default=None,
-                       help="write an INT8 program (needs --data); the S5 layers and the Kalman fusion stay float")
+    group.add_argument("--quantize", choices=("int8", "int8-weights"), default=None,
+                       help="int8: an INT8 program (needs --data), the S5 layers and the Kalman fusion float; "
+                            "int8-weights (litert): weights in 8 bits, float arithmetic, the same poses on ARM "
+                            "as here (docs/edge.md#int8-for-arm)")
     group.add_argument("--data", default=None, metavar="PREP",
                        help="prepared folder at the model's window and frame size: calibration on its train split, "
                             "the budget on its test split")
@@ -44,10 +46,10 @@ def check_int8_args(args: argparse.Namespace) -> None:
     from e3dpsm.errors import ConfigError
 
     if args.quantize and not args.data:
-        raise ConfigError("--quantize int8 needs --data PREP (a prepared folder at the model's frame size: "
-                          "calibration on its train split, the budget check on its test split)")
+        raise ConfigError(f"--quantize {args.quantize} needs --data PREP (a prepared folder at the model's frame "
+                          "size: calibration on its train split, the budget check on its test split)")
     if args.data and not args.quantize:
-        raise ConfigError("--data is read only with --quantize int8; drop it for an fp32 program")
+        raise ConfigError("--data is read only with --quantize; drop it for an fp32 program")
 
 
 def options_from_args(args: argparse.Namespace) -> Any:
@@ -60,9 +62,13 @@ def options_from_args(args: argparse.Namespace) -> Any:
 
 
 def run_executorch_int8(args: argparse.Namespace) -> int:
+    from e3dpsm.errors import ConfigError
     from e3dpsm.export.executorch_export import ExecuTorchOptions
     from e3dpsm.export.executorch_int8 import convert_executorch_int8
 
+    if args.quantize != "int8":
+        raise ConfigError(f"--quantize {args.quantize} is written for litert only; for a .pte use --quantize int8 "
+                          "(docs/edge.md#int8-for-arm says why the .pte has no weight-only form)")
     program = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
 
     def coverage(result: Any) -> str:
@@ -77,15 +83,19 @@ def run_executorch_int8(args: argparse.Namespace) -> int:
 def run_litert_int8(args: argparse.Namespace) -> int:
     from e3dpsm.export.litert_export import LiteRTOptions
     from e3dpsm.export.litert_int8 import convert_litert_int8
+    from e3dpsm.export.litert_weights8 import convert_litert_weights8
 
     litert = LiteRTOptions(attention_form=args.attention_form, keep_tensor_names=args.keep_tensor_names)
+    weights_only = args.quantize == "int8-weights"
+    convert = convert_litert_weights8 if weights_only else convert_litert_int8
 
     def coverage(result: Any) -> str:
-        return (f"{result.artifact['int8_operators']} of {sum(result.ops['mac_ops'].values())} "
-                "CONV_2D / FULLY_CONNECTED / BATCH_MATMUL in 8 bits")
+        counted = (f"{result.artifact['int8_operators']} of {sum(result.ops['mac_ops'].values())} "
+                   "CONV_2D / FULLY_CONNECTED / BATCH_MATMUL")
+        return f"the weights of {counted} in 8 bits, float arithmetic" if weights_only else f"{counted} in 8 bits"
 
     return _run_edge_int8(args, "litert", "step.tflite", ("litert_torch", "ai_edge_quantizer"),
-                          lambda model, data, path, options, work: convert_litert_int8(
+                          lambda model, data, path, options, work: convert(
                               model, data, path, options, work, litert), coverage)
 
 

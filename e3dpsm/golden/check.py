@@ -47,15 +47,21 @@ class TensorCheck:
     step_limit: float
     mean_limit: float | None = None
     growth_limit: float | None = None
+    growth_floor: float = 0.0  # a median below it counts as it (tolerances.ToleranceProfile)
+
+    def _early(self) -> float:
+        """The first quarter's median error, raised to the floor."""
+        return max(float(np.median(self.errors[: len(self.errors) // 4])), self.growth_floor)
 
     @property
     def growth(self) -> float | None:
-        """Median error over the last quarter / over the first quarter (None: too short)."""
+        """Median error over the last quarter / over the first quarter, each raised to the
+        floor (None: too short)."""
         n = len(self.errors)
         if n < MIN_GROWTH_STEPS:
             return None
-        early = float(np.median(self.errors[: n // 4]))
-        late = float(np.median(self.errors[n - n // 4:]))
+        early = self._early()
+        late = max(float(np.median(self.errors[n - n // 4:])), self.growth_floor)
         return late / early if early > TINY else (math.inf if late > TINY else 1.0)
 
     @property
@@ -76,7 +82,7 @@ class TensorCheck:
             first = since if first is None else min(first, since)
         if not self.growth_passed:
             n = len(self.errors)
-            bound = self.growth_limit * float(np.median(self.errors[: n // 4]))
+            bound = self.growth_limit * self._early()
             late = np.flatnonzero(self.errors[n - n // 4:] > bound)
             since = n - n // 4 + (int(late[0]) if late.size else 0)
             first = since if first is None else min(first, since)
@@ -251,7 +257,8 @@ def check_golden(runner: GraphStepper, golden: GoldenRecord, profile: ToleranceP
         # away): how far is reported; that they stay bounded (growth) is judged.
         tensors.append(TensorCheck(name, "state", "rel_to_absmax" if exact else "rel_rms", _finite(errors),
                                    profile.state_rtol if exact else math.inf,
-                                   growth_limit=None if exact else profile.max_growth))
+                                   growth_limit=None if exact else profile.max_growth,
+                                   growth_floor=profile.growth_floor or 0.0))
     accuracy = None
     if not exact:
         from e3dpsm.budget import TaskBudget, check_budget

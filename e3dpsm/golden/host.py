@@ -48,6 +48,21 @@ class KernelParity:
         return self.other_kind_mean_mm, self.other_kind_step_mm
 
 
+# Quantisation modes whose arithmetic is float (weights stored in 8 bits, dequantised before
+# every operator: export/litert_weights8.py): nothing is rounded to a code at run time, so
+# another ISA's kernels differ from the host's in the last bits only, as fp32 artifacts do
+# (2.4e-4 mm under emulated aarch64), and the same-kind tolerance holds on any ISA.
+FLOAT_ARITHMETIC_MODES = ("int8-weights",)
+
+
+def kernel_parity_for(quantization: Mapping[str, Any] | None) -> KernelParity:
+    """The kernel-parity tolerance a graph of this quantisation is held to on another ISA."""
+    if (quantization or {}).get("mode") in FLOAT_ARITHMETIC_MODES:
+        same = KernelParity()
+        return KernelParity(other_kind_mean_mm=same.same_kind_mean_mm, other_kind_step_mm=same.same_kind_step_mm)
+    return KernelParity()
+
+
 @dataclass(frozen=True)
 class HostRollout:
     entry: Mapping[str, Any]             # the manifest's record of it

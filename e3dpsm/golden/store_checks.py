@@ -85,7 +85,7 @@ def _check_tolerances(tolerances: Any, path: Path) -> None:
             profile = ToleranceProfile.from_dict(entry)
         except InputError as exc:
             raise DataError(f"{path}: tolerance profile {name!r}: {exc}; {FIX}") from exc
-        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.max_growth)
+        numbers = (profile.pose_atol_mm, profile.state_rtol, profile.max_growth, profile.growth_floor)
         if profile.kind not in ("exact", "budget") or (profile.kind == "exact" and profile.pose_atol_mm is None) or \
                 not all(v is None or (_finite_number(v) and v >= 0) for v in numbers):
             raise DataError(f"{path}: tolerance profile {name!r} is broken ({entry}); {FIX}")

@@ -9,7 +9,11 @@
   the recorded elements) stays below `state_rtol` at every step, and does not grow: over the
   last quarter of the rollout its median is at most `max_growth` times its median over the
   first quarter. A compressed recurrent state that wanders off fails even while the poses
-  still look good.
+  still look good. Both medians are first raised to `growth_floor` (a tenth of
+  `state_rtol`): a state well under a per cent from fp32 throughout has not wandered off,
+  whatever the ratio of two such small numbers (a weight-only INT8 `.tflite` of `small`: x5.8
+  on an S5 state from under 0.5% to under 1.4%, while its poses matched the host's to
+  7e-5 mm on emulated ARM); INT8 states sit near 0.3 from the first step.
 
 Why these numbers: the max-abs measure of fp32 parity does not suit a quantised state (the
 trained tiny's INT8 graph misses the largest element of an S5 state by 0.3-1.2 of its
@@ -34,6 +38,7 @@ class ToleranceProfile:
     pose_atol_mm: float | None = None  # exact
     state_rtol: float = 1e-4  # per step; exact: max |diff| / max |golden|, budget: relative RMS
     max_growth: float | None = None  # budget: late / early median state error
+    growth_floor: float | None = None  # budget: state errors below it are noise to the growth bound
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in asdict(self).items() if v is not None}
@@ -48,16 +53,18 @@ class ToleranceProfile:
 
 PROFILES: dict[str, ToleranceProfile] = {
     "fp32": ToleranceProfile("fp32", "exact", pose_atol_mm=0.01, state_rtol=1e-4),
-    "fp16": ToleranceProfile("fp16", "budget", state_rtol=0.05, max_growth=4.0),
-    "int8": ToleranceProfile("int8", "budget", state_rtol=0.5, max_growth=4.0),
+    "fp16": ToleranceProfile("fp16", "budget", state_rtol=0.05, max_growth=4.0, growth_floor=0.005),
+    "int8": ToleranceProfile("int8", "budget", state_rtol=0.5, max_growth=4.0, growth_floor=0.05),
 }
 # An fp32 graph run in bf16 (8-bit mantissa, OpenVINO's INFERENCE_PRECISION_HINT=bf16 on a
 # CPU with bf16 units): the int8 budget, since both keep about 8 bits per value; its
 # recurrent states are rounded too, hence the int8 state bound.
 PROFILES["bf16"] = replace(PROFILES["int8"], name="bf16")
 
-# A quantised graph names its mode in its metadata; the mode decides its profile.
-MODE_PROFILES = {"int8": "int8", "int8-dynamic": "int8", "fp16": "fp16"}
+# A quantised graph names its mode in its metadata; the mode decides its profile. Weight-only
+# INT8 (float arithmetic) is held to the INT8 budget; its tolerance to the host's rollout
+# across ISAs is fp32's (golden/host.kernel_parity_for).
+MODE_PROFILES = {"int8": "int8", "int8-dynamic": "int8", "int8-weights": "int8", "fp16": "fp16"}
 
 
 def profile_for_quantization(quantization: Mapping[str, Any] | None) -> str:

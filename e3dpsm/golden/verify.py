@@ -119,7 +119,7 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
     from e3dpsm.golden.record import sha256_file
     from e3dpsm.utils.io import atomic_path, write_json_atomic
 
-    from e3dpsm.golden.host import host_rollout_for
+    from e3dpsm.golden.host import host_rollout_for, kernel_parity_for
     from e3dpsm.utils.isa import detect_isa
 
     golden = golden_dir if isinstance(golden_dir, GoldenRecord) else load_golden(golden_dir)
@@ -129,7 +129,8 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
     digest = sha256_file(model) if Path(model).is_file() else None  # .mlpackage: a folder
     host = host_rollout_for(golden, digest, runtime) if chosen.kind == "budget" else None
     result = check_golden(runner, golden, chosen, progress=progress, host=host,
-                          budget=resolve_budget(runner.meta.quantization, budget_pct), isa_kind=detect_isa().kind)
+                          budget=resolve_budget(runner.meta.quantization, budget_pct), isa_kind=detect_isa().kind,
+                          parity=kernel_parity_for(runner.meta.quantization))
     report = {
         **(header or {}),
         "model": {"path": str(model), "sha256": digest, "variant": runner.meta.config.get("variant"),
