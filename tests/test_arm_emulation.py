@@ -106,3 +106,30 @@ def test_tiny_pte_under_emulation(arm_root, trained_graph, pte_path, quant_data)
         assert all(0 < f["max"] <= 0.01 for f in pte["host_rollout"].values())
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def test_tiny_weight_only_tflite_computes_the_hosts_poses_under_emulation(arm_root, trained_graph, tflite_path,
+                                                                          edge_model, quant_data) -> None:  # noqa: F811
+    """The weight-only INT8 `.tflite` (export/litert_weights8.py) is held to the same-kind host
+    tolerance on emulated ARM (0.01 mm mean, 0.1 at a step) and meets it: float arithmetic,
+    nothing rounded to a code, so ARM's kernels part from the host's by round-off alone."""
+    from e3dpsm.export.litert_export import LiteRTOptions, embed_contract
+    from e3dpsm.export.litert_weights8 import MODE, weight_only_content
+
+    script = _script()
+    work = arm_root / script.WORK / f"pytest-ltw-{os.getpid()}"
+    try:
+        work.mkdir(parents=True)
+        weights8 = work / "source" / "step_w8.tflite"
+        weights8.parent.mkdir()
+        weights8.write_bytes(embed_contract(weight_only_content(tflite_path.read_bytes()), edge_model,
+                                            LiteRTOptions(), MODE)[0])
+        graphs = script.stage_graphs([trained_graph, weights8], work)
+        script.host_golden(graphs[0], graphs[1:], str(quant_data), STEPS, work)
+        check = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}[graphs[1].name]
+        assert check["profile"] == "int8" and check["same_as_host"] is True
+        assert script.arm_ready(check, None)["ready"]
+        for figures in check["host_rollout"].values():
+            assert figures["mean_limit"] == 0.01 and figures["step_limit"] == 0.1 and figures["max"] <= 0.01
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
