@@ -12,7 +12,7 @@ from e3dpsm.errors import ConfigError
 from e3dpsm.budget import TaskBudget
 from e3dpsm.utils.isa import ISA_KINDS, detect_isa
 
-MODES: tuple[str, ...] = ("int8", "int8-dynamic", "fp16")
+MODES: tuple[str, ...] = ("int8", "int8-dynamic", "fp16", "int8-weights")
 # The runtimes the budget can be checked on: every trial and the artifact run on each, the worst counting.
 CHECK_RUNTIMES: tuple[str, ...] = ("onnxruntime", "openvino")
 # What the graph is for: a CPU kind (utils/isa.py; "auto": this host's) or an integer
@@ -94,7 +94,7 @@ class QuantizeOptions:
         """Calibration, search and the final check on different frames: the budget must hold on
         frames neither the calibration nor the search saw. "all" overlaps every split."""
         named = {"--split": self.split}
-        if self.exclude == "auto" and self.mode != "int8-dynamic":
+        if self.exclude == "auto" and self.mode in ("int8", "fp16"):  # the modes that search
             named["--search-split"] = self.search_split
         if self.holdout_data is None:
             named["--holdout-split"] = self.holdout_split

@@ -18,7 +18,8 @@ RUNTIME_NAMES = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}
 
 # What a graph that is not faster here still serves, by mode.
 ACCELERATORS = {"int8": "integer-only accelerators", "int8-dynamic": "integer-only accelerators",
-                "fp16": "fp16 accelerators (GPUs, NPUs)"}
+                "fp16": "fp16 accelerators (GPUs, NPUs)",
+                "int8-weights": "ARM and other CPUs alike (float arithmetic: the host's poses on any ISA)"}
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     from e3dpsm.quantize.options import CALIBRATIONS, CHECK_RUNTIMES, MODES, TARGETS
 
     p = subparsers.add_parser(
-        "quantize", help="quantise an exported step graph (int8, int8-dynamic, fp16)",
+        "quantize", help="quantise an exported step graph (int8, int8-dynamic, int8-weights, fp16)",
         description="Quantise the step graph. INT8 calibrates on frames paired with the states a continuous fp32 "
         "rollout carried into them; the S5 recurrences and the Kalman fusion stay float. --exclude auto tries the "
         "full-integer graph first and returns the fewest Conv/MatMul/Gemm to float until the task budget holds on "
