@@ -108,28 +108,35 @@ def test_tiny_pte_under_emulation(arm_root, trained_graph, pte_path, quant_data)
         shutil.rmtree(work, ignore_errors=True)
 
 
-def test_tiny_weight_only_tflite_computes_the_hosts_poses_under_emulation(arm_root, trained_graph, tflite_path,
-                                                                          edge_model, quant_data) -> None:  # noqa: F811
-    """The weight-only INT8 `.tflite` (export/litert_weights8.py) is held to the same-kind host
-    tolerance on emulated ARM (0.01 mm mean, 0.1 at a step) and meets it: float arithmetic,
-    nothing rounded to a code, so ARM's kernels part from the host's by round-off alone."""
+def test_tiny_weight_only_artifacts_compute_the_hosts_poses_under_emulation(arm_root, trained_graph, tflite_path,
+                                                                             edge_model, quant_data,
+                                                                             tmp_path) -> None:  # noqa: F811
+    """The weight-only INT8 `.tflite` (export/litert_weights8.py) and ONNX graph
+    (quantize/weights.py) are held to the same-kind host tolerance on emulated ARM (0.01 mm
+    mean, 0.1 at a step) and meet it: float arithmetic, nothing rounded to a code, so ARM's
+    kernels part from the host's by round-off alone."""
     from e3dpsm.export.litert_export import LiteRTOptions, embed_contract
     from e3dpsm.export.litert_weights8 import MODE, weight_only_content
+    from e3dpsm.quantize.options import QuantizeOptions
+    from e3dpsm.quantize.pipeline import quantize_graph
 
     script = _script()
-    work = arm_root / script.WORK / f"pytest-ltw-{os.getpid()}"
+    work = arm_root / script.WORK / f"pytest-w8-{os.getpid()}"
     try:
         work.mkdir(parents=True)
         weights8 = work / "source" / "step_w8.tflite"
         weights8.parent.mkdir()
         weights8.write_bytes(embed_contract(weight_only_content(tflite_path.read_bytes()), edge_model,
                                             LiteRTOptions(), MODE)[0])
-        graphs = script.stage_graphs([trained_graph, weights8], work)
+        quantize_graph(trained_graph, quant_data, tmp_path / "qw", QuantizeOptions(mode=MODE, threads=1))
+        graphs = script.stage_graphs([trained_graph, weights8, tmp_path / "qw" / "step_int8_weights.onnx"], work)
         script.host_golden(graphs[0], graphs[1:], str(quant_data), STEPS, work)
-        check = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}[graphs[1].name]
-        assert check["profile"] == "int8" and check["same_as_host"] is True
-        assert script.arm_ready(check, None)["ready"]
-        for figures in check["host_rollout"].values():
-            assert figures["mean_limit"] == 0.01 and figures["step_limit"] == 0.1 and figures["max"] <= 0.01
+        checks = {Path(c["model"]).name: c for c in script.emulated_checks(arm_root, graphs, work)}
+        for graph in graphs[1:]:
+            check = checks[graph.name]
+            assert check["profile"] == "int8" and check["same_as_host"] is True, graph.name
+            assert script.arm_ready(check, None)["ready"]
+            for figures in check["host_rollout"].values():
+                assert figures["mean_limit"] == 0.01 and figures["step_limit"] == 0.1 and figures["max"] <= 0.01
     finally:
         shutil.rmtree(work, ignore_errors=True)
