@@ -53,14 +53,18 @@ class EdgeInt8Options:
         return {**{k: v for k, v in vars(self).items() if k != "budget"}, "budget": self.budget.to_dict()}
 
 
-def open_data(path: str | os.PathLike, model: E3DPSM, options: EdgeInt8Options) -> PreparedData:
-    """The prepared folder, checked against the model's window and frame size and for both
-    splits, before anything is converted (DataError / ConfigError: one line, exit 2)."""
+def open_data(path: str | os.PathLike, model: E3DPSM, options: EdgeInt8Options,
+              weights_only: bool = False) -> PreparedData:
+    """The prepared folder, checked against the model's window and frame size and for the
+    splits the conversion reads (weight-only: the held-out split alone; static: calibration,
+    held-out and search), before anything is converted (DataError / ConfigError: one line, exit 2)."""
     data = PreparedData.open(path)
     cfg = model.config
     data.check_compatible(window_ms=cfg.train_window_ms, height=cfg.height, width=cfg.width)
-    for split in (options.split, options.holdout_split):
-        data.split(split)
+    data.split(options.holdout_split)
+    if weights_only:
+        return data
+    data.split(options.split)
     if options.search_rounds:
         try:
             data.split(options.search_split)

@@ -27,15 +27,15 @@ from typing import Any
 
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.errors import DataError
+from e3dpsm.errors import ConfigError
 from e3dpsm.export.edge_int8 import EdgeInt8Options, check_artifact, fp32_reference, held_out_set
 from e3dpsm.export.litert_export import LiteRTOptions, LiteRTResult, litert_content, write_litert
 from e3dpsm.export.litert_int8 import QUANTISED_OPERATORS, mac_op_scopes
 from e3dpsm.models import E3DPSM
 from e3dpsm.quantize.holdout import HeldOut
+from e3dpsm.quantize.weights import MODE  # the artifact's precision and its metadata's quantisation mode
 from e3dpsm.utils.extras import require
 
-MODE = "int8-weights"  # the artifact's precision and its metadata's quantisation mode
 RECIPE = "ai-edge-quantizer weight-only: int8 weights symmetric per output channel, float activations and arithmetic"
 
 
@@ -50,7 +50,9 @@ def weight_only_content(float_content: bytes) -> bytes:
     try:
         return bytes(engine.quantize(enable_progress_bar=False, enable_progress_report=False).quantized_model)
     except (ValueError, RuntimeError, KeyError) as exc:  # the quantizer's own refusals, one line each
-        raise DataError(f"ai-edge-quantizer could not quantise the weights: {str(exc).splitlines()[0][:300]}") from exc
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0][:300]
+        raise ConfigError(f"ai-edge-quantizer could not quantise this model's weights ({reason}); the fp32 "
+                          "`convert litert` or the static `--quantize int8` may still convert it") from exc
 
 
 def convert_litert_weights8(model: E3DPSM, data: PreparedData, path: str | os.PathLike, options: EdgeInt8Options,

@@ -84,6 +84,9 @@ class QuantizeOptions:
             raise ConfigError(f"--frames {self.frames} is too few for calibration; use at least 16")
         if self.target == "npu" and self.mode != "int8":
             raise ConfigError(f"--target npu places 16-bit activations in an INT8 graph; drop it with --mode {self.mode}")
+        if self.mode == "int8-weights" and self.exclude not in ("auto", "none"):
+            raise ConfigError(f"--exclude {self.exclude} keeps nodes float in an INT8 or FP16 graph; --mode int8-weights "
+                              "stores every weight in 8 bits and computes in float: drop --exclude")
         a = self.advanced
         if self.mode != "int8" and (a.weight_rounding != "nearest" or a.ranges_from_checkpoint):
             raise ConfigError(f"--weight-rounding and --ranges-from-checkpoint shape INT8 graphs; drop them with "

@@ -33,7 +33,7 @@ from e3dpsm.quantize.place import Placement, greedy_groups, place_precisions
 from e3dpsm.quantize.prepare import calibrate_graph, prepare_graph
 from e3dpsm.quantize.static import saturates_u8s8
 from e3dpsm.quantize.verdict import Verdict, time_beside_fp32
-from e3dpsm.quantize.weights import weight_only_int8
+from e3dpsm.quantize.weights import MODE as WEIGHTS_MODE, weight_only_int8
 from e3dpsm.quantize.write import Written, build_int8, round_weights, scratch_path, write_artifact
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import atomic_dir, write_json_atomic, write_text_atomic
@@ -71,7 +71,7 @@ def quantize_graph(model_path: str | os.PathLike, data_dir: str | os.PathLike, o
         work = Path(work)
         check = held_out(model_path, check_data.split(options.holdout_split), window_ms,
                          options.advanced.holdout_frames, f"{Path(check_data.root).name}/{options.holdout_split}", threads)
-        build = {"int8": _int8, "fp16": _fp16, "int8-dynamic": _dynamic, "int8-weights": _weights}[options.mode]
+        build = {"int8": _int8, "fp16": _fp16, "int8-dynamic": _dynamic, WEIGHTS_MODE: _weights}[options.mode]
         model, info, blocks, sections = build(model_path, source, meta, data, options, work)
         info = {**info, "budget": options.advanced.budget.to_dict(), "checked_on_isa": detect_isa().to_dict(),
                 "checked_on_runtimes": list(options.runtimes)}
@@ -221,4 +221,4 @@ def _weights(model_path, source, meta, data, options: QuantizeOptions, work: Pat
     lines = [f"Weights: {info['weights_int8']} Conv / Gemm / MatMul weights in 8 bits, "
              f"{info['weight_bytes_float'] / 1e6:.2f} MB of float weights stored in {info['weight_bytes_stored'] / 1e6:.2f} MB; "
              "activations and arithmetic float.", ""]
-    return model, {"mode": "int8-weights", **info}, {}, [lines]
+    return model, {"mode": WEIGHTS_MODE, **info}, {}, [lines]

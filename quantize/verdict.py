@@ -22,6 +22,12 @@ ACCELERATORS = {"int8": "integer-only accelerators", "int8-dynamic": "integer-on
                 "int8-weights": "ARM and other CPUs alike (float arithmetic: the host's poses on any ISA)"}
 
 
+# What to try when a graph of this mode is over budget.
+OVER_BUDGET_FIX = {"int8": "keep more nodes float (`--exclude`) or calibrate on more frames.",
+                   "int8-weights": "its weights alone cost too much accuracy: fine-tune for quantisation "
+                                   "(`e3dpsm distill --qat`) or ship the fp32 graph."}
+
+
 @dataclass(frozen=True)
 class Verdict:
     mode: str
@@ -58,8 +64,7 @@ class Verdict:
             worst = max(self.check.metrics, key=lambda m: m.upper_pct / m.limit_pct)
             return (f"Verdict: over budget, do not ship: {worst.name} {worst.change_pct:+.2f}% (upper bound "
                     f"{worst.upper_pct:+.2f}%, limit +{worst.limit_pct:g}%) on {self.check.frames} held-out frames "
-                    f"({RUNTIME_NAMES.get(self.check_runtime, self.check_runtime)}); keep more nodes float "
-                    "(`--exclude`) or calibrate on more frames.")
+                    f"({RUNTIME_NAMES.get(self.check_runtime, self.check_runtime)}); {OVER_BUDGET_FIX.get(self.mode, OVER_BUDGET_FIX['int8'])}")
         budget = f"within budget on {self.check.frames} held-out frames, {self.size_ratio:.2f}x fp32's size"
         best = self.fastest
         if best is not None and self.surely_faster(best[0]):

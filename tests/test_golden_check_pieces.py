@@ -154,7 +154,8 @@ def test_a_tensors_record_and_line() -> None:
     assert check.to_dict() == {
         "name": "s5_stage4_re", "kind": "state", "measure": "rel_rms", "passed": True, "max": 9.0, "max_at_step": 15,
         "mean": pytest.approx(float(errors.mean())), "step_limit": math.inf, "mean_limit": None,
-        "first_failing_step": None, "at_steps": {"1": 1.0, "10": 2.0, "20": 3.0}, "growth": 3.0, "growth_limit": 4.0}
+        "first_failing_step": None, "at_steps": {"1": 1.0, "10": 2.0, "20": 3.0}, "growth": 3.0, "growth_limit": 4.0,
+        "growth_floor": 0.0}
     assert check.line() == ("state  s5_stage4_re           max 9.000e+00    (step limit inf) growth x3.00 (limit x4)  ok")
     host = TensorCheck("pose", "output", HOST_MEASURE, np.array([0.5, np.nan, 2.0]), 1.0, mean_limit=0.25)
     record = host.to_dict()

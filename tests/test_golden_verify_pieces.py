@@ -275,3 +275,9 @@ def test_the_kernel_trace_runs_where_the_golden_keeps_one(tmp_path, monkeypatch)
     assert verify._kernel_trace(tmp_path, "kept", 3) == {"isolated": []}
     assert found == [(tmp_path, "missing"), (tmp_path, "kept"), (tmp_path, "kept")]
     assert ran == [(tmp_path / "trace", 1, "trace.json", True), (tmp_path / "trace", 3, "trace.json", True)]
+
+
+def test_a_golden_recorded_before_the_growth_floor_takes_todays_floor_and_keeps_its_own_numbers() -> None:
+    recorded = {"name": "int8", "kind": "budget", "state_rtol": 0.5, "max_growth": 3.0}  # no growth_floor yet
+    chosen = verify.resolve_profile("int8", None, {"tolerances": {"int8": recorded}})
+    assert chosen.max_growth == 3.0 and chosen.growth_floor == PROFILES["int8"].growth_floor == 0.05

@@ -172,7 +172,7 @@ def test_cli_refuses_weight_only_without_data_or_for_a_pte(tmp_path, capsys) -> 
     out = tmp_path / "w8"
     for fmt, extra, expected in (
             ("litert", [], "--quantize int8-weights needs --data"),
-            ("executorch", ["--data", str(tmp_path)], "--quantize int8-weights is written for litert only")):
+            ("executorch", [], "--quantize int8-weights is written for litert only")):
         assert main(["convert", fmt, "--checkpoint", str(TRAINED_TINY), "--out", str(out),
                      "--quantize", "int8-weights", *extra]) == 2
         err = capsys.readouterr().err.strip()
@@ -198,3 +198,15 @@ def test_cli_writes_a_judged_weight_only_tflite(tmp_path, quant_data, capsys) ->
     assert report["artifact"]["int8_operators"] == sum(scale is not None for *_, scale in _weights(content)) > 0
     assert report["size"]["int8_bytes"] == len(content)
     assert "float arithmetic" in capsys.readouterr().out
+
+
+def test_weight_only_reads_the_held_out_split_alone(edge_model, quant_data) -> None:
+    """No calibration and no search: a folder without those splits is enough for it, not for
+    the static conversion."""
+    from e3dpsm.errors import DataError
+    from e3dpsm.export.edge_int8 import EdgeInt8Options, open_data
+
+    options = EdgeInt8Options(split="calibration", search_split="search")  # neither is in the folder
+    assert open_data(quant_data, edge_model, options, weights_only=True).split("test")
+    with pytest.raises(DataError, match="no sequences in split 'calibration'"):
+        open_data(quant_data, edge_model, options)

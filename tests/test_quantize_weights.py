@@ -123,3 +123,34 @@ def test_quantize_writes_a_judged_weight_only_graph_of_the_trained_tiny(trained_
     casts = [n for n in model.graph.node if n.op_type == "Cast" and n.input[0].endswith("__int8")]
     assert len(casts) == meta.quantization["weights_int8"] > 0
     assert not [n for n in model.graph.node if n.op_type in ("QuantizeLinear", "DequantizeLinear")]
+
+
+def test_a_weight_another_node_also_reads_stays_float() -> None:
+    """A Gemm weight that an Add reads too (and one a subgraph reads) keeps its float tensor:
+    rebuilding it would store both, so it is left alone and counted nowhere."""
+    model, weights = _toy()
+    graph = model.graph
+    graph.node.append(helper.make_node("Add", ["gemm_w", "gemm_w"], ["doubled"]))
+    then = helper.make_graph([helper.make_node("Identity", ["mm_w"], ["inner"])], "then", [],
+                             [helper.make_tensor_value_info("inner", TensorProto.FLOAT, [10, 7])])
+    graph.initializer.append(numpy_helper.from_array(np.array(True), "flag"))
+    graph.node.append(helper.make_node("If", ["flag"], ["picked"], then_branch=then, else_branch=then))
+    quantised, info = weight_only_int8(model)
+    stored = {i.name for i in quantised.graph.initializer}
+    assert info["weights_int8"] == 1 and {"gemm_w", "mm_w", "conv_w__int8"} <= stored and "conv_w" not in stored
+    assert info["weight_bytes_float"] == weights["conv_w"].nbytes
+
+
+def test_weight_only_refuses_an_exclude_list() -> None:
+    from e3dpsm.errors import ConfigError
+    from e3dpsm.quantize.options import QuantizeOptions
+
+    QuantizeOptions(mode="int8-weights", exclude="none")
+    with pytest.raises(ConfigError, match="--exclude head keeps nodes float .* drop --exclude"):
+        QuantizeOptions(mode="int8-weights", exclude="head")
+
+
+def test_an_over_budget_weight_only_graph_is_told_what_helps() -> None:
+    from e3dpsm.quantize.verdict import OVER_BUDGET_FIX
+
+    assert "--exclude" not in OVER_BUDGET_FIX["int8-weights"] and "--exclude" in OVER_BUDGET_FIX["int8"]

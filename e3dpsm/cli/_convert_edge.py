@@ -85,8 +85,10 @@ def summary_line(fmt: str, path: Path, report: dict) -> str:
 
 
 def run_executorch(args: argparse.Namespace) -> int:
+    from e3dpsm.cli._convert_int8 import refuse_weights_only_pte
     from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
 
+    refuse_weights_only_pte(args)
     check_int8_args(args)
     if args.quantize:
         from e3dpsm.cli._convert_int8 import run_executorch_int8

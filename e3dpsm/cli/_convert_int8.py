@@ -16,14 +16,14 @@ REPORT_NAME = "convert.json"
 
 
 def add_int8_options(p: argparse.ArgumentParser) -> None:
-    group = p.add_argument_group("INT8", "static 8-bit quantisation, checked on held-out data")
+    group = p.add_argument_group("INT8", "8-bit quantisation (static, or of the weights alone), checked on held-out data")
     group.add_argument("--quantize", choices=("int8", "int8-weights"), default=None,
                        help="int8: an INT8 program (needs --data), the S5 layers and the Kalman fusion float; "
                             "int8-weights (litert): weights in 8 bits, float arithmetic, the same poses on ARM "
                             "as here (docs/edge.md#int8-for-arm)")
     group.add_argument("--data", default=None, metavar="PREP",
-                       help="prepared folder at the model's window and frame size: calibration on its train split, "
-                            "the budget on its test split")
+                       help="prepared folder at the model's window and frame size: the budget on its test split "
+                            "(int8 also calibrates on its train split and searches on its val split)")
     group.add_argument("--frames", type=positive_int, default=200, help="calibration frames (default 200, minimum 16)")
     group.add_argument("--holdout-frames", type=int, default=0,
                        help="frames per held-out sequence of the budget check (default 0: all)")
@@ -47,7 +47,7 @@ def check_int8_args(args: argparse.Namespace) -> None:
 
     if args.quantize and not args.data:
         raise ConfigError(f"--quantize {args.quantize} needs --data PREP (a prepared folder at the model's frame "
-                          "size: calibration on its train split, the budget check on its test split)")
+                          "size: the budget check on its test split)")
     if args.data and not args.quantize:
         raise ConfigError("--data is read only with --quantize; drop it for an fp32 program")
 
@@ -61,14 +61,19 @@ def options_from_args(args: argparse.Namespace) -> Any:
                            budget=TaskBudget(mpjpe_pct=args.budget_pct, pa_mpjpe_pct=args.budget_pct))
 
 
-def run_executorch_int8(args: argparse.Namespace) -> int:
+def refuse_weights_only_pte(args: argparse.Namespace) -> None:
+    """Before anything else (ConfigError: exit 2): ExecuTorch's XNNPACK has no weight-only form."""
     from e3dpsm.errors import ConfigError
+
+    if args.quantize == "int8-weights":
+        raise ConfigError("--quantize int8-weights is written for litert only; for a .pte use --quantize int8 "
+                          "(docs/edge.md#int8-for-arm says why the .pte has no weight-only form)")
+
+
+def run_executorch_int8(args: argparse.Namespace) -> int:
     from e3dpsm.export.executorch_export import ExecuTorchOptions
     from e3dpsm.export.executorch_int8 import convert_executorch_int8
 
-    if args.quantize != "int8":
-        raise ConfigError(f"--quantize {args.quantize} is written for litert only; for a .pte use --quantize int8 "
-                          "(docs/edge.md#int8-for-arm says why the .pte has no weight-only form)")
     program = ExecuTorchOptions(attention_form=args.attention_form, decompose_norms=not args.native_norms)
 
     def coverage(result: Any) -> str:
@@ -114,7 +119,8 @@ def _run_edge_int8(args: argparse.Namespace, fmt: str, name: str, modules: tuple
     refuse_existing_output(args.out, args.force)
     options = options_from_args(args)
     model = load_model_from_args(args)
-    data = open_data(args.data, model, options)  # a folder at another size fails here, nothing written
+    # a folder at another size fails here, nothing written
+    data = open_data(args.data, model, options, weights_only=args.quantize == "int8-weights")
     with atomic_dir(args.out, force=args.force) as tmp, tempfile.TemporaryDirectory(prefix="e3dpsm-int8-") as work:
         result, check, held = convert(model, data, tmp / name, options, Path(work))
         fp32_bytes = (Path(work) / "fp32.onnx").stat().st_size

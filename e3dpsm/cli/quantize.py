@@ -1,4 +1,5 @@
-"""`e3dpsm quantize`: INT8 static (state-aware calibration), INT8 dynamic or FP16."""
+"""`e3dpsm quantize`: INT8 static (state-aware calibration), INT8 dynamic, INT8 weights only
+(float arithmetic) or FP16."""
 from __future__ import annotations
 
 import argparse

@@ -53,6 +53,11 @@ class TensorCheck:
         """The first quarter's median error, raised to the floor."""
         return max(float(np.median(self.errors[: len(self.errors) // 4])), self.growth_floor)
 
+    def _late(self) -> float:
+        """The last quarter's median error, raised to the floor."""
+        n = len(self.errors)
+        return max(float(np.median(self.errors[n - n // 4:])), self.growth_floor)
+
     @property
     def growth(self) -> float | None:
         """Median error over the last quarter / over the first quarter, each raised to the
@@ -60,8 +65,7 @@ class TensorCheck:
         n = len(self.errors)
         if n < MIN_GROWTH_STEPS:
             return None
-        early = self._early()
-        late = max(float(np.median(self.errors[n - n // 4:])), self.growth_floor)
+        early, late = self._early(), self._late()
         return late / early if early > TINY else (math.inf if late > TINY else 1.0)
 
     @property
@@ -112,7 +116,7 @@ class TensorCheck:
             "max": float(np.max(self.errors)), "max_at_step": worst, "mean": self.mean,
             "step_limit": self.step_limit, "mean_limit": self.mean_limit,
             "first_failing_step": self.first_failing_step, "at_steps": self.at_steps(),
-            "growth": self.growth, "growth_limit": self.growth_limit,
+            "growth": self.growth, "growth_limit": self.growth_limit, "growth_floor": self.growth_floor,
         }
 
     def line(self) -> str:

@@ -18,7 +18,7 @@ tolerance on another (another x86 kind, an ARM board).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -57,10 +57,10 @@ FLOAT_ARITHMETIC_MODES = ("int8-weights",)
 
 def kernel_parity_for(quantization: Mapping[str, Any] | None) -> KernelParity:
     """The kernel-parity tolerance a graph of this quantisation is held to on another ISA."""
+    parity = KernelParity()
     if (quantization or {}).get("mode") in FLOAT_ARITHMETIC_MODES:
-        same = KernelParity()
-        return KernelParity(other_kind_mean_mm=same.same_kind_mean_mm, other_kind_step_mm=same.same_kind_step_mm)
-    return KernelParity()
+        return replace(parity, other_kind_mean_mm=parity.same_kind_mean_mm, other_kind_step_mm=parity.same_kind_step_mm)
+    return parity
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,8 @@ def resolve_profile(name: str | None, quantization: dict[str, Any] | None, golde
     if name not in PROFILES:
         raise InputError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}")
     recorded = golden_manifest.get("tolerances", {}).get(name)
-    return ToleranceProfile.from_dict(recorded) if recorded else PROFILES[name]
+    # A number the golden recorded wins; one it predates (the growth floor) is today's.
+    return ToleranceProfile.from_dict({**PROFILES[name].to_dict(), **recorded}) if recorded else PROFILES[name]
 
 
 def resolve_budget(quantization: dict[str, Any] | None, budget_pct: float | None = None) -> Any:
