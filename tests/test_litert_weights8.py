@@ -190,7 +190,7 @@ def test_cli_writes_a_judged_weight_only_tflite(tmp_path, quant_data, capsys) ->
     code = main(["convert", "litert", "--checkpoint", str(TRAINED_TINY), "--out", str(out),
                  "--quantize", "int8-weights", "--data", str(quant_data), "--threads", "1"])
     report = json.loads((out / "convert.json").read_text())
-    assert code == (0 if report["budget"]["within"] else 1) and report["budget"]["frames"] > 0
+    assert code == 0 and report["budget"]["within"] and report["budget"]["frames"] > 0  # weights alone: within
     assert report["artifact"]["precision"] == "int8-weights" and report["artifact"]["arithmetic"] == "float"
     content = (out / "step.tflite").read_bytes()
     meta, record = tflite_metadata(out / "step.tflite", content)
