@@ -29,6 +29,23 @@ def skip_without(module: str) -> None:
         pytest.skip(reason)
 
 
+def litert_pose_rollout(path: Path, frames, window_ms: float = 20.0):
+    """The `pose` output at each frame of a `.tflite` stepped by LiteRTStepSession, states
+    carried, every output and state checked to be float32 (a quantised output or a state left
+    dangling by a rewrite fails here)."""
+    import numpy as np
+
+    from e3dpsm.runtime.litert_session import LiteRTStepSession
+
+    session = LiteRTStepSession(path, threads=1)
+    state, poses = session.init_state(1), []
+    for frame in frames:
+        out, state = session.step(np.ascontiguousarray(frame[None]), state, window_ms)
+        assert all(np.asarray(v).dtype == np.float32 for v in (*out.values(), *state.values())), path.name
+        poses.append(out["pose"][0])
+    return np.stack(poses)
+
+
 @pytest.fixture(scope="session")
 def edge_model():
     from e3dpsm.checkpoint import load_checkpoint

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from _edge_helpers import Judged, skip_without
+from _edge_helpers import Judged, litert_pose_rollout, skip_without
 
 TINY_GROUPS = ["model.stem", "model.stages.0", "model.stages.1", "model.stages.2", "model.stages.3",
                "model.attention.0", "model.attention.1", "model.attention.2", "model.attention.3",
@@ -343,7 +343,6 @@ def test_the_int8_flatbuffer_steps_with_float_outputs_and_states(float_content, 
     from e3dpsm.data.prepared import PreparedData
     from e3dpsm.export.litert_export import LiteRTOptions, embed_contract
     from e3dpsm.export.litert_int8 import group_patterns, quantised_content
-    from e3dpsm.runtime.litert_session import LiteRTStepSession
 
     content, record = embed_contract(quantised_content(float_content, ranges, group_patterns(edge_model)),
                                      edge_model, LiteRTOptions(), "int8")
@@ -351,32 +350,28 @@ def test_the_int8_flatbuffer_steps_with_float_outputs_and_states(float_content, 
     path = tmp_path / "step_int8.tflite"
     path.write_bytes(content)
     frames = np.asarray(PreparedData.open(quant_data).split("val")[0].lnes[:12], dtype=np.float32)
-    rollouts = {}
-    for name, model_path in (("int8", path), ("fp32", tmp_path / "fp32.tflite")):
-        if name == "fp32":
-            model_path.write_bytes(float_content)
-        session = LiteRTStepSession(model_path, threads=1)
-        state, poses = session.init_state(1), []
-        for frame in frames:
-            out, state = session.step(np.ascontiguousarray(frame[None]), state, 20.0)
-            assert all(np.asarray(v).dtype == np.float32 for v in (*out.values(), *state.values())), name
-            poses.append(out["pose"][0])
-        rollouts[name] = np.stack(poses)
-    moved = np.linalg.norm(rollouts["int8"] - rollouts["fp32"], axis=-1)
+    (tmp_path / "fp32.tflite").write_bytes(float_content)
+    moved = np.linalg.norm(litert_pose_rollout(path, frames) - litert_pose_rollout(tmp_path / "fp32.tflite", frames),
+                           axis=-1)
     assert 0.01 < moved.max() < 50.0, moved.max()
 
 
-def test_cli_refuses_int8_without_data(tmp_path, capsys) -> None:
+@pytest.mark.parametrize("fmt, extra, expected", [
+    ("litert", ["--quantize", "int8"], "--quantize int8 needs --data"),
+    ("litert", ["--data", "DATA"], "--data is read only with --quantize;"),
+    ("litert", ["--quantize", "int8-weights"], "--quantize int8-weights needs --data"),
+    ("executorch", ["--quantize", "int8-weights"], "--quantize int8-weights is written for litert only"),
+])
+def test_cli_refuses_bad_quantize_arguments_in_one_line(fmt, extra, expected, tmp_path, capsys) -> None:
     skip_without("ai_edge_quantizer")
     from _quantize_helpers import TRAINED_TINY
     from e3dpsm.cli import main
 
     out = tmp_path / "lt8"
-    for extra, expected in ((["--quantize", "int8"], "--quantize int8 needs --data"),
-                            (["--data", str(tmp_path)], "--data is read only with --quantize;")):
-        assert main(["convert", "litert", "--checkpoint", str(TRAINED_TINY), "--out", str(out), *extra]) == 2
-        err = capsys.readouterr().err.strip()
-        assert "\n" not in err and expected in err and not out.exists()
+    extra = [str(tmp_path) if arg == "DATA" else arg for arg in extra]
+    assert main(["convert", fmt, "--checkpoint", str(TRAINED_TINY), "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and expected in err and not out.exists()
 
 
 @pytest.mark.slow

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _edge_helpers import GOLDEN_STEPS, skip_without
+from _edge_helpers import GOLDEN_STEPS, litert_pose_rollout, skip_without
 
 WEIGHTED = ("CONV_2D", "FULLY_CONNECTED")
 
@@ -116,16 +116,8 @@ def test_the_weight_only_artifact_steps_in_float_near_fp32(float_content, weight
     paths["weights8"].write_bytes(content)
     paths["fp32"].write_bytes(float_content)
     frames = np.asarray(PreparedData.open(quant_data).split("val")[0].lnes[:12], dtype=np.float32)
-    rollouts = {}
-    for name, path in paths.items():
-        session = LiteRTStepSession(path, threads=1)
-        state, poses = session.init_state(1), []
-        for frame in frames:
-            out, state = session.step(np.ascontiguousarray(frame[None]), state, 20.0)
-            assert all(np.asarray(v).dtype == np.float32 for v in (*out.values(), *state.values())), name
-            poses.append(out["pose"][0])
-        rollouts[name] = np.stack(poses)
-    assert session.meta.quantization is None  # the fp32 file
+    rollouts = {name: litert_pose_rollout(path, frames) for name, path in paths.items()}
+    assert LiteRTStepSession(paths["fp32"]).meta.quantization is None
     assert LiteRTStepSession(paths["weights8"]).meta.quantization["mode"] == "int8-weights"
     moved = np.linalg.norm(rollouts["weights8"] - rollouts["fp32"], axis=-1)
     assert 1e-3 < moved.max() < 20.0, moved.max()  # moved by the weights' rounding, not by activation codes
@@ -163,20 +155,6 @@ def test_golden_check_holds_it_to_the_same_kind_tolerance_on_another_isa(weights
     assert host.mean == pytest.approx(0.05 * np.sqrt(3), rel=1e-3) and host.mean_limit == 0.01
     assert result.questions["same_as_host"] is False and not result.passed
     assert result.steps == GOLDEN_STEPS and report["model"]["quantization"]["mode"] == "int8-weights"
-
-
-def test_cli_refuses_weight_only_without_data_or_for_a_pte(tmp_path, capsys) -> None:
-    from _quantize_helpers import TRAINED_TINY
-    from e3dpsm.cli import main
-
-    out = tmp_path / "w8"
-    for fmt, extra, expected in (
-            ("litert", [], "--quantize int8-weights needs --data"),
-            ("executorch", [], "--quantize int8-weights is written for litert only")):
-        assert main(["convert", fmt, "--checkpoint", str(TRAINED_TINY), "--out", str(out),
-                     "--quantize", "int8-weights", *extra]) == 2
-        err = capsys.readouterr().err.strip()
-        assert "\n" not in err and expected in err and not out.exists()
 
 
 @pytest.mark.slow
