@@ -7,11 +7,13 @@ channel (the largest |weight| of the channel is code 127). The Cast and the Mul 
 initializers only, so ONNX Runtime's constant folding turns them back into one float weight
 when the session is built: the file is the 8-bit codes, the step is an fp32 step. (OpenVINO
 keeps such a weight compressed and decompresses it in its kernels at every step: float all the
-same, a little slower.) A weight that another kind of node also reads stays float. A DequantizeLinear would say the same thing more compactly, but ONNX Runtime keeps a
-DequantizeLinear in front of a MatMul and fuses the pair into MatMulNBits, which by default
-quantises the activations on the fly (`session.qdq_matmulnbits_accuracy_level` 4): an
-8-bit rounding of activations, ISA by ISA, which is what this mode exists to avoid, and a
-session option every application would have to set to avoid it.
+same, a little slower.) A weight that another kind of node also reads stays float.
+
+Why not a DequantizeLinear, which says the same more compactly: ONNX Runtime keeps one in
+front of a MatMul and fuses the pair into MatMulNBits, which by default quantises the
+activations on the fly (`session.qdq_matmulnbits_accuracy_level` 4): an 8-bit rounding of
+activations, ISA by ISA, which is what this mode exists to avoid, and a session option every
+application would have to set to avoid it.
 """
 from __future__ import annotations
 
