@@ -95,13 +95,16 @@ def test_golden_with_the_recorded_tolerance_profiles_loads(tmp_path):
     folder = small_golden(tmp_path / "g")
     _edit_manifest(folder, lambda m: m.update(tolerances={name: p.to_dict() for name, p in PROFILES.items()}))
     assert load_golden(folder).manifest["tolerances"]["int8"] == {"name": "int8", "kind": "budget", "state_rtol": 0.5,
-                                                                  "max_growth": 4.0}
+                                                                  "max_growth": 4.0, "growth_floor": 0.05}
     _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(max_growth=-4.0))
     with pytest.raises(DataError, match=r"golden\.json: tolerance profile 'int8' is broken \(.*\); record the golden "
                                         r"again$"):
         load_golden(folder)
+    _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(max_growth=4.0, growth_floor=-0.05))
+    with pytest.raises(DataError, match=r"tolerance profile 'int8' is broken"):
+        load_golden(folder)
     _edit_manifest(folder, lambda m: m["tolerances"]["fp32"].pop("pose_atol_mm"))
-    _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(max_growth=4.0))
+    _edit_manifest(folder, lambda m: m["tolerances"]["int8"].update(growth_floor=0.05))
     with pytest.raises(DataError, match=r"tolerance profile 'fp32' is broken"):
         load_golden(folder)
 
