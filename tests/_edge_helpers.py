@@ -29,6 +29,18 @@ def skip_without(module: str) -> None:
         pytest.skip(reason)
 
 
+def tflite_schema_graph(content: bytes):
+    """(schema, model, subgraph 0, {opcode index: operator name}) of a `.tflite`, read with the
+    TFLite schema itself: the tests' reference, not the converter's or the quantizer's readers."""
+    from ai_edge_litert import schema_py_generated as schema
+
+    names = {v: k for k, v in vars(schema.BuiltinOperator).items() if not k.startswith("_")}
+    model = schema.Model.GetRootAs(content, 0)
+    codes = {i: names.get(max(model.OperatorCodes(i).BuiltinCode(), model.OperatorCodes(i).DeprecatedBuiltinCode()))
+             for i in range(model.OperatorCodesLength())}
+    return schema, model, model.Subgraphs(0), codes
+
+
 def litert_pose_rollout(path: Path, frames, window_ms: float = 20.0):
     """The `pose` output at each frame of a `.tflite` stepped by LiteRTStepSession, states
     carried, every output and state checked to be float32 (a quantised output or a state left

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from _edge_helpers import Judged, litert_pose_rollout, skip_without
+from _edge_helpers import Judged, litert_pose_rollout, skip_without, tflite_schema_graph
 
 TINY_GROUPS = ["model.stem", "model.stages.0", "model.stages.1", "model.stages.2", "model.stages.3",
                "model.attention.0", "model.attention.1", "model.attention.2", "model.attention.3",
@@ -45,16 +45,11 @@ def ranges(float_content, edge_model, trained_graph, quant_data):
 def _weight_types(content: bytes) -> list[tuple[str, str, bool]]:
     """(operator, scope, weight is int8) of every CONV_2D / FULLY_CONNECTED, read with the
     TFLite schema directly (not through the quantizer's own utilities)."""
-    from ai_edge_litert import schema_py_generated as schema
-
-    names = {v: k for k, v in vars(schema.BuiltinOperator).items() if not k.startswith("_")}
-    model = schema.Model.GetRootAs(content, 0)
-    graph = model.Subgraphs(0)
+    schema, _, graph, codes = tflite_schema_graph(content)
     found = []
     for i in range(graph.OperatorsLength()):
         op = graph.Operators(i)
-        code = model.OperatorCodes(op.OpcodeIndex())
-        name = names.get(max(code.BuiltinCode(), code.DeprecatedBuiltinCode()))
+        name = codes[op.OpcodeIndex()]
         if name in ("CONV_2D", "FULLY_CONNECTED"):
             weight = graph.Tensors(op.Inputs(1))
             scope = ";".join(graph.Tensors(op.Outputs(j)).Name().decode() for j in range(op.OutputsLength()))

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _edge_helpers import GOLDEN_STEPS, litert_pose_rollout, skip_without
+from _edge_helpers import GOLDEN_STEPS, litert_pose_rollout, skip_without, tflite_schema_graph
 
 WEIGHTED = ("CONV_2D", "FULLY_CONNECTED")
 
@@ -33,18 +33,6 @@ def weights8_content(float_content) -> bytes:
     return weight_only_content(float_content)
 
 
-def _graph(content: bytes):
-    """(schema, model, subgraph, {opcode index: operator name}) read with the TFLite schema
-    itself, not through the quantizer's utilities."""
-    from ai_edge_litert import schema_py_generated as schema
-
-    names = {v: k for k, v in vars(schema.BuiltinOperator).items() if not k.startswith("_")}
-    model = schema.Model.GetRootAs(content, 0)
-    codes = {i: names.get(max(model.OperatorCodes(i).BuiltinCode(), model.OperatorCodes(i).DeprecatedBuiltinCode()))
-             for i in range(model.OperatorCodesLength())}
-    return schema, model, model.Subgraphs(0), codes
-
-
 def _buffer(model, tensor, dtype) -> np.ndarray:
     data = model.Buffers(tensor.Buffer())
     if data.Offset() > 1:  # stored past the flatbuffer (a model over 256 KiB of weights)
@@ -55,7 +43,7 @@ def _buffer(model, tensor, dtype) -> np.ndarray:
 def _weights(content: bytes) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
     """(operator, float weights or 8-bit codes, per-channel scales or None) of every CONV_2D /
     FULLY_CONNECTED in graph order; a weight behind a DEQUANTIZE is read from its codes."""
-    schema, model, graph, codes = _graph(content)
+    schema, model, graph, codes = tflite_schema_graph(content)
     producer = {graph.Operators(i).Outputs(j): graph.Operators(i) for i in range(graph.OperatorsLength())
                 for j in range(graph.Operators(i).OutputsLength())}
     found = []
@@ -93,7 +81,7 @@ def test_every_weight_is_int8_per_output_channel_within_half_a_step(float_conten
 def test_nothing_but_weights_is_quantised(weights8_content) -> None:
     """Float arithmetic: no QUANTIZE anywhere, every DEQUANTIZE reads a constant, and no
     operator writes 8- or 16-bit codes (a static INT8 recipe's QUANTIZE and integer kernels do)."""
-    schema, model, graph, codes = _graph(weights8_content)
+    schema, model, graph, codes = tflite_schema_graph(weights8_content)
     codes_types = (schema.TensorType.INT8, schema.TensorType.UINT8, schema.TensorType.INT16)
     ops = [graph.Operators(i) for i in range(graph.OperatorsLength())]
     names = [codes[op.OpcodeIndex()] for op in ops]
