@@ -12,7 +12,7 @@
   still look good. Both medians are first raised to `growth_floor` (a tenth of
   `state_rtol`): a state well under a per cent from fp32 throughout has not wandered off,
   whatever the ratio of two such small numbers (a weight-only INT8 `.tflite` of `small`: x5.85
-  on an S5 state whose distance rose from 0.15% to 0.89%, while its poses matched the host's
+  on an S5 state whose distance stayed under 1.4%, while its poses matched the host's
   to 7e-5 mm on emulated ARM); INT8 states sit 0.1-0.5 away from the first step.
 
 Why these numbers: the max-abs measure of fp32 parity does not suit a quantised state (the
