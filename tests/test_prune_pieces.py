@@ -1,0 +1,334 @@
+"""The pieces of `e3dpsm prune` (compress/prune.py, compress/run.py) on the trained tiny, fast.
+
+The rounds run for real (candidates measured, planned, cut), but on a simulated host: a
+graph's step costs a fixed time per MAC, each side-by-side run has its own load, and the
+per-unit profile is a fixed share of the step. Every figure a round records is then known in
+closed form: the geometric schedule of targets, the load-corrected step, the latency model's
+correction of the next aim, the stopping rules and the round chosen.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from e3dpsm.compress import prune as prune_module
+from e3dpsm.compress import run as run_module
+from e3dpsm.compress.latency import LatencyProfile, UnitLatency
+from e3dpsm.compress.plan import total_macs
+from e3dpsm.compress.prune import (PruneConfig, _best_round, _met, _over_budget, calibration_windows,
+                                   heldout_figures, prune_loop, stream_poses, target_met)
+from e3dpsm.compress.units import prunable_units
+from e3dpsm.errors import ConfigError
+from tests._quantize_helpers import TRAINED_TINY
+
+MS_PER_MMAC = 0.05  # the simulated host: 0.05 ms per million MACs
+KERNEL_SHARE = 0.9  # of the step, spread evenly over the prunable units
+
+
+class SimulatedHost:
+    """Stands in for export, side-by-side timing and ONNX Runtime's per-unit profile."""
+
+    def __init__(self, loads: list[float]) -> None:
+        self.loads = list(loads)  # one per side-by-side run, in call order; 1.0 after
+        self.timed: list[dict[str, float]] = []
+
+    @staticmethod
+    def step_ms(graph: Path) -> float:
+        return json.loads(Path(graph).read_text())["macs"] / 1e6 * MS_PER_MMAC
+
+    def export(self, model, path: Path) -> Path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"macs": total_macs(model)}))
+        return path
+
+    def time(self, graphs, frames, window_ms, threads, steps) -> dict[str, float]:
+        load = self.loads.pop(0) if self.loads else 1.0
+        out = {label: load * self.step_ms(path) for label, (_, path) in graphs.items()}
+        self.timed.append(out)
+        return out
+
+    @staticmethod
+    def profile(graph, model, frames, window_ms, config, run_ms) -> LatencyProfile:
+        units = prunable_units(model.config)
+        share = KERNEL_SHARE * run_ms / len(units)
+        return LatencyProfile(run_ms, KERNEL_SHARE * run_ms, 4 * len(units),
+                              {u.name: UnitLatency(share, 3) for u in units})
+
+
+@pytest.fixture(scope="module")
+def teacher():
+    from e3dpsm.checkpoint import load_checkpoint
+
+    model, _ = load_checkpoint(TRAINED_TINY, variant="tiny")
+    return model.eval()
+
+
+@pytest.fixture(scope="module")
+def held_out(quant_data):
+    from e3dpsm.data.prepared import PreparedData
+
+    return PreparedData.open(quant_data)
+
+
+def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path, heldout=None):
+    host = SimulatedHost(loads)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    if heldout is not None:
+        monkeypatch.setattr(prune_module, "heldout_figures", heldout)
+    recovered: list[int] = []
+
+    def recover(teacher_model, student, round_index):
+        assert teacher_model is teacher and student is not teacher
+        recovered.append(round_index)
+        return {"steps": 10 * round_index, "seconds": 0.5}
+
+    result = prune_loop(teacher, quant_data, held_out, config, tmp_path / "graphs", recover, eval_split="test")
+    return result, host, recovered
+
+
+def _fast(**fields) -> PruneConfig:
+    fields = {"threads": 1, "calib_windows": 1, "calib_frames": 2, "eval_frames": 6, "timing_steps": 10, **fields}
+    return PruneConfig(**fields)
+
+
+def _record(k: int, mpjpe: float, fraction: float = 1.0, corrected: float = 10.0, target: float = 8.0) -> dict:
+    return {"round": k, "heldout": {"mpjpe_mm": mpjpe}, "macs_fraction": fraction,
+            "measured_load_corrected_ms": corrected, "target_ms": target}
+
+
+def test_the_budget_the_target_and_the_chosen_round_by_hand() -> None:
+    base = _record(0, 100.0)
+    budget = PruneConfig(target_macs=0.5, budget_pct=2.0)
+    assert not _over_budget(_record(1, 102.0), base, budget)
+    assert _over_budget(_record(1, 102.001), base, budget)
+    assert not _over_budget(_record(1, 1e9), base, PruneConfig(target_macs=0.5))
+    assert _met(_record(1, 0, fraction=0.5), budget) and _met(_record(1, 0, fraction=0.5 + 5e-10), budget)
+    assert not _met(_record(1, 0, fraction=0.5001), budget)
+    latency = PruneConfig(target_latency_ms=8.0, budget_pct=2.0)
+    assert _met(_record(1, 0, corrected=8.0), latency) and not _met(_record(1, 0, corrected=8.01), latency)
+    # The first round that meets the target within the budget...
+    rounds = [base, _record(1, 101.0, 0.8), _record(2, 101.5, 0.5), _record(3, 101.9, 0.4)]
+    assert _best_round(rounds, base, budget) == 2
+    # ...a met round over the budget does not count, the last within it is chosen...
+    rounds = [base, _record(1, 101.0, 0.8), _record(2, 103.0, 0.5), _record(3, 101.9, 0.6)]
+    assert _best_round(rounds, base, budget) == 3
+    # ...and with none within it, the unpruned model.
+    assert _best_round([base, _record(1, 105.0, 0.4)], base, budget) == 0
+    assert not target_met({"rounds": [base], "best": 0}, budget)
+    assert target_met({"rounds": [base, _record(1, 100.0, 0.5)], "best": 1}, budget)
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"target_latency_pct": 100.0}, "(0, 100)%"),
+    ({"target_latency_pct": 0.0}, "(0, 100)%"),
+    ({"target_latency_ms": 0.0}, "must be positive"),
+    ({"target_macs": 0.5, "target_runtime": "tensorrt"}, "unknown --target-runtime 'tensorrt'"),
+    ({"target_macs": 0.5, "rounds": 0}, "--rounds must be >= 1"),
+    ({"target_macs": 0.5, "extra_rounds": -1}, "--extra-rounds and --steps >= 0"),
+    ({"target_macs": 0.5, "steps": -1}, "--extra-rounds and --steps >= 0"),
+    ({"target_macs": 0.5, "shrink": 1.0}, "--shrink must be in (0, 1)"),
+    ({"target_macs": 0.5, "shrink": 0.0}, "--shrink must be in (0, 1)"),
+    ({"target_macs": 0.5, "budget_pct": 0.0}, "--budget-pct must be positive"),
+    ({"target_macs": 0.5, "target_latency_pct": 50.0}, "exactly one target"),
+])
+def test_a_bad_config_is_one_clear_error(fields, message) -> None:
+    with pytest.raises(ConfigError) as err:
+        PruneConfig(**fields)
+    assert message in str(err.value)
+
+
+def test_the_edges_of_a_good_config_are_accepted() -> None:
+    for fields in ({"target_latency_pct": 99.9}, {"target_latency_pct": 0.1}, {"target_macs": 0.5, "rounds": 1,
+                   "extra_rounds": 0, "steps": 0, "shrink": 0.01, "budget_pct": 0.01, "target_runtime": "openvino"}):
+        PruneConfig(**fields)
+    assert PruneConfig(target_latency_pct=60.0).latency_target_ms(20.0) == pytest.approx(12.0)
+    assert PruneConfig(target_latency_ms=7.5).latency_target_ms(20.0) == 7.5
+    assert PruneConfig(target_macs=0.5).latency_target_ms(20.0) is None
+    assert PruneConfig(target_macs=0.5).objective == "macs"
+    assert PruneConfig(target_latency_pct=60.0).objective == "latency"
+    assert PruneConfig(target_macs=0.5).to_dict()["target_macs"] == 0.5
+
+
+def test_calibration_windows_cycle_the_sequences_from_seeded_starts() -> None:
+    sequences = [SimpleNamespace(frames=n, lnes=np.arange(n * 2 * 3 * 4, dtype=np.float64).reshape(n, 2, 3, 4) + 1000 * i)
+                 for i, n in enumerate((10, 6))]
+    windows = calibration_windows(sequences, count=5, frames=4, seed=3)
+    assert windows.dtype == torch.float32 and windows.shape == (5, 4, 2, 3, 4)
+    rng = np.random.default_rng(3)
+    for k in range(5):
+        seq = sequences[k % 2]
+        start = int(rng.integers(0, seq.frames - 4))
+        np.testing.assert_array_equal(windows[k].numpy(), seq.lnes[start:start + 4])
+    # A sequence no longer than the window starts at 0 (never an empty draw).
+    short = [SimpleNamespace(frames=3, lnes=np.ones((3, 2, 3, 4)))]
+    assert calibration_windows(short, count=2, frames=4, seed=0).shape == (2, 3, 2, 3, 4)
+
+
+def test_heldout_figures_against_numpy() -> None:
+    rng = np.random.default_rng(0)
+    joints = 16
+    gts = [rng.normal(0, 300, (n, joints, 3)) for n in (7, 5)]
+    actions = [np.array([0, 0, 0, 1, 1, 1, 1]), np.array([1, 1, 1, 1, 1])]
+    sequences = [SimpleNamespace(j3d_mm=g.astype(np.float32), visible=np.ones((len(g), joints)), action=a)
+                 for g, a in zip(gts, actions)]
+    poses = [(g + rng.normal(0, 20, g.shape)).astype(np.float32) for g in gts]
+    teacher = [(p + rng.normal(0, 5, p.shape)).astype(np.float32) for p in poses]
+    figures = heldout_figures([p[:k] for p, k in zip(poses, (6, 5))], sequences, [t[:k] for t, k in zip(teacher, (6, 5))],
+                              ("walk", "run"))
+    pred = np.concatenate([poses[0][:6], poses[1]]).astype(np.float64)
+    gt = np.concatenate([gts[0][:6], gts[1]]).astype(np.float32).astype(np.float64)
+    err = np.linalg.norm(pred - gt, axis=-1).mean(axis=1)
+    action = np.concatenate([actions[0][:6], actions[1]])
+    assert figures["frames"] == 11
+    assert figures["mpjpe_frame_weighted_mm"] == pytest.approx(err.mean(), rel=1e-6)
+    # The per-action mean, as `e3dpsm evaluate` gives it: 3 frames of action 0, 8 of action 1.
+    assert figures["mpjpe_mm"] == pytest.approx((err[action == 0].mean() + err[action == 1].mean()) / 2, rel=1e-6)
+    to_teacher = np.linalg.norm(pred - np.concatenate([teacher[0][:6], teacher[1]]), axis=-1).mean()
+    assert figures["to_teacher_mm"] == pytest.approx(to_teacher, rel=1e-5)
+    assert "to_teacher_mm" not in heldout_figures(poses, sequences, None, ("walk", "run"))
+
+
+def test_streamed_poses_do_not_depend_on_the_chunk(teacher, held_out) -> None:
+    sequences = held_out.split("test")
+    window_ms = teacher.config.train_window_ms
+    whole = stream_poses(teacher, sequences, window_ms, max_frames=11, chunk=1000)
+    chunked = stream_poses(teacher, sequences, window_ms, max_frames=11, chunk=3)
+    assert [p.shape for p in whole] == [(min(11, s.frames), 16, 3) for s in sequences]
+    for a, b in zip(whole, chunked):
+        np.testing.assert_allclose(b, a, atol=1e-3)
+    # The state is carried across chunks: restarting it each chunk moves the poses.
+    restarted = np.concatenate([stream_poses(teacher, [SimpleNamespace(frames=3, lnes=sequences[0].lnes[s:s + 3])],
+                                             window_ms, max_frames=3)[0] for s in range(0, 9, 3)])
+    assert np.abs(restarted - whole[0][:9]).max() > 1e-2
+
+
+def test_the_int8_figures_and_a_recovery_without_steps() -> None:
+    check = {"data": "runs/prep/val", "by_runtime": {"onnxruntime": {
+        "frames": 100, "within": True, "metrics": {"mpjpe": {"value_mm": 101.0, "fp32_mm": 100.0, "change_pct": 1.0}}}}}
+    assert run_module._int8_figures(check) == {"split": "val", "frames": 100, "mpjpe_mm": 101.0, "fp32_mpjpe_mm": 100.0,
+                                              "loss_pct": 1.0, "within_budget": True}
+    recover = run_module.distill_recovery("no/such/data", _fast(target_macs=0.5, steps=0), progress=False)
+    assert recover(None, None, 1) == {"steps": 0, "seconds": 0.0}
+
+
+
+def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeypatch, teacher, quant_data,
+                                                                          held_out, tmp_path) -> None:
+    config = _fast(target_macs=0.6, rounds=2, extra_rounds=2)
+    result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path)
+    rounds, base_macs = result["rounds"], total_macs(teacher)
+    assert result["base_macs"] == base_macs == rounds[0]["macs"]
+    assert rounds[0]["macs_fraction"] == 1.0 and rounds[0]["heldout"]["to_teacher_mm"] == 0.0
+    assert rounds[0]["measured_ms"] == pytest.approx(base_macs / 1e6 * MS_PER_MMAC, rel=1e-12)
+    # Met at the last planned round: no extra round, and each round was recovered once.
+    assert len(rounds) == 3 and recovered == [1, 2]
+    for k in (1, 2):
+        record = rounds[k]
+        assert record["round_target"] == pytest.approx(base_macs * 0.6 ** (k / 2), rel=1e-12)
+        assert record["aim"] == record["round_target"]
+        assert record["macs"] == total_macs(result["models"][k])
+        assert record["macs_fraction"] == pytest.approx(record["macs"] / base_macs, rel=1e-12)
+        assert record["cuts"] and record["recovery"] == {"steps": 10 * k, "seconds": 0.5}
+        sim = host.step_ms(Path(record["graph"]))
+        assert record["measured_side_by_side_ms"] == pytest.approx({"unpruned": rounds[0]["measured_ms"], "pruned": sim})
+        assert record["speedup_side_by_side"] == pytest.approx(rounds[0]["measured_ms"] / sim, rel=1e-12)
+        assert record["target_ms"] is None
+    assert rounds[1]["macs"] < base_macs and rounds[2]["macs"] < rounds[1]["macs"]
+    assert rounds[2]["macs_fraction"] <= 0.6
+    assert result["best"] == 2 and target_met(result, config)
+
+
+def test_a_latency_target_is_read_against_the_unpruned_step_timed_beside_it(monkeypatch, teacher, quant_data,
+                                                                           held_out, tmp_path) -> None:
+    # The host runs twice as slow in round 1's timing and 1.5x in round 2's: the pruned step
+    # is read against the unpruned one timed beside it, in the units of the first timing.
+    loads = [1.0, 2.0, 1.5, 1.25]
+    config = _fast(target_latency_pct=70.0, rounds=2, extra_rounds=2)
+    result, host, _ = _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path)
+    rounds = result["rounds"]
+    base_ms = rounds[0]["measured_ms"]
+    final = 0.7 * base_ms
+    correction = 1.0
+    for k, record in enumerate(rounds[1:], start=1):
+        sim = host.step_ms(Path(record["graph"]))
+        load = loads[k]
+        assert record["measured_side_by_side_ms"]["pruned"] == pytest.approx(load * sim, rel=1e-12)
+        assert record["measured_load_corrected_ms"] == pytest.approx(sim * base_ms / host.step_ms(Path(rounds[0]["graph"])),
+                                                                     rel=1e-12)
+        assert record["target_ms"] == pytest.approx(final, rel=1e-12)
+        target = base_ms * 0.7 ** (k / 2) if k <= 2 else final
+        assert record["round_target"] == pytest.approx(target, rel=1e-12)
+        # The latency model's error last round tightens this round's aim, never loosens it.
+        assert record["aim"] == pytest.approx(target / correction, rel=1e-12)
+        predicted = record["predicted_ms"]
+        assert record["predicted_vs_measured"]["ratio"] == pytest.approx(record["measured_load_corrected_ms"] / predicted)
+        correction = max(record["measured_load_corrected_ms"] / predicted, 1.0)
+    met = [r["round"] for r in rounds[1:] if r["measured_load_corrected_ms"] <= r["target_ms"]]
+    assert met and result["best"] == met[0] and target_met(result, config)
+    # The loop stops at the first round at or after the last planned one that meets the target.
+    assert rounds[-1]["round"] == max(met[0], config.rounds)
+    # Corrected by more than 1 somewhere: the simulated host's step is not the profile's model.
+    assert any(r["aim"] < r["round_target"] for r in rounds[2:])
+
+
+def test_a_round_over_the_accuracy_budget_ends_the_loop_and_is_never_chosen(monkeypatch, teacher, quant_data,
+                                                                            held_out, tmp_path) -> None:
+    real = prune_module.heldout_figures
+
+    def worse_when_pruned(poses, sequences, teacher_poses, action_names=()):
+        figures = real(poses, sequences, teacher_poses, action_names)
+        if teacher_poses is not None:  # a pruned round: 10% worse than the unpruned
+            figures["mpjpe_mm"] *= 1.10
+        return figures
+
+    config = _fast(target_macs=0.5, rounds=2, extra_rounds=0, budget_pct=9.9)
+    result, _, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path,
+                                     heldout=worse_when_pruned)
+    assert recovered == [1] and len(result["rounds"]) == 2
+    assert result["best"] == 0 and not target_met(result, config)
+
+
+def test_an_unmet_target_chooses_the_last_round_within_the_budget(monkeypatch, teacher, quant_data, held_out,
+                                                                  tmp_path) -> None:
+    config = _fast(target_macs=0.05, rounds=1, extra_rounds=1)
+    result, _, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path)
+    assert recovered == [1, 2]
+    assert result["rounds"][2]["round_target"] == pytest.approx(0.05 * result["base_macs"])
+    assert result["rounds"][2]["macs_fraction"] > 0.05
+    assert result["best"] == 2 and not target_met(result, config)
+
+
+def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch, teacher, quant_data, tmp_path) -> None:
+    from e3dpsm.checkpoint import load_checkpoint
+
+    host = SimulatedHost([])
+    for module in (prune_module, run_module):
+        monkeypatch.setattr(module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    config = _fast(target_macs=0.6, rounds=2, extra_rounds=0)
+    out = tmp_path / "pruned"
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data, eval_split="test",
+                                   int8=False, progress=False,
+                                   recover=lambda t, s, k: {"steps": 7 * k, "seconds": 0.25, "ignored": 1})
+    report = json.loads((out / "report.json").read_text())
+    assert report["best"] == summary["best"] == 2 and report["met"] is True
+    assert report["recovery_seconds"] == 0.5
+    for r in report["rounds"]:
+        graph = out / r["graph"]
+        assert not Path(r["graph"]).is_absolute() and graph.is_file()
+        assert r["onnx_bytes"] == graph.stat().st_size
+    assert set(report["final_timing_ms"]) == {f"r{k}_{rt}_fp32" for k in range(3) for rt in ("ort", "ov")}
+    model, extras = load_checkpoint(out / "checkpoint.pt")
+    assert total_macs(model) == report["rounds"][2]["macs"]
+    assert extras["step"] == 7 * 1 + 7 * 2  # the distillation steps of rounds 1 and 2
+    assert extras["prune"]["round"] == 2 and extras["prune"]["source"] == str(TRAINED_TINY)
+    assert extras["prune"]["cuts"] == [report["rounds"][1]["cuts"], report["rounds"][2]["cuts"]]
+    assert (out / "report.md").is_file() and (out / "front.png").is_file()
