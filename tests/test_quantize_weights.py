@@ -141,6 +141,19 @@ def test_a_weight_another_node_also_reads_stays_float() -> None:
     assert info["weight_bytes_float"] == weights["conv_w"].nbytes
 
 
+def test_a_weight_a_weighted_node_reads_as_its_data_stays_float() -> None:
+    """Where a node reads a weight counts, not only which node: `mm_w` as a MatMul's first
+    input (its data) as well as the weight of two others keeps its float tensor."""
+    model, _ = _toy()
+    graph = model.graph
+    graph.initializer.append(numpy_helper.from_array(np.ones((7, 2), np.float32), "right"))
+    graph.node.append(helper.make_node("MatMul", ["mm_w", "right"], ["mm_w_right"]))
+    quantised, info = weight_only_int8(model)
+    stored = {i.name for i in quantised.graph.initializer}
+    assert "mm_w" in stored and "mm_w__int8" not in stored
+    assert {"conv_w__int8", "gemm_w__int8", "right__int8"} <= stored and info["weights_int8"] == 3
+
+
 def test_weight_only_refuses_an_exclude_list() -> None:
     from e3dpsm.errors import ConfigError
     from e3dpsm.quantize.options import QuantizeOptions
