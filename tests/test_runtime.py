@@ -271,6 +271,26 @@ def test_run_is_one_library_call_that_writes_what_the_command_writes(tiny_graph,
     assert result.summary[0].endswith(f"-> {tmp_path / 'lib.csv'}")
 
 
+def test_the_summary_line_and_the_progress_bar(tiny_graph, stream, tmp_path, capsys):
+    from e3dpsm.runtime.run_command import RunRequest, run_poses
+
+    events = write_npz(tmp_path / "events.npz", *stream)
+    request = dict(model=str(tiny_graph[1]), events=(str(events),), threads=1, chunk_events=500)
+    plain = run_poses(RunRequest(**request, out=tmp_path / "plain.csv"))
+    r = plain.report
+    assert plain.summary == (f"{r['windows']} poses ({r['empty_windows']} empty windows, {r['events']} events) at "
+                             f"{r['mean_step_ms']:.2f} ms/step + {r['overhead_ms']:.2f} ms runtime overhead "
+                             f"-> {tmp_path / 'plain.csv'}",)
+    capsys.readouterr()
+    shown = run_poses(RunRequest(**request, out=tmp_path / "bar.csv", progress=True))
+    bar = capsys.readouterr().err
+    assert (tmp_path / "bar.csv").read_text() == (tmp_path / "plain.csv").read_text()
+    assert shown.report["windows"] == r["windows"]
+    # The bar counts every event of the file, in the chunks the stream was read in.
+    total = stream[2].size
+    assert total > 500 and re.search(rf"run: 100%\|[^|]*\| {total / 1000:.2f}k/{total / 1000:.2f}k ", bar), bar
+
+
 @pytest.mark.parametrize("fields, words", [
     ({"events": ("a.h5", "dv://h:1")}, "a live dv:// source runs alone"),
     ({"events": ("dv://h:1",), "render": "x.gif"}, "not available for a live dv:// source"),
