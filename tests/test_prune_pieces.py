@@ -156,6 +156,24 @@ def test_the_edges_of_a_good_config_are_accepted() -> None:
     assert PruneConfig(target_macs=0.5).to_dict()["target_macs"] == 0.5
 
 
+def test_the_commands_defaults_are_the_configs_and_the_config_is_frozen() -> None:
+    """The command writes its defaults again (its module must not import torch): they agree."""
+    import argparse
+    import dataclasses
+
+    from e3dpsm.cli.prune import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["prune", "--checkpoint", "c.pt", "--out", "o", "--target-macs", "0.5"])
+    config = PruneConfig(target_macs=0.5)
+    for name in ("target_runtime", "rounds", "extra_rounds", "shrink", "steps", "labels", "budget_pct", "seed",
+                 "timing_steps", "eval_frames", "lr", "target_latency_ms"):
+        assert getattr(args, name) == getattr(config, name), name
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.rounds = 5
+
+
 def test_calibration_windows_cycle_the_sequences_from_seeded_starts() -> None:
     sequences = [SimpleNamespace(frames=n, lnes=np.arange(n * 2 * 3 * 4, dtype=np.float64).reshape(n, 2, 3, 4) + 1000 * i)
                  for i, n in enumerate((10, 6))]
@@ -241,6 +259,12 @@ def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeyp
         assert record["speedup_side_by_side"] == pytest.approx(rounds[0]["measured_ms"] / sim, rel=1e-12)
         assert record["target_ms"] is None
     assert rounds[1]["macs"] < base_macs and rounds[2]["macs"] < rounds[1]["macs"]
+    # Every narrowing candidate keeps half its width, in multiples of 4 channels (plan._aligned).
+    narrowed = [c for r in rounds[1:] for c in r["candidates"] if c["width"]]
+    assert narrowed
+    for c in narrowed:
+        old = c["old_width"]
+        assert c["width"] == (max(4, old // 8 * 4) if old > 4 else max(1, old // 2)), c
     assert rounds[2]["macs_fraction"] <= 0.6
     assert result["best"] == 2 and target_met(result, config)
 
