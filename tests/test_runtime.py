@@ -291,6 +291,24 @@ def test_the_summary_line_and_the_progress_bar(tiny_graph, stream, tmp_path, cap
     assert total > 500 and re.search(rf"run: 100%\|[^|]*\| {total / 1000:.2f}k/{total / 1000:.2f}k ", bar), bar
 
 
+def test_the_documented_defaults_of_run_are_the_requests(tiny_graph, stream, tmp_path):
+    """docs/bad-input.md: silences over 60 s are refused by default; docs/cameras.md: a live
+    source waits 5 s."""
+    from e3dpsm.errors import DataError
+    from e3dpsm.runtime.run_command import LIVE_TIMEOUT_S, RunRequest, run_poses
+
+    x, y, t, p = stream
+    late = t.copy()
+    late[len(t) // 2:] += 60_500_000  # a silence of 60.5 s (and a bit) in the middle
+    events = write_npz(tmp_path / "events.npz", x, y, late, p)
+    with pytest.raises(DataError, match=r"are 60\.5\d* s apart: .* pass --max-gap-s 61 "):
+        run_poses(RunRequest(model=str(tiny_graph[1]), events=(str(events),), out=tmp_path / "p.csv", threads=1))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["events.npz"]
+    cameras = (Path(__file__).parents[1] / "docs" / "cameras.md").read_text(encoding="utf-8")
+    assert f"no events from dv://... for {LIVE_TIMEOUT_S:g} s" in cameras
+    assert f"no stream header came within {LIVE_TIMEOUT_S:g} s" in cameras
+
+
 @pytest.mark.parametrize("fields, words", [
     ({"events": ("a.h5", "dv://h:1")}, "a live dv:// source runs alone"),
     ({"events": ("dv://h:1",), "render": "x.gif"}, "not available for a live dv:// source"),
