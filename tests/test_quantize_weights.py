@@ -154,6 +154,24 @@ def test_a_weight_a_weighted_node_reads_as_its_data_stays_float() -> None:
     assert {"conv_w__int8", "gemm_w__int8", "right__int8"} <= stored and info["weights_int8"] == 3
 
 
+def test_a_vector_or_half_precision_weight_is_left_and_the_nodes_after_it_are_not() -> None:
+    """No output-channel axis (a MatMul by a vector) or not float32: the weight stays as it is,
+    and the weighted nodes after it are still rebuilt."""
+    model, _ = _toy()
+    graph = model.graph
+    graph.initializer.extend([numpy_helper.from_array(np.ones(7, np.float32), "vector"),
+                              numpy_helper.from_array(np.ones((7, 3), np.float16), "half")])
+    skipped = [helper.make_node("MatMul", ["y", "vector"], ["yv"]), helper.make_node("MatMul", ["y", "half"], ["yh"])]
+    nodes = skipped + list(graph.node)  # first, so every rebuilt weight's node comes after them
+    del graph.node[:]
+    graph.node.extend(nodes)
+    quantised, info = weight_only_int8(model)
+    stored = {i.name: i for i in quantised.graph.initializer}
+    assert {"vector", "half"} <= set(stored) and not {"vector__int8", "half__int8"} & set(stored)
+    assert stored["half"].data_type == TensorProto.FLOAT16
+    assert info["weights_int8"] == 3 and {"conv_w__int8", "gemm_w__int8", "mm_w__int8"} <= set(stored)
+
+
 def test_weight_only_refuses_an_exclude_list() -> None:
     from e3dpsm.errors import ConfigError
     from e3dpsm.quantize.options import QuantizeOptions
