@@ -125,23 +125,34 @@ def test_the_budget_the_target_and_the_chosen_round_by_hand() -> None:
     assert target_met({"rounds": [base, _record(1, 100.0, 0.5)], "best": 1}, budget)
 
 
+ONE_TARGET = "give exactly one target: --target-macs FRACTION or --target-latency-ms MS (or PCT%)"
+PCT = "--target-latency-ms as a percentage of the unpruned step must be in (0, 100)%, got "
+STEPS = "--rounds must be >= 1, --extra-rounds and --steps >= 0"
+
+
 @pytest.mark.parametrize("fields, message", [
-    ({"target_latency_pct": 100.0}, "(0, 100)%"),
-    ({"target_latency_pct": 0.0}, "(0, 100)%"),
-    ({"target_latency_ms": 0.0}, "must be positive"),
-    ({"target_macs": 0.5, "target_runtime": "tensorrt"}, "unknown --target-runtime 'tensorrt'"),
-    ({"target_macs": 0.5, "rounds": 0}, "--rounds must be >= 1"),
-    ({"target_macs": 0.5, "extra_rounds": -1}, "--extra-rounds and --steps >= 0"),
-    ({"target_macs": 0.5, "steps": -1}, "--extra-rounds and --steps >= 0"),
-    ({"target_macs": 0.5, "shrink": 1.0}, "--shrink must be in (0, 1)"),
-    ({"target_macs": 0.5, "shrink": 0.0}, "--shrink must be in (0, 1)"),
-    ({"target_macs": 0.5, "budget_pct": 0.0}, "--budget-pct must be positive"),
-    ({"target_macs": 0.5, "target_latency_pct": 50.0}, "exactly one target"),
+    ({"target_latency_pct": 100.0}, PCT + "100%"),
+    ({"target_latency_pct": 0.0}, PCT + "0%"),
+    ({"target_macs": 1.0}, "--target-macs is a fraction of the unpruned MACs in (0, 1), got 1.0"),
+    ({"target_macs": 0.0}, "--target-macs is a fraction of the unpruned MACs in (0, 1), got 0.0"),
+    ({"target_latency_ms": 0.0}, "--target-latency-ms must be positive, got 0.0"),
+    ({"target_macs": 0.5, "target_runtime": "tensorrt"},
+     "unknown --target-runtime 'tensorrt'; choose from ['onnxruntime', 'openvino']"),
+    ({"target_macs": 0.5, "rounds": 0}, STEPS),
+    ({"target_macs": 0.5, "extra_rounds": -1}, STEPS),
+    ({"target_macs": 0.5, "steps": -1}, STEPS),
+    ({"target_macs": 0.5, "shrink": 1.0}, "--shrink must be in (0, 1), got 1.0"),
+    ({"target_macs": 0.5, "shrink": 0.0}, "--shrink must be in (0, 1), got 0.0"),
+    ({"target_macs": 0.5, "budget_pct": 0.0}, "--budget-pct must be positive, got 0.0"),
+    ({"target_macs": 0.5, "target_latency_pct": 50.0}, ONE_TARGET),
+    ({"target_macs": 0.5, "target_latency_ms": 5.0}, ONE_TARGET),
+    ({"target_latency_ms": 5.0, "target_latency_pct": 50.0}, ONE_TARGET),
+    ({}, ONE_TARGET),
 ])
 def test_a_bad_config_is_one_clear_error(fields, message) -> None:
     with pytest.raises(ConfigError) as err:
         PruneConfig(**fields)
-    assert message in str(err.value)
+    assert str(err.value) == message
 
 
 def test_the_edges_of_a_good_config_are_accepted() -> None:
