@@ -6,7 +6,7 @@ Torch-free, like the one-file form.
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 from e3dpsm.runtime.run_command import RunResult
 from e3dpsm.runtime.run_output import check_gaps, report_path, stream_report, write_pose_csv
@@ -44,13 +44,13 @@ def run_live(request: RunRequest) -> RunResult:
     return RunResult(report, (f"{report['windows']} poses from {url} ({source.events} events; {reason}) -> {out}",))
 
 
-def _chunks(source: LiveEventSource, max_seconds: float | None, max_gap_s: float,
-            window_ms: float) -> Iterator[EventChunk]:
-    deadline = None if max_seconds is None else time.monotonic() + max_seconds
+def _chunks(source: LiveEventSource, max_seconds: float | None, max_gap_s: float, window_ms: float,
+            clock: Callable[[], float] = time.monotonic) -> Iterator[EventChunk]:
+    deadline = None if max_seconds is None else clock() + max_seconds
     last_us = None
     for chunk in source:
         check_gaps(chunk.t_us, max_gap_s, window_ms, source.url, previous_us=last_us)
         last_us = int(chunk.t_us[-1]) if len(chunk) else last_us
         yield chunk.x, chunk.y, chunk.t_us, chunk.p
-        if deadline is not None and time.monotonic() >= deadline:
+        if deadline is not None and clock() >= deadline:
             return
