@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -110,7 +111,8 @@ def test_cli_gif_has_one_frame_per_pose_and_aligned_ground_truth(graph, sequence
         # The prediction is drawn on top and may hide a few joints; most must show.
         assert is_gt[v, u].sum() >= 12, f"window ending {t_us}: ground truth not at its projected joints"
     assert with_gt == WINDOWS - len(GT_GAP)
-    assert f"render: {WINDOWS} frames, {with_gt} with ground truth" in capsys.readouterr().out
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-1] == f"render: {WINDOWS} frames, {with_gt} with ground truth -> {gif}"
 
 
 @pytest.mark.parametrize("scale", [1.0, 0.5])
@@ -220,7 +222,10 @@ def test_failed_run_writes_no_render_and_cap_keeps_the_first_frames(graph, seque
                  "--render", str(tmp_path / "b.gif"), "--render-max-frames", "4", "--no-progress"])
     assert code == 0
     assert len(gif_frames(tmp_path / "b.gif")) == 4 and len(csv_times(tmp_path / "b.csv")) == WINDOWS
-    assert f"the first 4 of {WINDOWS} poses" in capsys.readouterr().out
+    printed = capsys.readouterr().out.splitlines()
+    with_gt = int(re.search(r", (\d+) with ground truth", printed[-1]).group(1))
+    assert printed[-1] == (f"render: 4 frames (the first 4 of {WINDOWS} poses), {with_gt} with ground truth "
+                           f"-> {tmp_path / 'b.gif'}") and 0 < with_gt <= 4
 
 
 def test_render_clip_for_reports(graph, sequence, tmp_path):

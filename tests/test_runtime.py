@@ -288,7 +288,8 @@ def test_the_summary_line_and_the_progress_bar(tiny_graph, stream, tmp_path, cap
     assert shown.report["windows"] == r["windows"]
     # The bar counts every event of the file, in the chunks the stream was read in.
     total = stream[2].size
-    assert total > 500 and re.search(rf"run: 100%\|[^|]*\| {total / 1000:.2f}k/{total / 1000:.2f}k ", bar), bar
+    assert total > 500 and re.search(rf"(^|\r)run: 100%\|[^|]*\| {total / 1000:.2f}k/{total / 1000:.2f}k \[[^\]]*ev/s\]",
+                                     bar), bar
 
 
 def test_the_documented_defaults_of_run_are_the_requests(tiny_graph, stream, tmp_path):
