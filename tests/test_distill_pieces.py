@@ -52,6 +52,25 @@ def test_the_edges_of_a_good_config_are_accepted() -> None:
     assert DistillConfig(qat=True, qat_full_integer=True).qat_config.full_integer
 
 
+def test_the_commands_defaults_are_the_configs_and_the_config_is_frozen() -> None:
+    """The command writes its defaults again (its module must not import torch): they agree."""
+    import argparse
+    import dataclasses
+
+    from e3dpsm.cli.distill import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["distill", "--teacher", "t.pt", "--student", "tiny", "--data", "d", "--out", "o"])
+    config = DistillConfig()
+    for name in ("steps", "seq_len", "batch_size", "lr", "warmup_steps", "labels", "seed", "causal", "stream_windows",
+                 "freeze_norm_stats", "qat", "qat_full_integer", "qat_range_init", "qat_calibration_windows",
+                 "qat_float_outputs", "qat_weight_bits", "qat_ranges_only"):
+        assert getattr(args, name) == getattr(config, name), name
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.steps = 5
+
+
 def _outputs(seed: int, batch: int = 2, frames: int = 3, joints: int = 4) -> dict[str, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     return {k: 50 * torch.randn(batch, frames, joints, 3, generator=g) for k in ("pose", "pose_direct", "pose_delta")}
