@@ -156,7 +156,8 @@ def test_a_bad_config_is_one_clear_error(fields, message) -> None:
 
 
 def test_the_edges_of_a_good_config_are_accepted() -> None:
-    for fields in ({"target_latency_pct": 99.9}, {"target_latency_pct": 0.1}, {"target_macs": 0.5, "rounds": 1,
+    for fields in ({"target_latency_pct": 99.9}, {"target_latency_pct": 0.1}, {"target_latency_ms": 0.5},
+                   {"target_macs": 0.5, "rounds": 1,
                    "extra_rounds": 0, "steps": 0, "shrink": 0.01, "budget_pct": 0.01, "target_runtime": "openvino"}):
         PruneConfig(**fields)
     assert PruneConfig(target_latency_pct=60.0).latency_target_ms(20.0) == pytest.approx(12.0)
