@@ -16,7 +16,7 @@ from e3dpsm.data import live as live_module
 from e3dpsm.data.readers import read_events
 from e3dpsm.data.sequence import EventStream
 from e3dpsm.errors import DataError
-from e3dpsm.runtime.run_command import RunRequest, run_poses
+from e3dpsm.runtime.run_command import LIVE_TIMEOUT_S, RunRequest, run_poses
 from e3dpsm.runtime.run_live import _chunks
 
 URL = "dv://127.0.0.1:7777"
@@ -95,8 +95,9 @@ def test_the_live_form_writes_what_the_file_form_writes(monkeypatch, graph, reco
 
 def test_a_source_that_ends_without_a_reason_ended_at_the_deadline(monkeypatch, graph, recording, tmp_path) -> None:
     stream = read_events(recording)
-    _serve(monkeypatch, ScriptedSource(_split(stream, [900]), None, sensor_hw=stream.sensor_hw))
+    opened = _serve(monkeypatch, ScriptedSource(_split(stream, [900]), None, sensor_hw=stream.sensor_hw))
     result = run_poses(RunRequest(model=str(graph), events=(URL,), out=tmp_path / "p.csv", threads=1, max_seconds=3.0))
+    assert opened == [(URL, LIVE_TIMEOUT_S)]  # the request's default connect and silence bound
     assert result.report["live"]["stopped"] == "--max-seconds 3 reached"
     assert result.report["live"]["max_seconds"] == 3.0
     assert result.summary[0].endswith(f"({len(stream)} events; --max-seconds 3 reached) -> {tmp_path / 'p.csv'}")

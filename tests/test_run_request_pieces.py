@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from e3dpsm.errors import ConfigError, DataError, OutputExistsError
-from e3dpsm.runtime.run_command import RunRequest, run_poses
+from e3dpsm.runtime.run_command import RunRequest, RunResult, run_poses
 
 
 def _request(tmp_path: Path, **fields) -> RunRequest:
@@ -46,6 +46,8 @@ def test_the_edges_are_accepted_and_the_request_is_normalised_and_frozen(tmp_pat
     assert RunRequest(model="m", events=("a.h5",), out="p.csv", render="v.mp4", render_max_frames=1).render == "v.mp4"
     with pytest.raises(dataclasses.FrozenInstanceError):
         request.force = True
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        RunResult({}, ()).summary = ("changed",)
 
 
 def test_the_output_is_checked_before_the_model_is_opened(tmp_path) -> None:
