@@ -36,6 +36,8 @@ class SimulatedHost:
     def __init__(self, loads: list[float]) -> None:
         self.loads = list(loads)  # one per side-by-side run, in call order; 1.0 after
         self.timed: list[dict[str, float]] = []
+        self.runtimes: set[str] = set()
+        self.frames: list[tuple[int, np.dtype]] = []  # (rows, dtype) of each timing's frames
 
     @staticmethod
     def step_ms(graph: Path) -> float:
@@ -50,6 +52,8 @@ class SimulatedHost:
         load = self.loads.pop(0) if self.loads else 1.0
         out = {label: load * self.step_ms(path) for label, (_, path) in graphs.items()}
         self.timed.append(out)
+        self.runtimes |= {runtime for runtime, _ in graphs.values()}
+        self.frames.append((frames.shape[0], frames.dtype))
         return out
 
     @staticmethod
@@ -75,7 +79,8 @@ def held_out(quant_data):
     return PreparedData.open(quant_data)
 
 
-def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path, heldout=None):
+def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path, heldout=None,
+              work: Path | None = None):
     host = SimulatedHost(loads)
     monkeypatch.setattr(prune_module, "export_fp32", host.export)
     monkeypatch.setattr(prune_module, "time_graphs", host.time)
@@ -89,7 +94,7 @@ def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_pat
         recovered.append(round_index)
         return {"steps": 10 * round_index, "seconds": 0.5}
 
-    result = prune_loop(teacher, quant_data, held_out, config, tmp_path / "graphs", recover, eval_split="test")
+    result = prune_loop(teacher, quant_data, held_out, config, work or tmp_path / "graphs", recover, eval_split="test")
     return result, host, recovered
 
 
@@ -252,7 +257,12 @@ def test_the_int8_figures_and_a_recovery_without_steps() -> None:
 def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeypatch, teacher, quant_data,
                                                                           held_out, tmp_path) -> None:
     config = _fast(target_macs=0.6, rounds=2, extra_rounds=2)
-    result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path)
+    work = tmp_path / "run" / "graphs"  # its parent made too
+    result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path, work=work)
+    assert [Path(r["graph"]) for r in result["rounds"]] == [work / f"round{k}.onnx" for k in range(3)]
+    assert host.runtimes == {"onnxruntime"}
+    frames = min(200, held_out.split("test")[0].frames)
+    assert host.frames == [(frames, np.float32)] * 3  # the held-out split's first frames, every timing
     rounds, base_macs = result["rounds"], total_macs(teacher)
     assert result["base_macs"] == base_macs == rounds[0]["macs"]
     assert rounds[0]["macs_fraction"] == 1.0 and rounds[0]["heldout"]["to_teacher_mm"] == 0.0
@@ -286,8 +296,10 @@ def test_a_latency_target_is_read_against_the_unpruned_step_timed_beside_it(monk
     # The host runs twice as slow in round 1's timing and 1.5x in round 2's: the pruned step
     # is read against the unpruned one timed beside it, in the units of the first timing.
     loads = [1.0, 2.0, 1.5, 1.25]
-    config = _fast(target_latency_pct=70.0, rounds=2, extra_rounds=2)
+    config = _fast(target_latency_pct=70.0, rounds=2, extra_rounds=2, target_runtime="openvino")
+    (tmp_path / "graphs").mkdir()  # a folder that is there already is used as it is
     result, host, _ = _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path)
+    assert host.runtimes == {"openvino"}
     rounds = result["rounds"]
     base_ms = rounds[0]["measured_ms"]
     final = 0.7 * base_ms
@@ -360,7 +372,7 @@ def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch
     for r in report["rounds"]:
         graph = out / r["graph"]
         assert not Path(r["graph"]).is_absolute() and graph.is_file()
-        assert r["onnx_bytes"] == graph.stat().st_size
+        assert r["onnx_bytes"] == graph.stat().st_size and r["graph"] == f"graphs/round{r['round']}.onnx"
     assert set(report["final_timing_ms"]) == {f"r{k}_{rt}_fp32" for k in range(3) for rt in ("ort", "ov")}
     model, extras = load_checkpoint(out / "checkpoint.pt")
     assert total_macs(model) == report["rounds"][2]["macs"]
@@ -368,3 +380,47 @@ def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch
     assert extras["prune"]["round"] == 2 and extras["prune"]["source"] == str(TRAINED_TINY)
     assert extras["prune"]["cuts"] == [report["rounds"][1]["cuts"], report["rounds"][2]["cuts"]]
     assert (out / "report.md").is_file() and (out / "front.png").is_file()
+
+def test_time_graphs_opens_each_graph_on_its_runtime_and_gives_median_ms(monkeypatch) -> None:
+    from e3dpsm.golden import verify
+    from e3dpsm.profiles import latency as latency_module
+    from e3dpsm.runtime import session as session_module
+
+    opened, timed = [], {}
+    monkeypatch.setattr(verify, "open_runner", lambda path, runtime, threads: opened.append((path, runtime, threads))
+                        or (path, runtime))
+    monkeypatch.setattr(session_module, "CarriedStateRunner", lambda runner, window_ms: (runner, window_ms))
+
+    def side_by_side(runners, frames, steps, warmup, chunk):
+        timed.update(runners=runners, steps=steps, warmup=warmup, chunk=chunk)
+        return {"a": np.array([0.003, 0.001, 0.002]), "b": np.array([0.010, 0.030, 0.020, 0.040])}
+
+    monkeypatch.setattr(latency_module, "measure_side_by_side", side_by_side)
+    frames = np.zeros((5, 2, 4, 4), np.float32)
+    got = prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx")), "b": ("openvino", Path("b.onnx"))},
+                                   frames, 20.0, threads=3, steps=250)
+    assert got == pytest.approx({"a": 2.0, "b": 25.0})
+    assert opened == [(Path("a.onnx"), "onnxruntime", 3), (Path("b.onnx"), "openvino", 3)]
+    assert timed["runners"] == {"a": ((Path("a.onnx"), "onnxruntime"), 20.0), "b": ((Path("b.onnx"), "openvino"), 20.0)}
+    # A tenth of the steps warm up, ten at least; the runners take turns every 20 steps.
+    assert (timed["steps"], timed["warmup"], timed["chunk"]) == (250, 25, 20)
+    prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx"))}, frames, 20.0, threads=1, steps=50)
+    assert timed["warmup"] == 10
+
+
+def test_the_profile_is_of_a_quarter_of_the_timed_steps_scaled_to_the_unprofiled_run(monkeypatch, teacher) -> None:
+    calls = {}
+
+    def profile_units(graph, units, frames, window_ms, threads, steps):
+        calls.update(graph=graph, units=[u.name for u in units], window_ms=window_ms, threads=threads, steps=steps)
+        return LatencyProfile(10.0, 8.0, 40, {"u": UnitLatency(2.0, 4)})
+
+    monkeypatch.setattr(prune_module, "profile_units", profile_units)
+    frames = np.zeros((3, 2, 4, 4), np.float32)
+    profile = prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=400,
+                                                                               threads=2), run_ms=15.0)
+    assert calls == {"graph": Path("g.onnx"), "units": [u.name for u in prunable_units(teacher.config)],
+                     "window_ms": 20.0, "threads": 2, "steps": 100}
+    assert (profile.run_ms, profile.kernel_ms, profile.units["u"].kernel_ms) == pytest.approx((15.0, 12.0, 3.0))
+    prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=40), run_ms=15.0)
+    assert calls["steps"] == 30  # thirty at least
