@@ -4,6 +4,7 @@ restarts. The runs themselves are in test_distill.py."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -69,6 +70,25 @@ def test_the_commands_defaults_are_the_configs_and_the_config_is_frozen() -> Non
         assert getattr(args, name) == getattr(config, name), name
     with pytest.raises(dataclasses.FrozenInstanceError):
         config.steps = 5
+
+
+def test_the_documented_loss_and_schedule_are_the_defaults() -> None:
+    """docs/compress.md: weights 1, 1, 1 on Charbonnier distances with eps 1 mm; the schedule's
+    floor (5%) and the gradient clipping (1.0) are `train`'s."""
+    from e3dpsm.training.trainer import TrainArgs
+
+    student, teacher = _outputs(4), _outputs(5)
+    total, terms = distill_loss(student, teacher, DistillConfig())
+    by_hand = {k: _charbonnier_by_hand(student[k], teacher[k], 1.0) for k in ("pose", "pose_direct")}
+    by_hand["pose_delta"] = _charbonnier_by_hand(student["pose_delta"][:, 1:], teacher["pose_delta"][:, 1:], 1.0)
+    assert total.item() == pytest.approx(sum(by_hand.values()), rel=1e-5)
+    assert terms["fused"].item() == pytest.approx(by_hand["pose"], rel=1e-5)
+    assert DistillConfig().weight_labels == 1.0  # `--labels gt` adds train's pose loss as it is
+    train = TrainArgs()
+    assert (DistillConfig().min_lr_ratio, DistillConfig().clip_norm) == (train.min_lr_ratio, train.clip_norm)
+    docs = (Path(__file__).parents[1] / "docs" / "compress.md").read_text(encoding="utf-8")
+    assert "with weights 1, 1, 1" in docs and "+ 1 mm^2) - 1 mm" in docs
+    assert f"cosine decay to {train.min_lr_ratio:.0%}" in docs and f"clipping at\n{train.clip_norm}" in docs
 
 
 def _outputs(seed: int, batch: int = 2, frames: int = 3, joints: int = 4) -> dict[str, torch.Tensor]:
