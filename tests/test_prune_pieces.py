@@ -254,6 +254,80 @@ def test_the_int8_figures_and_a_recovery_without_steps() -> None:
 
 
 
+def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch, teacher, quant_data, tmp_path) -> None:
+    from e3dpsm.checkpoint import load_checkpoint
+
+    host = SimulatedHost([])
+    for module in (prune_module, run_module):
+        monkeypatch.setattr(module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    config = _fast(target_macs=0.6, rounds=2, extra_rounds=0)
+    out = tmp_path / "pruned"
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data, eval_split="test",
+                                   int8=False, progress=False,
+                                   recover=lambda t, s, k: {"steps": 7 * k, "seconds": 0.25, "ignored": 1})
+    report = json.loads((out / "report.json").read_text())
+    assert report["best"] == summary["best"] == 2 and report["met"] is True
+    assert report["recovery_seconds"] == 0.5
+    for r in report["rounds"]:
+        graph = out / r["graph"]
+        assert not Path(r["graph"]).is_absolute() and graph.is_file()
+        assert r["onnx_bytes"] == graph.stat().st_size and r["graph"] == f"graphs/round{r['round']}.onnx"
+    assert set(report["final_timing_ms"]) == {f"r{k}_{rt}_fp32" for k in range(3) for rt in ("ort", "ov")}
+    model, extras = load_checkpoint(out / "checkpoint.pt")
+    assert total_macs(model) == report["rounds"][2]["macs"]
+    assert extras["step"] == 7 * 1 + 7 * 2  # the distillation steps of rounds 1 and 2
+    assert extras["prune"]["round"] == 2 and extras["prune"]["source"] == str(TRAINED_TINY)
+    assert extras["prune"]["cuts"] == [report["rounds"][1]["cuts"], report["rounds"][2]["cuts"]]
+    assert (out / "report.md").is_file() and (out / "front.png").is_file()
+
+def test_time_graphs_opens_each_graph_on_its_runtime_and_gives_median_ms(monkeypatch) -> None:
+    from e3dpsm.golden import verify
+    from e3dpsm.profiles import latency as latency_module
+    from e3dpsm.runtime import session as session_module
+
+    opened, timed = [], {}
+    monkeypatch.setattr(verify, "open_runner", lambda path, runtime, threads: opened.append((path, runtime, threads))
+                        or (path, runtime))
+    monkeypatch.setattr(session_module, "CarriedStateRunner", lambda runner, window_ms: (runner, window_ms))
+
+    def side_by_side(runners, frames, steps, warmup, chunk):
+        timed.update(runners=runners, steps=steps, warmup=warmup, chunk=chunk)
+        return {"a": np.array([0.003, 0.001, 0.002]), "b": np.array([0.010, 0.030, 0.020, 0.040])}
+
+    monkeypatch.setattr(latency_module, "measure_side_by_side", side_by_side)
+    frames = np.zeros((5, 2, 4, 4), np.float32)
+    got = prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx")), "b": ("openvino", Path("b.onnx"))},
+                                   frames, 20.0, threads=3, steps=250)
+    assert got == pytest.approx({"a": 2.0, "b": 25.0})
+    assert opened == [(Path("a.onnx"), "onnxruntime", 3), (Path("b.onnx"), "openvino", 3)]
+    assert timed["runners"] == {"a": ((Path("a.onnx"), "onnxruntime"), 20.0), "b": ((Path("b.onnx"), "openvino"), 20.0)}
+    # A tenth of the steps warm up, ten at least; the runners take turns every 20 steps.
+    assert (timed["steps"], timed["warmup"], timed["chunk"]) == (250, 25, 20)
+    prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx"))}, frames, 20.0, threads=1, steps=50)
+    assert timed["warmup"] == 10
+
+
+def test_the_profile_is_of_a_quarter_of_the_timed_steps_scaled_to_the_unprofiled_run(monkeypatch, teacher) -> None:
+    calls = {}
+
+    def profile_units(graph, units, frames, window_ms, threads, steps):
+        calls.update(graph=graph, units=[u.name for u in units], window_ms=window_ms, threads=threads, steps=steps)
+        return LatencyProfile(10.0, 8.0, 40, {"u": UnitLatency(2.0, 4)})
+
+    monkeypatch.setattr(prune_module, "profile_units", profile_units)
+    frames = np.zeros((3, 2, 4, 4), np.float32)
+    profile = prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=400,
+                                                                               threads=2), run_ms=15.0)
+    assert calls == {"graph": Path("g.onnx"), "units": [u.name for u in prunable_units(teacher.config)],
+                     "window_ms": 20.0, "threads": 2, "steps": 100}
+    assert (profile.run_ms, profile.kernel_ms, profile.units["u"].kernel_ms) == pytest.approx((15.0, 12.0, 3.0))
+    prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=40), run_ms=15.0)
+    assert calls["steps"] == 30  # thirty at least
+
+
+
 def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeypatch, teacher, quant_data,
                                                                           held_out, tmp_path) -> None:
     config = _fast(target_macs=0.6, rounds=2, extra_rounds=2)
@@ -351,76 +425,3 @@ def test_an_unmet_target_chooses_the_last_round_within_the_budget(monkeypatch, t
     assert result["rounds"][2]["round_target"] == pytest.approx(0.05 * result["base_macs"])
     assert result["rounds"][2]["macs_fraction"] > 0.05
     assert result["best"] == 2 and not target_met(result, config)
-
-
-def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch, teacher, quant_data, tmp_path) -> None:
-    from e3dpsm.checkpoint import load_checkpoint
-
-    host = SimulatedHost([])
-    for module in (prune_module, run_module):
-        monkeypatch.setattr(module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
-    config = _fast(target_macs=0.6, rounds=2, extra_rounds=0)
-    out = tmp_path / "pruned"
-    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data, eval_split="test",
-                                   int8=False, progress=False,
-                                   recover=lambda t, s, k: {"steps": 7 * k, "seconds": 0.25, "ignored": 1})
-    report = json.loads((out / "report.json").read_text())
-    assert report["best"] == summary["best"] == 2 and report["met"] is True
-    assert report["recovery_seconds"] == 0.5
-    for r in report["rounds"]:
-        graph = out / r["graph"]
-        assert not Path(r["graph"]).is_absolute() and graph.is_file()
-        assert r["onnx_bytes"] == graph.stat().st_size and r["graph"] == f"graphs/round{r['round']}.onnx"
-    assert set(report["final_timing_ms"]) == {f"r{k}_{rt}_fp32" for k in range(3) for rt in ("ort", "ov")}
-    model, extras = load_checkpoint(out / "checkpoint.pt")
-    assert total_macs(model) == report["rounds"][2]["macs"]
-    assert extras["step"] == 7 * 1 + 7 * 2  # the distillation steps of rounds 1 and 2
-    assert extras["prune"]["round"] == 2 and extras["prune"]["source"] == str(TRAINED_TINY)
-    assert extras["prune"]["cuts"] == [report["rounds"][1]["cuts"], report["rounds"][2]["cuts"]]
-    assert (out / "report.md").is_file() and (out / "front.png").is_file()
-
-def test_time_graphs_opens_each_graph_on_its_runtime_and_gives_median_ms(monkeypatch) -> None:
-    from e3dpsm.golden import verify
-    from e3dpsm.profiles import latency as latency_module
-    from e3dpsm.runtime import session as session_module
-
-    opened, timed = [], {}
-    monkeypatch.setattr(verify, "open_runner", lambda path, runtime, threads: opened.append((path, runtime, threads))
-                        or (path, runtime))
-    monkeypatch.setattr(session_module, "CarriedStateRunner", lambda runner, window_ms: (runner, window_ms))
-
-    def side_by_side(runners, frames, steps, warmup, chunk):
-        timed.update(runners=runners, steps=steps, warmup=warmup, chunk=chunk)
-        return {"a": np.array([0.003, 0.001, 0.002]), "b": np.array([0.010, 0.030, 0.020, 0.040])}
-
-    monkeypatch.setattr(latency_module, "measure_side_by_side", side_by_side)
-    frames = np.zeros((5, 2, 4, 4), np.float32)
-    got = prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx")), "b": ("openvino", Path("b.onnx"))},
-                                   frames, 20.0, threads=3, steps=250)
-    assert got == pytest.approx({"a": 2.0, "b": 25.0})
-    assert opened == [(Path("a.onnx"), "onnxruntime", 3), (Path("b.onnx"), "openvino", 3)]
-    assert timed["runners"] == {"a": ((Path("a.onnx"), "onnxruntime"), 20.0), "b": ((Path("b.onnx"), "openvino"), 20.0)}
-    # A tenth of the steps warm up, ten at least; the runners take turns every 20 steps.
-    assert (timed["steps"], timed["warmup"], timed["chunk"]) == (250, 25, 20)
-    prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx"))}, frames, 20.0, threads=1, steps=50)
-    assert timed["warmup"] == 10
-
-
-def test_the_profile_is_of_a_quarter_of_the_timed_steps_scaled_to_the_unprofiled_run(monkeypatch, teacher) -> None:
-    calls = {}
-
-    def profile_units(graph, units, frames, window_ms, threads, steps):
-        calls.update(graph=graph, units=[u.name for u in units], window_ms=window_ms, threads=threads, steps=steps)
-        return LatencyProfile(10.0, 8.0, 40, {"u": UnitLatency(2.0, 4)})
-
-    monkeypatch.setattr(prune_module, "profile_units", profile_units)
-    frames = np.zeros((3, 2, 4, 4), np.float32)
-    profile = prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=400,
-                                                                               threads=2), run_ms=15.0)
-    assert calls == {"graph": Path("g.onnx"), "units": [u.name for u in prunable_units(teacher.config)],
-                     "window_ms": 20.0, "threads": 2, "steps": 100}
-    assert (profile.run_ms, profile.kernel_ms, profile.units["u"].kernel_ms) == pytest.approx((15.0, 12.0, 3.0))
-    prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=40), run_ms=15.0)
-    assert calls["steps"] == 30  # thirty at least
