@@ -92,6 +92,7 @@ def test_the_documented_loss_and_schedule_are_the_defaults() -> None:
     assert (DistillConfig().min_lr_ratio, DistillConfig().clip_norm) == (train.min_lr_ratio, train.clip_norm)
     docs = (Path(__file__).parents[1] / "docs" / "compress.md").read_text(encoding="utf-8")
     assert "with weights 1, 1, 1" in docs and "+ 1 mm^2) - 1 mm" in docs
+    assert f"the teacher's poses on the first {DistillConfig().prior_windows} windows" in docs
     assert f"cosine decay to {train.min_lr_ratio:.0%}" in docs and f"clipping at\n{train.clip_norm}" in docs
 
 
