@@ -299,12 +299,12 @@ def test_time_graphs_opens_each_graph_on_its_runtime_and_gives_median_ms(monkeyp
     monkeypatch.setattr(latency_module, "measure_side_by_side", side_by_side)
     frames = np.zeros((5, 2, 4, 4), np.float32)
     got = prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx")), "b": ("openvino", Path("b.onnx"))},
-                                   frames, 20.0, threads=3, steps=250)
+                                   frames, 20.0, threads=3, steps=255)
     assert got == pytest.approx({"a": 2.0, "b": 25.0})
     assert opened == [(Path("a.onnx"), "onnxruntime", 3), (Path("b.onnx"), "openvino", 3)]
     assert timed["runners"] == {"a": ((Path("a.onnx"), "onnxruntime"), 20.0), "b": ((Path("b.onnx"), "openvino"), 20.0)}
     # A tenth of the steps warm up, ten at least; the runners take turns every 20 steps.
-    assert (timed["steps"], timed["warmup"], timed["chunk"]) == (250, 25, 20)
+    assert (timed["steps"], timed["warmup"], timed["chunk"]) == (255, 25, 20) and isinstance(timed["warmup"], int)
     prune_module.time_graphs({"a": ("onnxruntime", Path("a.onnx"))}, frames, 20.0, threads=1, steps=50)
     assert timed["warmup"] == 10
 
@@ -318,10 +318,11 @@ def test_the_profile_is_of_a_quarter_of_the_timed_steps_scaled_to_the_unprofiled
 
     monkeypatch.setattr(prune_module, "profile_units", profile_units)
     frames = np.zeros((3, 2, 4, 4), np.float32)
-    profile = prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=400,
+    profile = prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=402,
                                                                                threads=2), run_ms=15.0)
     assert calls == {"graph": Path("g.onnx"), "units": [u.name for u in prunable_units(teacher.config)],
                      "window_ms": 20.0, "threads": 2, "steps": 100}
+    assert isinstance(calls["steps"], int)  # a whole number of steps
     assert (profile.run_ms, profile.kernel_ms, profile.units["u"].kernel_ms) == pytest.approx((15.0, 12.0, 3.0))
     prune_module._profile(Path("g.onnx"), teacher, frames, 20.0, _fast(target_macs=0.5, timing_steps=40), run_ms=15.0)
     assert calls["steps"] == 30  # thirty at least
