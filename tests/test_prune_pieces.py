@@ -352,6 +352,7 @@ def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeyp
         assert record["macs_fraction"] == pytest.approx(record["macs"] / base_macs, rel=1e-12)
         assert record["cuts"] and record["recovery"] == {"steps": 10 * k, "seconds": 0.5}
         assert 0 <= record["seconds_plan"] <= record["seconds"]
+        assert all(record[k] == round(record[k], 2) for k in ("seconds_plan", "seconds"))  # hundredths, as reported
         sim = host.step_ms(Path(record["graph"]))
         assert record["measured_side_by_side_ms"] == pytest.approx({"unpruned": rounds[0]["measured_ms"], "pruned": sim})
         assert record["speedup_side_by_side"] == pytest.approx(rounds[0]["measured_ms"] / sim, rel=1e-12)
