@@ -393,7 +393,9 @@ def test_a_latency_target_is_read_against_the_unpruned_step_timed_beside_it(monk
         # The latency model's error last round tightens this round's aim, never loosens it.
         assert record["aim"] == pytest.approx(target / correction, rel=1e-12)
         predicted = record["predicted_ms"]
-        assert record["predicted_vs_measured"]["ratio"] == pytest.approx(record["measured_load_corrected_ms"] / predicted)
+        corrected = record["measured_load_corrected_ms"]
+        assert record["predicted_vs_measured"] == pytest.approx(
+            {"predicted_ms": predicted, "measured_ms": corrected, "ratio": corrected / predicted}, rel=1e-12)
         correction = max(record["measured_load_corrected_ms"] / predicted, 1.0)
     met = [r["round"] for r in rounds[1:] if r["measured_load_corrected_ms"] <= r["target_ms"]]
     assert met and result["best"] == met[0] and target_met(result, config)
