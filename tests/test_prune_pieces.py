@@ -116,6 +116,7 @@ def test_the_budget_the_target_and_the_chosen_round_by_hand() -> None:
     assert not _over_budget(_record(1, 1e9), base, PruneConfig(target_macs=0.5))
     assert _met(_record(1, 0, fraction=0.5), budget) and _met(_record(1, 0, fraction=0.5 + 5e-10), budget)
     assert not _met(_record(1, 0, fraction=0.5001), budget)
+    assert _met(_record(1, 0, fraction=0.5 + 1e-9), budget) and not _met(_record(1, 0, fraction=0.5 + 1.5e-9), budget)
     latency = PruneConfig(target_latency_ms=8.0, budget_pct=2.0)
     assert _met(_record(1, 0, corrected=8.0), latency) and not _met(_record(1, 0, corrected=8.01), latency)
     # The first round that meets the target within the budget...
@@ -124,9 +125,14 @@ def test_the_budget_the_target_and_the_chosen_round_by_hand() -> None:
     # ...a met round over the budget does not count, the last within it is chosen...
     rounds = [base, _record(1, 101.0, 0.8), _record(2, 103.0, 0.5), _record(3, 101.9, 0.6)]
     assert _best_round(rounds, base, budget) == 3
+    assert _best_round([base, _record(1, 100.5, 0.5), _record(2, 101.0, 0.4)], base, budget) == 1
+    # ...the last of several within it when none meets the target...
+    rounds = [base, _record(1, 101.0, 0.8), _record(2, 101.5, 0.7), _record(3, 101.9, 0.6)]
+    assert _best_round(rounds, base, budget) == 3
     # ...and with none within it, the unpruned model.
     assert _best_round([base, _record(1, 105.0, 0.4)], base, budget) == 0
     assert not target_met({"rounds": [base], "best": 0}, budget)
+    assert not target_met({"rounds": [_record(0, 100.0, 0.4)], "best": 0}, budget)  # round 0 is never a cut
     assert target_met({"rounds": [base, _record(1, 100.0, 0.5)], "best": 1}, budget)
 
 
