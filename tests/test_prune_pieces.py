@@ -9,6 +9,7 @@ correction of the next aim, the stopping rules and the round chosen.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -94,7 +95,10 @@ def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_pat
         recovered.append(round_index)
         return {"steps": 10 * round_index, "seconds": 0.5}
 
+    started = time.perf_counter()
     result = prune_loop(teacher, quant_data, held_out, config, work or tmp_path / "graphs", recover, eval_split="test")
+    # The rounds' own seconds add up to no more than the loop took, on the same clock.
+    assert sum(r["seconds"] for r in result["rounds"][1:]) <= time.perf_counter() - started + 0.01 * len(result["rounds"])
     return result, host, recovered
 
 
