@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import numpy as np
 import pytest
 
 from e3dpsm.cli import main
+
+if TYPE_CHECKING:
+    import torch
 
 HW = ("--height", "96", "--width", "128")
 FAST_TRAIN = ("--variant", "tiny", "--seq-len", "3", "--batch-size", "2", "--warmup-steps", "1",
@@ -51,3 +56,19 @@ def training_runs(prepared_small: Path, tmp_path_factory: pytest.TempPathFactory
     assert main(["train", "--data", str(prepared_small), "--out", str(root / "resumed"), "--resume",
                  "--no-progress", "--variant", "tiny"]) == 0
     return {"full": root / "full", "resumed": root / "resumed", "step4": root / "step4.pt"}
+
+
+def numpy_terms(student: dict[str, torch.Tensor], teacher: dict[str, torch.Tensor], eps: float) -> dict[str, float]:
+    """The documented loss, written independently: Charbonnier distance per joint, in mm."""
+    def charbonnier(a: np.ndarray, b: np.ndarray) -> float:
+        out = np.empty(a.shape[:-1])
+        for index in np.ndindex(*a.shape[:-1]):  # explicit loop over batch, frame, joint
+            d = a[index].astype(np.float64) - b[index].astype(np.float64)
+            out[index] = np.sqrt(d @ d + eps * eps) - eps
+        return float(out.mean())
+
+    s = {k: v.detach().numpy() for k, v in student.items()}
+    t = {k: v.detach().numpy() for k, v in teacher.items()}
+    return {"fused": charbonnier(s["pose"], t["pose"]),
+            "direct": charbonnier(s["pose_direct"], t["pose_direct"]),
+            "delta": charbonnier(s["pose_delta"][:, 1:], t["pose_delta"][:, 1:])}

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from _training_helpers import numpy_terms
 from e3dpsm.compress.distill import DistillConfig, distill, teacher_mean_pose
 from e3dpsm.data.prepared import PreparedData
 from e3dpsm.errors import ConfigError, DataError
@@ -30,22 +31,6 @@ def make_teacher(seed: int = 1) -> torch.nn.Module:
 
 def state_copy(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in model.state_dict().items()}
-
-
-def numpy_terms(student: dict[str, torch.Tensor], teacher: dict[str, torch.Tensor], eps: float) -> dict[str, float]:
-    """The documented loss, written independently: Charbonnier distance per joint, in mm."""
-    def charbonnier(a: np.ndarray, b: np.ndarray) -> float:
-        out = np.empty(a.shape[:-1])
-        for index in np.ndindex(*a.shape[:-1]):  # explicit loop over batch, frame, joint
-            d = a[index].astype(np.float64) - b[index].astype(np.float64)
-            out[index] = np.sqrt(d @ d + eps * eps) - eps
-        return float(out.mean())
-
-    s = {k: v.detach().numpy() for k, v in student.items()}
-    t = {k: v.detach().numpy() for k, v in teacher.items()}
-    return {"fused": charbonnier(s["pose"], t["pose"]),
-            "direct": charbonnier(s["pose_direct"], t["pose_direct"]),
-            "delta": charbonnier(s["pose_delta"][:, 1:], t["pose_delta"][:, 1:])}
 
 
 @pytest.mark.parametrize("causal", [False, True])

@@ -3,12 +3,12 @@ edges, the loss's terms and weights by hand, the pair check, and the lanes a str
 restarts. The runs themselves are in test_distill.py."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest
 import torch
 
+from _training_helpers import numpy_terms
 from e3dpsm.compress.distill import DistillConfig, check_pair, distill_loss, distill_terms, restart_lanes
 from e3dpsm.errors import ConfigError
 from e3dpsm.models import create_model
@@ -82,11 +82,10 @@ def test_the_documented_loss_and_schedule_are_the_defaults() -> None:
 
     student, teacher = _outputs(4), _outputs(5)
     total, terms = distill_loss(student, teacher, DistillConfig())
-    by_hand = {k: _charbonnier_by_hand(student[k], teacher[k], 1.0) for k in ("pose", "pose_direct")}
-    by_hand["pose_delta"] = _charbonnier_by_hand(student["pose_delta"][:, 1:], teacher["pose_delta"][:, 1:], 1.0)
+    by_hand = numpy_terms(student, teacher, 1.0)
     assert total.item() == pytest.approx(sum(by_hand.values()), rel=1e-5)
-    assert terms["fused"].item() == pytest.approx(by_hand["pose"], rel=1e-5)
-    assert distill_terms(student, teacher)["direct"].item() == pytest.approx(by_hand["pose_direct"], rel=1e-5)
+    assert terms["fused"].item() == pytest.approx(by_hand["fused"], rel=1e-5)
+    assert distill_terms(student, teacher)["direct"].item() == pytest.approx(by_hand["direct"], rel=1e-5)
     assert DistillConfig().weight_labels == 1.0  # `--labels gt` adds train's pose loss as it is
     train = TrainArgs()
     assert (DistillConfig().min_lr_ratio, DistillConfig().clip_norm) == (train.min_lr_ratio, train.clip_norm)
@@ -101,22 +100,10 @@ def _outputs(seed: int, batch: int = 2, frames: int = 3, joints: int = 4) -> dic
     return {k: 50 * torch.randn(batch, frames, joints, 3, generator=g) for k in ("pose", "pose_direct", "pose_delta")}
 
 
-def _charbonnier_by_hand(a: torch.Tensor, b: torch.Tensor, eps: float) -> float:
-    values = []
-    for index in torch.cartesian_prod(*[torch.arange(n) for n in a.shape[:-1]]):
-        d = a[tuple(index)].double() - b[tuple(index)].double()
-        values.append(math.sqrt(float(d @ d) + eps * eps) - eps)
-    return sum(values) / len(values)
-
-
 def test_the_terms_are_charbonnier_distances_and_the_delta_skips_each_windows_first_frame() -> None:
     student, teacher = _outputs(0), _outputs(1)
     terms = distill_terms(student, teacher, eps_mm=2.0)
-    assert terms["fused"].item() == pytest.approx(_charbonnier_by_hand(student["pose"], teacher["pose"], 2.0), rel=1e-5)
-    assert terms["direct"].item() == pytest.approx(
-        _charbonnier_by_hand(student["pose_direct"], teacher["pose_direct"], 2.0), rel=1e-5)
-    assert terms["delta"].item() == pytest.approx(
-        _charbonnier_by_hand(student["pose_delta"][:, 1:], teacher["pose_delta"][:, 1:], 2.0), rel=1e-5)
+    assert {k: v.item() for k, v in terms.items()} == pytest.approx(numpy_terms(student, teacher, 2.0), rel=1e-6)
     moved_first = {**student, "pose_delta": student["pose_delta"].clone()}
     moved_first["pose_delta"][:, 0] += 1000.0
     assert distill_terms(moved_first, teacher, 2.0)["delta"].item() == pytest.approx(terms["delta"].item(), rel=1e-6)
@@ -132,10 +119,10 @@ def test_the_loss_weighs_the_three_terms() -> None:
     student, teacher = _outputs(2), _outputs(3)
     config = DistillConfig(weight_fused=0.5, weight_direct=2.0, weight_delta=3.0, charbonnier_mm=0.5)
     total, terms = distill_loss(student, teacher, config)
-    by_hand = distill_terms(student, teacher, 0.5)
-    assert {k: v.item() for k, v in terms.items()} == pytest.approx({k: v.item() for k, v in by_hand.items()})
-    assert total.item() == pytest.approx(0.5 * by_hand["fused"].item() + 2.0 * by_hand["direct"].item()
-                                         + 3.0 * by_hand["delta"].item(), rel=1e-6)
+    by_hand = numpy_terms(student, teacher, 0.5)
+    assert {k: v.item() for k, v in terms.items()} == pytest.approx(by_hand, rel=1e-6)
+    assert total.item() == pytest.approx(0.5 * by_hand["fused"] + 2.0 * by_hand["direct"] + 3.0 * by_hand["delta"],
+                                         rel=1e-6)
 
 
 def test_a_pair_must_be_two_models_with_one_input_and_joints() -> None:
