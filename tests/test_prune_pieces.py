@@ -9,6 +9,7 @@ correction of the next aim, the stopping rules and the round chosen.
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -440,3 +441,159 @@ def test_an_unmet_target_chooses_the_last_round_within_the_budget(monkeypatch, t
     assert result["rounds"][2]["round_target"] == pytest.approx(0.05 * result["base_macs"])
     assert result["rounds"][2]["macs_fraction"] > 0.05
     assert result["best"] == 2 and not target_met(result, config)
+
+def test_the_timing_frames_are_the_first_held_out_sequences_first_200_as_float32() -> None:
+    long, other = (SimpleNamespace(lnes=np.arange(n * 2 * 3, dtype=np.float16).reshape(n, 2, 3) + n) for n in (250, 9))
+    frames = prune_module.timing_frames([long, other])
+    assert frames.dtype == np.float32 and frames.shape == (200, 2, 3)
+    np.testing.assert_array_equal(frames, long.lnes[:200].astype(np.float32))
+    np.testing.assert_array_equal(prune_module.timing_frames([other, long]), other.lnes.astype(np.float32))
+
+
+def test_distillation_recovers_each_round_with_its_own_seed(monkeypatch) -> None:
+    from e3dpsm.compress import distill as distill_module
+
+    calls = []
+
+    def fake_distill(teacher, student, data_dir, cfg, progress):
+        calls.append((teacher, student, data_dir, cfg, progress))
+        student.train()
+        return {"steps": cfg.steps, "seconds": 1.5, "seconds_per_step": 0.01, "final": {"loss": 1.0},
+                "initial": {"loss": 2.0}, "history": [1, 2], "lr": 9.0}
+
+    monkeypatch.setattr(distill_module, "distill", fake_distill)
+    config = _fast(target_macs=0.5, steps=150, labels="gt", seed=11, threads=3, lr=1e-3)
+    recover = run_module.distill_recovery("prep", config, progress=True)
+    teacher, student = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
+    assert recover(teacher, student, 2) == {"steps": 150, "seconds": 1.5, "seconds_per_step": 0.01,
+                                            "final": {"loss": 1.0}, "initial": {"loss": 2.0}}
+    assert not student.training  # left in eval mode for the round's export and figures
+    (t, s, data_dir, cfg, progress), = calls
+    assert (t, s, data_dir, progress) == (teacher, student, "prep", True)
+    assert (cfg.steps, cfg.labels, cfg.seed, cfg.threads, cfg.lr) == (150, "gt", 13, 3, 1e-3)
+
+
+def _renamed_splits(quant_data: Path, tmp_path: Path, names: dict[str, str]) -> Path:
+    import shutil
+
+    copy = tmp_path / "renamed"
+    shutil.copytree(quant_data, copy)
+    meta = json.loads((copy / "meta.json").read_text())
+    for entry in meta["sequences"]:
+        entry["split"] = names[entry["split"]]
+    (copy / "meta.json").write_text(json.dumps(meta))
+    return copy
+
+
+@pytest.mark.parametrize("names, calib, holdout", [
+    ({"train": "train", "val": "val", "test": "test"}, "train", "val"),
+    ({"train": "a", "val": "b", "test": "c"}, "a", "c"),  # no train, no val: the first and the last split
+])
+def test_the_int8_graph_is_calibrated_on_train_and_checked_on_val(monkeypatch, quant_data, tmp_path, names, calib,
+                                                                    holdout) -> None:
+    import e3dpsm.quantize as quantize_package
+
+    calls = []
+    monkeypatch.setattr(quantize_package, "quantize_graph", lambda *a, **k: calls.append((a, k)))
+    data = _renamed_splits(quant_data, tmp_path, names)
+    q = run_module._int8(Path("g.onnx"), data, tmp_path / "q", 3)
+    assert q == tmp_path / "q" / "step_int8.onnx"
+    ((graph, data_arg, out, options), kwargs), = calls
+    assert (graph, data_arg, out, kwargs) == (Path("g.onnx"), data, tmp_path / "q", {"force": True})
+    assert (options.mode, options.exclude, options.frames, options.split, options.holdout_split, options.threads) == (
+        "int8", "recurrent", 100, calib, holdout, 3)
+    assert (options.advanced.holdout_frames, options.advanced.timing_steps) == (100, 20)
+
+
+def test_run_prune_times_every_round_and_the_int8_graphs_side_by_side(monkeypatch, teacher, quant_data,
+                                                                      tmp_path) -> None:
+    host = SimulatedHost([])
+    timings = []
+
+    def time_front(graphs, frames, window_ms, threads, steps):
+        timings.append((dict(graphs), frames, window_ms, threads, steps))
+        return host.time({k: v for k, v in graphs.items() if "int8" not in k}, frames, window_ms, threads, steps)
+
+    monkeypatch.setattr(prune_module, "time_graphs", host.time)
+    monkeypatch.setattr(run_module, "time_graphs", time_front)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    quantised = []
+
+    def fake_int8(graph, data, out, threads):
+        quantised.append((graph, data, out, threads))
+        out.mkdir(parents=True)
+        mpjpe = {"value_mm": 50.0 + len(quantised), "fp32_mm": 50.0, "change_pct": 2.0 * len(quantised)}
+        check = {"data": f"{data}/val", "by_runtime": {"onnxruntime": {"frames": 40, "within": len(quantised) == 1,
+                                                                        "metrics": {"mpjpe": mpjpe}}}}
+        (out / "report.json").write_text(json.dumps({"check": check}))
+        (out / "step_int8.onnx").write_text("q")
+        return out / "step_int8.onnx"
+
+    monkeypatch.setattr(run_module, "_int8", fake_int8)
+    config = _fast(target_macs=0.6, rounds=2, extra_rounds=0, threads=2, timing_steps=12)
+    out = tmp_path / "pruned"
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data, eval_split="test",
+                                   progress=False, recover=lambda t, s, k: {"steps": 1, "seconds": 0.26})
+    report = json.loads((out / "report.json").read_text())
+    assert report == json.loads(json.dumps(summary))
+    assert report["best"] == 2 and report["recovery_seconds"] == 0.5  # 0.52 to a tenth
+    work = out / "graphs"
+    # The unpruned and the chosen model are quantised (their fp32 graphs, the held-out data).
+    assert [(Path(g).name, d, Path(o).name, t) for g, d, o, t in quantised] == [
+        ("round0.onnx", quant_data, "round0_int8", 2), ("round2.onnx", quant_data, "round2_int8", 2)]
+    assert report["int8_graphs"] == {"0": "graphs/round0_int8/step_int8.onnx", "2": "graphs/round2_int8/step_int8.onnx"}
+    assert (work / "round2_int8" / "step_int8.onnx").is_file()
+    assert report["rounds"][0]["int8"] == {"split": "val", "frames": 40, "mpjpe_mm": 51.0, "fp32_mpjpe_mm": 50.0,
+                                           "loss_pct": 2.0, "within_budget": True}
+    assert report["rounds"][2]["int8"]["mpjpe_mm"] == 52.0 and "int8" not in report["rounds"][1]
+    # One run per runtime, each with every graph of its runtime, on the eval split's timing
+    # frames, twice the rounds' steps.
+    expected_frames = prune_module.timing_frames(PreparedData_split(quant_data, "test"))
+    assert [sorted(graphs) for graphs, *_ in timings] == [
+        ["r0_ort_fp32", "r0_ort_int8", "r1_ort_fp32", "r2_ort_fp32", "r2_ort_int8"],
+        ["r0_ov_fp32", "r0_ov_int8", "r1_ov_fp32", "r2_ov_fp32", "r2_ov_int8"]]
+    for graphs, frames, window_ms, threads, steps in timings:
+        assert {runtime for runtime, _ in graphs.values()} in ({"onnxruntime"}, {"openvino"})
+        for label, (_, graph) in graphs.items():  # under the run's temporary folder, renamed at the end
+            k, kind = label[1], label.rsplit("_", 1)[1]
+            expected = ("graphs", f"round{k}_int8", "step_int8.onnx") if kind == "int8" else ("graphs", f"round{k}.onnx")
+            assert graph.parts[-len(expected):] == expected
+        np.testing.assert_array_equal(frames, expected_frames)
+        assert (window_ms, threads, steps) == (20.0, 2, 24)
+    # The report records what ran: the command's own options beside the pruning config.
+    assert report["command"] == "prune" and report["config"] == {
+        "checkpoint": str(TRAINED_TINY), "data": str(quant_data), "out": str(out), "eval_data": str(quant_data),
+        "eval_split": "test", "int8": True, **config.to_dict()}
+    assert set(report["final_timing_ms"]) == {f"r{k}_{rt}_fp32" for k in range(3) for rt in ("ort", "ov")}
+    assert 0 <= report["seconds"] < 600 and report["front"]
+
+
+def PreparedData_split(root: Path, split: str):
+    from e3dpsm.data.prepared import PreparedData
+
+    return PreparedData.open(root).split(split)
+
+
+@pytest.mark.parametrize("which, message", [
+    ("data", "was prepared with 40 ms windows, but the model/graph expects 20 ms"),
+    ("eval_data", "was prepared with 40 ms windows, but the model/graph expects 20 ms"),
+    ("eval_split", "has no sequences in split 'nope'"),
+])
+def test_run_prune_refuses_data_that_does_not_fit_before_writing(quant_data, tmp_path, which, message) -> None:
+    from e3dpsm.errors import DataError
+
+    other = _renamed_splits(quant_data, tmp_path, {"train": "train", "val": "val", "test": "test"})
+    meta = json.loads((other / "meta.json").read_text())
+    meta["window_us"] = 40_000
+    (other / "meta.json").write_text(json.dumps(meta))
+    paths = {"data": quant_data, "eval_data": quant_data, "eval_split": "test", which: "nope" if which == "eval_split" else other}
+    out = tmp_path / "pruned"
+
+    def never(*_):
+        raise AssertionError("pruned before the data was checked")
+
+    with pytest.raises(DataError, match=re.escape(message)):
+        run_module.run_prune(TRAINED_TINY, paths["data"], out, _fast(target_macs=0.6), eval_data=paths["eval_data"],
+                             eval_split=paths["eval_split"], progress=False, recover=never)
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["renamed"]

@@ -166,6 +166,15 @@ def _profile(graph: Path, model: E3DPSM, frames: np.ndarray, window_ms: float, c
     return profile.scaled(run_ms)
 
 
+TIMING_FRAMES = 200  # the held-out frames every side-by-side timing cycles through
+
+
+def timing_frames(eval_seqs: list) -> np.ndarray:
+    """The frames the rounds and the final front are timed on: the first held-out sequence's
+    first TIMING_FRAMES, as float32 (the graphs' input type; the prepared frames are float16)."""
+    return np.asarray(eval_seqs[0].lnes[:TIMING_FRAMES], dtype=np.float32)
+
+
 def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneConfig, work: Path,
                recover: Callable[[E3DPSM, E3DPSM, int], dict[str, Any]],
                eval_split: str = "all", calib_split: str = "all") -> dict[str, Any]:
@@ -181,15 +190,15 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
     calib = calibration_windows(PreparedData.open(data_dir).split(calib_split), config.calib_windows,
                                 config.calib_frames, config.seed)
     eval_seqs = eval_data.split(eval_split)
-    timing_frames = np.asarray(eval_seqs[0].lnes[:200], dtype=np.float32)
+    frames = timing_frames(eval_seqs)
     teacher_poses = stream_poses(teacher, eval_seqs, window_ms, config.eval_frames)
     base_macs = total_macs(teacher)
     work.mkdir(parents=True, exist_ok=True)
     base_graph = export_fp32(teacher, work / "round0.onnx")
     base_runtime = "openvino" if config.target_runtime == "openvino" else "onnxruntime"
-    base_ms = time_graphs({"unpruned": (base_runtime, base_graph)}, timing_frames, window_ms, config.threads,
+    base_ms = time_graphs({"unpruned": (base_runtime, base_graph)}, frames, window_ms, config.threads,
                           config.timing_steps)["unpruned"]
-    base_profile = _profile(base_graph, teacher, timing_frames, window_ms, config, base_ms)
+    base_profile = _profile(base_graph, teacher, frames, window_ms, config, base_ms)
     base = {"round": 0, "measured_ms": base_ms, "macs": base_macs, "macs_fraction": 1.0, "params": teacher.num_parameters(),
             "macs_per_stage": macs_per_stage(teacher), "heldout": heldout_figures(teacher_poses, eval_seqs, None, eval_data.action_names),
             "profile": base_profile.to_dict(), "graph": str(base_graph)}
@@ -221,11 +230,11 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         recovery = recover(teacher, student, k)
         graph = export_fp32(student, work / f"round{k}.onnx")
         measured = time_graphs({"unpruned": (base_runtime, base_graph), "pruned": (base_runtime, graph)},
-                               timing_frames, window_ms, config.threads, config.timing_steps)
+                               frames, window_ms, config.threads, config.timing_steps)
         # Load drift on a shared CPU: the unpruned graph, timed beside this round's, is the clock
         # every step is read against, in the units of the unpruned step measured at the start.
         corrected_ms = measured["pruned"] * base_ms / measured["unpruned"]
-        profile = _profile(graph, student, timing_frames, window_ms, config, corrected_ms)
+        profile = _profile(graph, student, frames, window_ms, config, corrected_ms)
         poses = stream_poses(student, eval_seqs, window_ms, config.eval_frames)
         record = {
             "round": k, "round_target": round_target, "aim": aim, "cuts": widths,

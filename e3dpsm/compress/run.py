@@ -9,9 +9,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
-from e3dpsm.compress.prune import PruneConfig, prune_loop, target_met, time_graphs
+from e3dpsm.compress.prune import PruneConfig, prune_loop, target_met, time_graphs, timing_frames
 from e3dpsm.compress.report import front_rows, plot_front, render_markdown
 from e3dpsm.models import E3DPSM
 
@@ -101,7 +99,7 @@ def run_prune(checkpoint: str | os.PathLike, data: str | os.PathLike, out: str |
                 timed[f"r{k}_ort_int8"] = ("onnxruntime", q)
                 timed[f"r{k}_ov_int8"] = ("openvino", q)
                 int8_reports[k] = os.path.relpath(q, tmp)
-        frames = np.asarray(held_out.split(eval_split)[0].lnes[:200], dtype=np.float32)
+        frames = timing_frames(held_out.split(eval_split))
         # One interleaved run per runtime: OpenVINO's and ONNX Runtime's thread pools, alternating
         # in one process every few steps, disturbed each other's figures on a loaded 2-core host.
         final_timing = {}
@@ -116,7 +114,7 @@ def run_prune(checkpoint: str | os.PathLike, data: str | os.PathLike, out: str |
             "round": best, "source": str(checkpoint), "config": config.to_dict(),
             "cuts": [r["cuts"] for r in rounds[1:best + 1]]})
         summary = {
-            **header, "config": config.to_dict(), "best": best, "met": target_met(result, config),
+            **header, "best": best, "met": target_met(result, config),
             "base_macs": result["base_macs"], "rounds": rounds, "final_timing_ms": final_timing,
             "int8_graphs": int8_reports, "seconds": round(time.perf_counter() - started, 1),
             "recovery_seconds": round(sum((r.get("recovery") or {}).get("seconds", 0.0) for r in rounds), 1),
