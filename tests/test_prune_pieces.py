@@ -341,10 +341,14 @@ def test_the_profile_is_of_a_quarter_of_the_timed_steps_scaled_to_the_unprofiled
 
 
 def test_a_macs_target_follows_the_geometric_schedule_and_stops_when_met(monkeypatch, teacher, quant_data,
-                                                                          held_out, tmp_path) -> None:
+                                                                          held_out, tmp_path, caplog) -> None:
     config = _fast(target_macs=0.6, rounds=2, extra_rounds=2)
     work = tmp_path / "run" / "graphs"  # its parent made too
-    result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path, work=work)
+    with caplog.at_level("INFO", logger=prune_module.__name__):
+        result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path,
+                                            work=work)
+    # Met at the last planned step: the loop ends there, no later step is even considered.
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == ["round 1", "round 2"]
     assert [Path(r["graph"]) for r in result["rounds"]] == [work / f"round{k}.onnx" for k in range(3)]
     assert host.runtimes == {"onnxruntime"}
     frames = min(200, held_out.split("test")[0].frames)
@@ -441,6 +445,23 @@ def test_an_unmet_target_chooses_the_last_round_within_the_budget(monkeypatch, t
     assert result["rounds"][2]["round_target"] == pytest.approx(0.05 * result["base_macs"])
     assert result["rounds"][2]["macs_fraction"] > 0.05
     assert result["best"] == 2 and not target_met(result, config)
+
+
+def test_a_step_whose_target_an_earlier_round_overshot_is_skipped_not_the_end(monkeypatch, teacher, quant_data,
+                                                                              held_out, tmp_path) -> None:
+    # Targets 0.88, 0.775, 0.68, 0.6 of the unpruned MACs; round 1's cuts land at about 0.77,
+    # within the second step's target already: that step cuts nothing, the third and fourth do.
+    config = _fast(target_macs=0.6, rounds=4, extra_rounds=0)
+    result, host, recovered = _run_loop(monkeypatch, teacher, quant_data, held_out, config, [], tmp_path)
+    rounds, base_macs = result["rounds"], result["base_macs"]
+    assert rounds[1]["macs_fraction"] <= 0.6 ** (2 / 4)  # the overshoot this test is about
+    targets = [r["round_target"] / base_macs for r in rounds[1:]]
+    assert targets == pytest.approx([0.6 ** (1 / 4), 0.6 ** (3 / 4), 0.6])
+    assert [r["round"] for r in rounds] == [0, 1, 2, 3] and recovered == [1, 2, 3]
+    assert [Path(r["graph"]).name for r in rounds] == [f"round{k}.onnx" for k in range(4)]
+    assert len(host.timed) == 4  # the unpruned step, then one side-by-side timing per round that cut
+    assert result["best"] == 3 and rounds[3]["macs_fraction"] <= 0.6 and target_met(result, config)
+
 
 def test_the_timing_frames_are_the_first_held_out_sequences_first_200_as_float32() -> None:
     long, other = (SimpleNamespace(lnes=np.arange(n * 2 * 3, dtype=np.float16).reshape(n, 2, 3) + n) for n in (250, 9))

@@ -7,7 +7,9 @@ by distillation from the unpruned model (compress/distill.py: its fused, direct 
 poses, labels optional), then measure: export, time side by side with the unpruned graph,
 held-out MPJPE, distance to the teacher. A latency target is met when *measured*; if the
 last planned round misses it, extra rounds (up to `extra_rounds`) aim at the remaining
-gap, corrected by how far the latency model's last prediction was off.
+gap, corrected by how far the latency model's last prediction was off. A step of the schedule
+whose target an earlier round already overshot cuts nothing and is skipped; the rounds that
+cut are numbered 1, 2, ... in the order they ran (`round_target` says which target each aimed at).
 """
 from __future__ import annotations
 
@@ -218,17 +220,21 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         # The latency model's error last round (measured / predicted) tightens this round's aim.
         aim = round_target / correction if config.objective == "latency" else round_target
         current = total_macs(student) if config.objective == "macs" else profile.run_ms
+        if current <= aim:  # an earlier round overshot this step's target: on to the next, lower one
+            log.info("step %d of the schedule: already within its target", k)
+            continue
         candidates = measure_candidates(student, calib, window_ms, config.shrink, config.align, profile)
         units = prunable_units(student.config)
         widths, predicted = choose(candidates, units, config.objective, current, aim, profile)
         predicted_ms = predict_ms(profile, units, widths)
         if not widths:
-            log.info("round %d: nothing left to cut", k)
+            log.info("step %d of the schedule: nothing left to cut", k)
             break
+        number = len(rounds)
         student = prune_model(student, keep_lists(student, units, widths))
         t_plan = time.perf_counter() - t0
-        recovery = recover(teacher, student, k)
-        graph = export_fp32(student, work / f"round{k}.onnx")
+        recovery = recover(teacher, student, number)
+        graph = export_fp32(student, work / f"round{number}.onnx")
         measured = time_graphs({"unpruned": (base_runtime, base_graph), "pruned": (base_runtime, graph)},
                                frames, window_ms, config.threads, config.timing_steps)
         # Load drift on a shared CPU: the unpruned graph, timed beside this round's, is the clock
@@ -237,7 +243,7 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         profile = _profile(graph, student, frames, window_ms, config, corrected_ms)
         poses = stream_poses(student, eval_seqs, window_ms, config.eval_frames)
         record = {
-            "round": k, "round_target": round_target, "aim": aim, "cuts": widths,
+            "round": number, "round_target": round_target, "aim": aim, "cuts": widths,
             "candidates": [c.to_dict() for c in candidates],
             "macs": total_macs(student), "params": student.num_parameters(), "macs_per_stage": macs_per_stage(student),
             "predicted_ms": predicted_ms,
@@ -259,9 +265,9 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
         rounds.append(record)
         models.append(copy.deepcopy(student).eval())
         log.info("round %d: MACs %.3f of unpruned, step %.2f ms (unpruned %.2f ms side by side), held-out MPJPE %.2f mm",
-                 k, record["macs_fraction"], measured["pruned"], measured["unpruned"], record["heldout"]["mpjpe_mm"])
+                 number, record["macs_fraction"], measured["pruned"], measured["unpruned"], record["heldout"]["mpjpe_mm"])
         if _over_budget(record, base, config):
-            log.info("round %d exceeds the accuracy budget (%.1f%%): stopping", k, config.budget_pct)
+            log.info("round %d exceeds the accuracy budget (%.1f%%): stopping", number, config.budget_pct)
             break
         if k >= config.rounds and _met(record, config):
             break
