@@ -1,0 +1,45 @@
+"""A step `.pte` small enough to read in one line, written with ExecuTorch's own API (not the
+project's converter): the golden fakes' frame (2 x 4 x 4) and state `s` [6], the e3dpsm
+contract as the constant method `e3dpsm convert executorch` writes, and
+
+    pose      = 2 * lnes + window_ms
+    state_out = state_in + window_ms
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from _golden_fakes import FRAME, STATE, STATE_SHAPE
+
+
+def toy_pose(lnes: np.ndarray, window_ms: float | np.ndarray) -> np.ndarray:
+    return (2 * np.asarray(lnes, np.float32) + np.float32(window_ms)).astype(np.float32)
+
+
+def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: bool = True) -> bytes:
+    """The toy program's bytes; `version`: the ExecuTorch release its record names (default
+    this one's)."""
+    import torch
+    from executorch.exir import to_edge_transform_and_lower
+
+    from e3dpsm.graph_metadata import GraphMetadata
+    from e3dpsm.runtime.artifact_metadata import PTE_METHOD, encode
+    from e3dpsm.runtime.executorch_session import executorch_version
+    from e3dpsm.state import StateSpec, state_input_name, state_output_name
+
+    class Toy(torch.nn.Module):
+        def forward(self, lnes, window_ms, state):
+            return 2 * lnes + window_ms.reshape(1, 1, 1, 1), state + window_ms.reshape(1, 1)
+
+    frame, state = (1, *FRAME), (1, *STATE_SHAPE)
+    example = (torch.zeros(frame), torch.zeros(1), torch.zeros(state))
+    meta = GraphMetadata(states=(StateSpec(STATE, STATE_SHAPE),),
+                         inputs={"frame": {"name": "lnes", "shape": list(frame)},
+                                 "window": {"name": "window_ms", "shape": [1]}},
+                         outputs=[{"name": "pose"}], config={"variant": "toy"}, joints=[f"j{i}" for i in range(16)])
+    record = {"format": "executorch", "precision": precision,
+              "versions": {"executorch": version or executorch_version()},
+              "inputs": ["lnes", "window_ms", state_input_name(STATE)], "outputs": ["pose", state_output_name(STATE)]}
+    program = torch.export.export(Toy(), example)
+    methods = {PTE_METHOD: encode(meta, record)} if with_metadata else {}
+    return to_edge_transform_and_lower(program, constant_methods=methods).to_executorch().buffer
