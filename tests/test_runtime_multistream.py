@@ -245,7 +245,7 @@ def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
     return rows[0], np.array(rows[1:], dtype=np.float64)
 
 
-def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, capsys):
+def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, capsys, monkeypatch):
     streams = {name: synthetic_stream(seed=seed, windows=windows)
                for name, seed, windows in (("walk", 31, 8), ("sit", 33, 10))}
     jump = synthetic_stream(seed=32, windows=7, boundary_bursts=True)
@@ -253,12 +253,37 @@ def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, cap
     streams["jump"] = tuple(a[jump[2] < jump[2][0] + 6 * WINDOW_US] for a in jump)
     files = [write_npz(tmp_path / f"{name}.npz", *stream) for name, stream in streams.items()]
     out = tmp_path / "poses"
+    from e3dpsm.runtime import run_many as run_many_module
+
+    seen_while_running = []
+    real_run_streams = run_many_module._run_streams
+
+    def run_streams(*args):  # what the folder holds while the streams run: hidden temporaries only
+        seen_while_running.extend(sorted(p.name for p in out.iterdir()))
+        return real_run_streams(*args)
+
+    monkeypatch.setattr(run_many_module, "_run_streams", run_streams)
     code = main(["run", "--model", str(tiny_graph[1]), "--events", *map(str, files), "--out", str(out),
                  "--chunk-events", "900", "--threads", "1"])
-    assert code == 0, capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
     assert sorted(p.name for p in out.iterdir()) == ["jump.csv", "run.report.json", "sit.csv", "walk.csv"]
+    # Each temporary is hidden and keeps its file's extension, so a crashed run's leftovers say what they were.
+    assert len(seen_while_running) == 4 and all(
+        re.fullmatch(rf"\.{re.escape(final)}\.[^.]+{re.escape(Path(final).suffix)}", name)
+        for final, name in zip(["jump.csv", "run.report.json", "sit.csv", "walk.csv"], seen_while_running)), \
+        seen_while_running
     report = json.loads((out / "run.report.json").read_text())
     assert report["command"] == "run" and "versions" in report
+    totals = report["totals"]
+    assert captured.out.strip().splitlines()[-1] == (
+        f"3 streams, {totals['rows_stepped']} poses in {totals['session_calls']} batched steps (mean batch "
+        f"{totals['mean_batch']:.2f}) at {totals['mean_step_ms_per_pose']:.2f} ms/pose + "
+        f"{totals['mean_overhead_ms_per_pose']:.2f} ms runtime overhead -> {out}")
+    assert report["batching"] == "the streams' complete windows share batched session calls (one row per stream)"
+    assert report["csv_naming"] == (
+        "each CSV is named by the shortest end of its event file's path (folders, stem; joined with '__') that "
+        "tells it apart from the other files, after the end they all share")
     for name, stream in streams.items():  # independent reference: windows cut directly, stepped one by one
         starts, counts, frames = reference_frames(*stream)
         expected, _ = step_frames(session, frames)
@@ -268,7 +293,9 @@ def test_cli_runs_several_files_into_a_folder(tiny_graph, session, tmp_path, cap
         np.testing.assert_allclose(table[:, 1:].reshape(-1, 16, 3), expected, rtol=0, atol=CSV_TOL_MM)
         entry = report["streams"][name]
         assert entry["windows"] == len(starts) and entry["events"] == int(counts.sum())
-        assert entry["csv"] == str(out / f"{name}.csv")
+        assert entry["csv"] == str(out / f"{name}.csv") and entry["events_file"] == str(tmp_path / f"{name}.npz")
+        assert entry["events_in_file"] == len(stream[0]) and entry["sensor_hw"] == [480, 640]  # npz states none: EE3D's
+        assert entry["first_window_start_us"] == int(starts[0])
 
 
 SEVERAL_FILES_ERRORS = {  # case: words the error line must contain
@@ -363,6 +390,46 @@ def test_stream_names_rule(events, names):
 def test_stream_names_refuses_paths_it_cannot_tell_apart(events, words):
     with pytest.raises(ConfigError, match=re.escape(words)):
         stream_names(events)
+
+
+@pytest.mark.parametrize("events, message", [
+    (["a/events.h5", "b.h5", "a/x/../events.h5"], "--events a/x/../events.h5 is the same file as a/events.h5; give each "
+                                                 "event file once"),
+    (["x/events.h5", "b.h5", "x/events.npz"], "--events x/events.h5 and x/events.npz differ only in their extension; "
+                                              "each CSV is named by folder and file names, so rename or link one of them"),
+    (["a/seq/events.h5", "b.h5", "a/Seq/events.h5"], "--events a/seq/events.h5 and a/Seq/events.h5 would both write "
+                                                     "Seq__events.csv (CSV names are compared ignoring letter case, for "
+                                                     "case-insensitive file systems); rename or link one of them"),
+])
+def test_stream_names_refusals_name_both_files_whole(tmp_path, monkeypatch, events, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a" / "x").mkdir(parents=True)
+    assert stream_names(["/d/x/y/z/events.h5", "/d/w/y/z/events.h5"]) == ["x", "w"]  # three trailing parts shared
+    with pytest.raises(ConfigError) as error:
+        stream_names(events)
+    assert str(error.value) == message
+
+
+def test_the_output_folder_refusals_whole(tmp_path):
+    from e3dpsm.errors import DataError, OutputExistsError
+    from e3dpsm.runtime.run_many import _outputs
+
+    events = (str(tmp_path / "walk.npz"), str(tmp_path / "sit.npz"))
+    request = type("Request", (), {"events": events, "force": False, "out": tmp_path / "poses.csv"})()
+    request.out.write_text("a file")
+    with pytest.raises(DataError) as error:
+        _outputs(request)
+    assert str(error.value) == (f"--out {request.out} is a file; with several --events files it names a folder of "
+                                "CSVs")
+    request.out = tmp_path / "poses"
+    request.out.mkdir()
+    (request.out / "run.report.json").write_text("{}")
+    with pytest.raises(OutputExistsError) as error:
+        _outputs(request)
+    assert str(error.value) == f"{request.out / 'run.report.json'} exists; pass --force to replace it"
+    request.force = True
+    assert _outputs(request) == ({"walk": events[0], "sit": events[1]},
+                                 {"walk": request.out / "walk.csv", "sit": request.out / "sit.csv"})
 
 
 def _exit_code(argv: list[str]) -> int:
