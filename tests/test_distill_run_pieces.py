@@ -15,15 +15,16 @@ import e3dpsm
 from e3dpsm.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from e3dpsm.compress import distill_run
 from e3dpsm.compress.distill import DistillConfig
-from e3dpsm.errors import ConfigError, OutputExistsError
+from e3dpsm.errors import ConfigError, DataError, OutputExistsError
 from e3dpsm.models import list_models
 from tests._quantize_helpers import TRAINED_TINY
 
 
 def test_a_folder_that_holds_a_run_is_refused_unless_forced(tmp_path) -> None:
     out = tmp_path / "a" / "b"
-    distill_run.prepare_out_dir(out, force=False)  # made with its parents
-    assert out.is_dir()
+    distill_run.prepare_out_dir(out, force=False)  # writable: nothing made yet
+    assert not (tmp_path / "a").exists()
+    out.mkdir(parents=True)
     (out / "notes.txt").write_text("mine")
     distill_run.prepare_out_dir(out, force=False)  # other files are not a run
     for name in ("report.md", "checkpoint.pt"):
@@ -34,6 +35,10 @@ def test_a_folder_that_holds_a_run_is_refused_unless_forced(tmp_path) -> None:
                                 "choose another --out")
     distill_run.prepare_out_dir(out, force=True)
     assert (out / "checkpoint.pt").read_text() == "old"  # replaced only when the new one is written
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DataError) as error:
+        distill_run.prepare_out_dir(tmp_path / "file" / "run", force=False)
+    assert str(error.value) == f"cannot write to {tmp_path / 'file' / 'run'}: {tmp_path / 'file'} is a file, not a folder"
 
 
 def test_the_teachers_digest_is_sha256_of_its_bytes(tmp_path) -> None:
@@ -166,7 +171,7 @@ def test_a_student_that_does_not_fit_the_teacher_is_refused_before_distilling(mo
     save_checkpoint(other, e3dpsm.create_model("tiny", height=64, width=96))
     with pytest.raises(ConfigError, match=re.escape("64")):
         distill_run.run_distill(TRAINED_TINY, str(other), "prep", tmp_path / "out", DistillConfig(), progress=False)
-    assert not fake.calls and sorted(p.name for p in (tmp_path / "out").iterdir()) == []
+    assert not fake.calls and not (tmp_path / "out").exists()  # no empty folder left
 
 
 def _report(log_steps: int = 3, **cfg) -> dict:

@@ -18,7 +18,7 @@ from e3dpsm.checkpoint import load_checkpoint, save_checkpoint
 from e3dpsm.compress.distill import DistillConfig, check_pair, distill
 from e3dpsm.errors import ConfigError, OutputExistsError
 from e3dpsm.utils.env import report_header
-from e3dpsm.utils.io import write_json_atomic, write_text_atomic
+from e3dpsm.utils.io import check_writable_folder, write_json_atomic, write_text_atomic
 
 CHECKPOINT_NAME = "checkpoint.pt"
 REPORT_NAME = "report.json"
@@ -28,11 +28,12 @@ _ARTIFACTS = (CHECKPOINT_NAME, REPORT_NAME, MARKDOWN_NAME)
 
 def prepare_out_dir(out: Path, force: bool) -> None:
     """As `train` treats its run folder: refuse one that holds a run unless `force` (then the
-    old artifacts go only when the new ones are written, each by an atomic rename)."""
+    old artifacts go only when the new ones are written, each by an atomic rename), and one it
+    could not write to. Nothing is made yet: a run refused later leaves no empty folder."""
     held = [name for name in _ARTIFACTS if (out / name).exists()]
     if held and not force:
         raise OutputExistsError(f"{out} holds a run ({', '.join(held)}); pass --force to replace it or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    check_writable_folder(out)
 
 
 def sha256_file(path: str | os.PathLike) -> str:
