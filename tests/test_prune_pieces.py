@@ -618,3 +618,44 @@ def test_run_prune_refuses_data_that_does_not_fit_before_writing(quant_data, tmp
         run_module.run_prune(TRAINED_TINY, paths["data"], out, _fast(target_macs=0.6), eval_data=paths["eval_data"],
                              eval_split=paths["eval_split"], progress=False, recover=never)
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["renamed"]
+
+
+def test_run_prunes_library_defaults_all_splits_int8_on_and_distillation_with_a_bar(monkeypatch, teacher, quant_data,
+                                                                                   tmp_path) -> None:
+    """Called as a library with the fewest arguments: held-out figures and timing on every split,
+    the INT8 front on, recovery by distillation with its progress bar."""
+    host = SimulatedHost([])
+    frames_timed, quantised, recoveries = [], [], []
+    monkeypatch.setattr(prune_module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    monkeypatch.setattr(run_module, "time_graphs",
+                        lambda graphs, frames, *a: frames_timed.append(frames) or {k: 1.0 for k in graphs})
+
+    def fake_int8(graph, data, out, threads):
+        quantised.append(graph)
+        out.mkdir(parents=True)
+        mpjpe = {"value_mm": 1.0, "fp32_mm": 1.0, "change_pct": 0.0}
+        (out / "report.json").write_text(json.dumps({"check": {"data": "d/val", "by_runtime": {"onnxruntime": {
+            "frames": 1, "within": True, "metrics": {"mpjpe": mpjpe}}}}}))
+        return out / "step_int8.onnx"
+
+    def fake_recovery(data_dir, config, progress):
+        recoveries.append((data_dir, progress))
+        return lambda t, s, k: {"steps": 0, "seconds": 0.0}
+
+    monkeypatch.setattr(run_module, "_int8", fake_int8)
+    monkeypatch.setattr(run_module, "distill_recovery", fake_recovery)
+    out = tmp_path / "pruned"
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, _fast(target_macs=0.6, rounds=1, extra_rounds=0),
+                                   eval_data=quant_data)
+    assert recoveries == [(quant_data, True)] and len(quantised) == 2
+    first_of_all = PreparedData_split(quant_data, "all")
+    assert summary["config"]["eval_split"] == "all" and summary["config"]["int8"] is True
+    for frames in frames_timed:
+        np.testing.assert_array_equal(frames, prune_module.timing_frames(first_of_all))
+    from e3dpsm.errors import OutputExistsError
+
+    with pytest.raises(OutputExistsError, match="--force"):  # force off by default: the folder is there now
+        run_module.run_prune(TRAINED_TINY, quant_data, out, _fast(target_macs=0.6, rounds=1, extra_rounds=0),
+                             eval_data=quant_data)

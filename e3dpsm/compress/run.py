@@ -3,7 +3,6 @@ side (fp32 and INT8, ONNX Runtime and OpenVINO), write the checkpoint and the re
 from __future__ import annotations
 
 import json
-import logging
 import os
 import time
 from pathlib import Path
@@ -13,7 +12,6 @@ from e3dpsm.compress.prune import PruneConfig, prune_loop, target_met, time_grap
 from e3dpsm.compress.report import front_rows, plot_front, render_markdown
 from e3dpsm.models import E3DPSM
 
-log = logging.getLogger(__name__)
 Recover = Callable[[E3DPSM, E3DPSM, int], dict[str, Any]]
 
 
