@@ -659,3 +659,32 @@ def test_run_prunes_library_defaults_all_splits_int8_on_and_distillation_with_a_
     with pytest.raises(OutputExistsError, match="--force"):  # force off by default: the folder is there now
         run_module.run_prune(TRAINED_TINY, quant_data, out, _fast(target_macs=0.6, rounds=1, extra_rounds=0),
                              eval_data=quant_data)
+
+
+def test_the_loop_runs_on_its_threads_and_gives_the_callers_back(monkeypatch, teacher, quant_data, held_out,
+                                                                 tmp_path) -> None:
+    host = SimulatedHost([])
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    seen = []
+
+    def recover(teacher_model, student, round_index):
+        seen.append(torch.get_num_threads())
+        if round_index == 2:
+            raise KeyError("a failed recovery")
+        return {"steps": 0, "seconds": 0.0}
+
+    before = torch.get_num_threads()
+    other = 3 if before != 3 else 2
+    torch.set_num_threads(other)
+    try:
+        prune_loop(teacher, quant_data, held_out, _fast(target_macs=0.6, rounds=1, extra_rounds=0, threads=1),
+                   tmp_path / "a", recover, eval_split="test")
+        assert seen == [1] and torch.get_num_threads() == other
+        with pytest.raises(KeyError):
+            prune_loop(teacher, quant_data, held_out, _fast(target_macs=0.3, rounds=2, extra_rounds=0, threads=1),
+                       tmp_path / "b", recover, eval_split="test")
+        assert seen == [1, 1, 1] and torch.get_num_threads() == other  # given back on an error too
+    finally:
+        torch.set_num_threads(before)

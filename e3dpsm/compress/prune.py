@@ -183,10 +183,21 @@ def prune_loop(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneCo
     """Run the rounds; returns {"rounds": [...], "best": index, "models": [...]}.
 
     `recover(teacher, student, round)` fine-tunes the student in place (distillation by
-    default, tests pass a no-op); `eval_data` is a PreparedData for the held-out figures."""
+    default, tests pass a no-op); `eval_data` is a PreparedData for the held-out figures.
+    The rounds use `config.threads` torch threads; the caller's count comes back after."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.threads)
+    try:
+        return _prune_rounds(teacher, data_dir, eval_data, config, work, recover, eval_split, calib_split)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _prune_rounds(teacher: E3DPSM, data_dir: str | Path, eval_data, config: PruneConfig, work: Path,
+                  recover: Callable[[E3DPSM, E3DPSM, int], dict[str, Any]], eval_split: str,
+                  calib_split: str) -> dict[str, Any]:
     from e3dpsm.data.prepared import PreparedData
 
-    torch.set_num_threads(config.threads)
     teacher = teacher.eval()
     window_ms = teacher.config.train_window_ms
     calib = calibration_windows(PreparedData.open(data_dir).split(calib_split), config.calib_windows,
