@@ -135,6 +135,21 @@ def test_the_conversion_record_says_what_was_done(toy_onnx, stateful, batch, exp
     assert model.get_rt_info(["runtime_options", "DYNAMIC_QUANTIZATION_GROUP_SIZE"]).astype(str) == "0"
     if batch:
         assert _shapes(model)["lnes"] == f"[{batch},2,2,3]"
+        assert _shapes(model)[state_input_name(STATE)] == f"[{batch},3]"  # explicit states fixed too
+    if stateful:  # the variables' nodes are named by their state, as an IR reader sees them
+        names = {op.get_friendly_name() for op in model.get_ops()}
+        assert {f"{STATE}/init", f"{STATE}/read", f"{STATE}/assign"} <= names
+
+
+def test_one_is_a_batch_and_the_record_lists_default_empty() -> None:
+    assert ConversionInfo("g.onnx", False, None, "fp32").to_dict() == {
+        "source": "g.onnx", "stateful": False, "batch": None, "precision": "fp32", "inputs": [], "outputs": [],
+        "variables": []}
+
+
+def test_a_batch_of_one_is_accepted_without_states(toy_onnx) -> None:
+    model, info = convert_step_graph(toy_onnx, stateful=False, batch=1)
+    assert info.batch == 1 and _shapes(model)["lnes"] == "[1,2,2,3]"
 
 
 def test_the_ir_keeps_fp32_weights_fp32(tmp_path) -> None:
