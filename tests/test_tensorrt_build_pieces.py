@@ -199,3 +199,38 @@ def test_refusals_are_one_line_and_write_nothing(rec, graphs, tmp_path, monkeypa
     refused(DataError, f"TensorRT could not build an engine from {graphs['fp32']} (its log above says why)")
     monkeypatch.setitem(sys.modules, "tensorrt", None)
     refused(ConfigError, 'tensorrt is not installed (to build TensorRT engines): pip install -e ".[tensorrt]"')
+
+
+def test_timings_temporaries_and_the_records_defaults(rec, graphs, tmp_path, monkeypatch) -> None:
+    import dataclasses
+
+    from e3dpsm.export import tensorrt_build
+
+    clock = iter([100.0, 101.23456, 102.98765])
+    monkeypatch.setattr(tensorrt_build.time, "perf_counter", lambda: next(clock))
+    temporaries = []
+    real_atomic_path = tensorrt_build.atomic_path
+
+    def recording_atomic_path(path, **kwargs):
+        context = real_atomic_path(path, **kwargs)
+
+        class Recorded:
+            def __enter__(self):
+                tmp = context.__enter__()
+                temporaries.append(tmp.name)
+                return tmp
+
+            def __exit__(self, *exc):
+                return context.__exit__(*exc)
+        return Recorded()
+
+    monkeypatch.setattr(tensorrt_build, "atomic_path", recording_atomic_path)
+    result = build_engine(graphs["fp32"], tmp_path / "step.engine")
+    assert result.seconds == {"build": 1.23, "total": 2.99}
+    # Hidden temporaries that keep their file's extension: a crashed build's leftovers say what they were.
+    assert temporaries[0].startswith(".step.engine.") and temporaries[0].endswith(".engine")
+    assert temporaries[1].startswith(".timing.cache.") and temporaries[1].endswith(".cache") and len(temporaries) == 2
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TensorRTOptions().precision = "int8"
+    bare = tensorrt_build.TensorRTResult(path="p", bytes=1, seconds={}, timing_cache={}, options={})
+    assert bare.to_dict()["artifact"] == {}
