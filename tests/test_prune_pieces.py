@@ -260,6 +260,8 @@ def test_the_int8_figures_and_a_recovery_without_steps() -> None:
         "frames": 100, "within": True, "metrics": {"mpjpe": {"value_mm": 101.0, "fp32_mm": 100.0, "change_pct": 1.0}}}}}
     assert run_module._int8_figures(check) == {"split": "val", "frames": 100, "mpjpe_mm": 101.0, "fp32_mpjpe_mm": 100.0,
                                               "loss_pct": 1.0, "within_budget": True}
+    bare = {**check, "data": "val"}  # a split given by its bare name
+    assert run_module._int8_figures(bare)["split"] == "val"
     recover = run_module.distill_recovery("no/such/data", _fast(target_macs=0.5, steps=0), progress=False)
     assert recover(None, None, 1) == {"steps": 0, "seconds": 0.0}
 
@@ -509,6 +511,7 @@ def _renamed_splits(quant_data: Path, tmp_path: Path, names: dict[str, str]) -> 
 @pytest.mark.parametrize("names, calib, holdout", [
     ({"train": "train", "val": "val", "test": "test"}, "train", "val"),
     ({"train": "a", "val": "b", "test": "c"}, "a", "c"),  # no train, no val: the first and the last split
+    ({"train": "a", "val": "train", "test": "val"}, "train", "val"),  # train found where it is, not first
 ])
 def test_the_int8_graph_is_calibrated_on_train_and_checked_on_val(monkeypatch, quant_data, tmp_path, names, calib,
                                                                     holdout) -> None:
@@ -642,14 +645,20 @@ def test_run_prunes_library_defaults_all_splits_int8_on_and_distillation_with_a_
 
     def fake_recovery(data_dir, config, progress):
         recoveries.append((data_dir, progress))
-        return lambda t, s, k: {"steps": 0, "seconds": 0.0}
+        return lambda t, s, k: {"seconds": 0.0}  # a recovery that reports no steps took none
 
     monkeypatch.setattr(run_module, "_int8", fake_int8)
     monkeypatch.setattr(run_module, "distill_recovery", fake_recovery)
     out = tmp_path / "pruned"
-    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, _fast(target_macs=0.6, rounds=1, extra_rounds=0),
-                                   eval_data=quant_data)
+    config = _fast(target_macs=0.6, rounds=1, extra_rounds=0)
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data)
     assert recoveries == [(quant_data, True)] and len(quantised) == 2
+    from e3dpsm.checkpoint import read_checkpoint
+
+    extras = read_checkpoint(out / "checkpoint.pt")
+    assert extras["step"] == 0 and extras["prune"]["config"] == config.to_dict()
+    assert summary["base_macs"] == summary["rounds"][0]["macs"]
+    assert summary["seconds"] == round(summary["seconds"], 1) and summary["seconds"] >= 0
     first_of_all = PreparedData_split(quant_data, "all")
     assert summary["config"]["eval_split"] == "all" and summary["config"]["int8"] is True
     for frames in frames_timed:
@@ -688,3 +697,36 @@ def test_the_loop_runs_on_its_threads_and_gives_the_callers_back(monkeypatch, te
         assert seen == [1, 1, 1] and torch.get_num_threads() == other  # given back on an error too
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_chosen_models_steps_and_cuts_stop_at_its_round(monkeypatch, teacher, quant_data, tmp_path) -> None:
+    """Round 2 goes over the accuracy budget: round 1 is chosen, and the checkpoint counts its
+    distillation steps and cuts alone, not round 2's."""
+    from e3dpsm.checkpoint import read_checkpoint
+
+    host = SimulatedHost([])
+    for module in (prune_module, run_module):
+        monkeypatch.setattr(module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    real = prune_module.heldout_figures
+    calls = []
+
+    def worse_from_round_two(poses, sequences, teacher_poses, action_names=()):
+        figures = real(poses, sequences, teacher_poses, action_names)
+        calls.append(1)
+        # The unpruned model's figure set high, so that round 1 is within the budget whatever it
+        # measures; round 2 then far over it.
+        figures["mpjpe_mm"] *= {1: 100.0, 2: 1.0}.get(len(calls), 1000.0)
+        return figures
+
+    monkeypatch.setattr(prune_module, "heldout_figures", worse_from_round_two)
+    out = tmp_path / "pruned"
+    summary = run_module.run_prune(TRAINED_TINY, quant_data, out, _fast(target_macs=0.3, rounds=2, extra_rounds=0,
+                                                                        budget_pct=9.9),
+                                   eval_data=quant_data, eval_split="test", int8=False, progress=False,
+                                   recover=lambda t, s, k: {"steps": 10 ** k, "seconds": 0.0})
+    assert summary["best"] == 1 and len(summary["rounds"]) == 3
+    extras = read_checkpoint(out / "checkpoint.pt")
+    assert extras["step"] == 10 and extras["prune"]["round"] == 1
+    assert extras["prune"]["cuts"] == [summary["rounds"][1]["cuts"]]
