@@ -158,3 +158,19 @@ def test_a_patch_release_of_this_one_is_the_same_release(tmp_path, monkeypatch) 
     monkeypatch.delenv(OTHER_RELEASE_ENV, raising=False)
     assert program_metadata(path, load_program(path))[1]["versions"]["executorch"] == f"{major}.{minor}.99"
     assert executorch_session.FORMAT == "executorch" and executorch_session.PTE_IDENTIFIER_AT == slice(4, 8)
+
+
+def test_a_missing_extra_is_its_own_error_not_an_unreadable_program(toy, monkeypatch) -> None:
+    from e3dpsm.errors import ConfigError
+
+    monkeypatch.setitem(sys.modules, "executorch", None)
+    with pytest.raises(ConfigError) as error:
+        ExecuTorchStepSession(toy)
+    assert str(error.value) == 'executorch is not installed (to run .pte programs): pip install -e ".[executorch]"'
+
+
+def test_the_documented_escape_hatch_and_the_programs_lifetime(toy) -> None:
+    docs = (Path(__file__).resolve().parents[1] / "docs" / "edge.md").read_text(encoding="utf-8")
+    assert OTHER_RELEASE_ENV == "E3DPSM_EXECUTORCH_OTHER_RELEASE" and f"{OTHER_RELEASE_ENV}=1" in docs
+    session = ExecuTorchStepSession(toy)
+    assert "forward" in session._program.method_names  # the program outlives no method of its session

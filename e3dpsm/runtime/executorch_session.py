@@ -61,9 +61,10 @@ def load_program(path: str | os.PathLike) -> Any:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"model {path} does not exist")
+    runtime = require("executorch.runtime", "to run .pte programs")  # a missing extra is its own error
     try:
         with native_log_silenced():
-            return require("executorch.runtime", "to run .pte programs").Runtime.get().load_program(path)
+            return runtime.Runtime.get().load_program(path)
     except Exception as exc:  # the binding raises RuntimeError / ValueError for unreadable programs
         head = path.read_bytes()[:8]
         raise DataError(f"ExecuTorch {executorch_version()} cannot load {path} (file identifier "
@@ -101,7 +102,7 @@ class ExecuTorchStepSession(ArtifactSession):
 
                 portable_lib._unsafe_reset_threadpool(int(threads))  # XNNPACK's pool is per process
             self._method = program.load_method("forward")
-        self._program = program
+        self._program = program  # the method runs on the program's buffers: both live as long as the session
         self._bind(path, meta, list(self.artifact.get("inputs", [])), list(self.artifact.get("outputs", [])))
 
     def _run_one(self, feeds: Mapping[str, np.ndarray]) -> dict[str, Any]:
