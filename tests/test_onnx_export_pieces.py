@@ -169,3 +169,39 @@ def test_the_simplifiers_result_is_held_to_its_tolerance(tiny, unsimplified, mon
 def test_identical_graphs_differ_by_nothing(tiny, unsimplified) -> None:
     spec = step_io_spec(tiny)
     assert onnx_export._max_relative_difference(unsimplified, unsimplified, spec, tiny.state_spec(), 20.0) == ("", 0.0)
+
+
+def test_each_opset_is_written_with_the_lowest_ir_that_holds_it() -> None:
+    # onnx's own table is the reference: ONNX Runtime 1.31 reads IR up to 13, onnx 1.23 writes 14.
+    for opset, ir in onnx_export._IR_FOR_OPSET.items():
+        assert ir == helper.find_min_ir_version_for([helper.make_opsetid("", opset)]) <= 13, opset
+    assert sorted(onnx_export._IR_FOR_OPSET) == [17, 18, 19, 20, 21]
+
+
+def test_the_results_defaults_are_the_plain_exports() -> None:
+    result = onnx_export.ExportResult(path="p", opset=17, ir_version=8, nodes_traced=2, nodes_final=1,
+                                      simplified=True, bytes=3, seconds_export=0.5, seconds_simplify=0.25, op_types={})
+    assert (result.attention_form, result.static_batch, result.retiled_constants) == ("grid_sample", False, {})
+
+
+def test_onnxsim_is_asked_for_no_check_of_its_own_on_one_stream(tiny, unsimplified, monkeypatch) -> None:
+    import onnxsim
+
+    calls = []
+    monkeypatch.setattr(onnxsim, "simplify", lambda model, **kwargs: calls.append(kwargs) or (model, True))
+    spec = step_io_spec(tiny)
+    onnx_export._simplify(unsimplified, spec, tiny.state_spec(), 20.0)
+    (kwargs,) = calls
+    assert kwargs["check_n"] == 0  # its random-input check fails mm-scale poses by round-off (module docstring)
+    assert kwargs["test_input_shapes"] == {t.name: [1, *t.shape[1:]] for t in spec.inputs}
+
+
+def test_a_change_of_exactly_the_tolerance_passes(tiny, unsimplified, monkeypatch) -> None:
+    import onnxsim
+
+    monkeypatch.setattr(onnxsim, "simplify", lambda model, **kwargs: (model, True))
+    monkeypatch.setattr(onnx_export, "_max_relative_difference", lambda *a: ("pose", SIMPLIFY_RTOL))
+    assert onnx_export._simplify(unsimplified, step_io_spec(tiny), tiny.state_spec(), 20.0) is unsimplified
+    monkeypatch.setattr(onnx_export, "_max_relative_difference", lambda *a: ("pose", float("nan")))
+    with pytest.raises(ExportError, match="onnxsim changed output pose by nan"):  # NaN is never within
+        onnx_export._simplify(unsimplified, step_io_spec(tiny), tiny.state_spec(), 20.0)
