@@ -236,3 +236,22 @@ def test_the_qat_line(cfg, start, line) -> None:
 def test_the_log_is_thinned_evenly_first_and_last_kept(count, kept) -> None:
     records = [{"step": s} for s in range(count)]
     assert [r["step"] for r in distill_run._thin(records, 12)] == kept
+
+
+def test_the_library_defaults_no_force_and_a_progress_bar(monkeypatch, tmp_path) -> None:
+    fake = RecordingDistill()
+    monkeypatch.setattr(distill_run, "distill", fake)
+    out = tmp_path / "run"
+    distill_run.run_distill(TRAINED_TINY, "tiny", "prep", out, DistillConfig(steps=3))
+    assert fake.calls[0][5] is True and fake.calls[0][4] is None  # progress on, the config's own split
+    with pytest.raises(OutputExistsError):
+        distill_run.run_distill(TRAINED_TINY, "tiny", "prep", out, DistillConfig(steps=3))
+
+
+def test_the_labels_term_gets_its_column_when_the_run_had_labels() -> None:
+    report = _report(labels="gt")
+    for record in report["log"]:
+        record["labels"] = 2.0
+    lines = distill_run.report_markdown(report).splitlines()
+    assert "| step | lr | loss | fused | direct | delta | labels |" in lines
+    assert "| 0 | 1.23e-03 | 1.500 | 0.250 | 0.500 | 0.125 | 2.000 |" in lines
