@@ -147,12 +147,17 @@ def unsimplified(tiny, tmp_path_factory):
     return onnx.load(str(path))
 
 
+@pytest.mark.parametrize("output_index", [-1, 3], ids=["flag", "s5_state"])
 @pytest.mark.parametrize("relative, passes", [(0.8 * SIMPLIFY_RTOL, True), (1.2 * SIMPLIFY_RTOL, False)])
-def test_the_simplifiers_result_is_held_to_its_tolerance(tiny, unsimplified, monkeypatch, relative, passes) -> None:
+def test_the_simplifiers_result_is_held_to_its_tolerance(tiny, unsimplified, monkeypatch, relative, passes,
+                                                         output_index) -> None:
+    """Relative to each output's own scale: the initialised flag (1.0) and the first S5 state
+    (a few hundredths), both carried into the second step by the reference."""
     import onnxsim
 
     spec = step_io_spec(tiny)
-    output = spec.output_names[-1]  # a state output: carried into the second step by the reference
+    output = spec.output_names[output_index]
+    assert output in {s.output_name for s in tiny.state_spec()}
     moved = _scaled_output(unsimplified, output, 1 + relative)
     monkeypatch.setattr(onnxsim, "simplify", lambda model, **kwargs: (moved, True))
     worst = onnx_export._max_relative_difference(unsimplified, moved, spec, tiny.state_spec(), 20.0)
@@ -205,3 +210,14 @@ def test_a_change_of_exactly_the_tolerance_passes(tiny, unsimplified, monkeypatc
     monkeypatch.setattr(onnx_export, "_max_relative_difference", lambda *a: ("pose", float("nan")))
     with pytest.raises(ExportError, match="onnxsim changed output pose by nan"):  # NaN is never within
         onnx_export._simplify(unsimplified, step_io_spec(tiny), tiny.state_spec(), 20.0)
+
+
+def test_the_literal_form_is_exported_unfolded(tiny, tmp_path, monkeypatch) -> None:
+    """The grid_sample form keeps the block's projections as the model has them; the other forms
+    fold them (export_attention_form). The same export with the folding forced differs."""
+    literal = export_step_with_report(tiny, tmp_path / "literal.onnx", simplify=False)
+    real = onnx_export.export_attention_form
+    monkeypatch.setattr(onnx_export, "export_attention_form",
+                        lambda model, sampler, fold_projections: real(model, sampler=sampler, fold_projections=True))
+    folded = export_step_with_report(tiny, tmp_path / "folded.onnx", simplify=False)
+    assert literal.op_types != folded.op_types
