@@ -10,6 +10,7 @@ import copy
 import numpy as np
 import onnx
 import pytest
+import torch
 from onnx import TensorProto, helper
 
 import e3dpsm
@@ -117,9 +118,23 @@ def test_an_export_writes_the_checked_graph_and_reports_it(tiny, exported) -> No
     assert [p.name for p in path.parent.iterdir()] == ["step.onnx"]  # no temporary left beside it
 
 
-def test_a_static_deform_conv_export_takes_opset_19_and_its_ir(tiny, tmp_path) -> None:
+def test_a_static_deform_conv_export_takes_opset_19_and_its_ir(tiny, tmp_path, monkeypatch) -> None:
+    work = tmp_path / "cwd"
+    work.mkdir()
+    monkeypatch.chdir(work)  # the trace goes to a temporary folder, nothing to the working one
+    temporaries = []
+    real_atomic_path = onnx_export.atomic_path
+
+    def recording_atomic_path(path, **kwargs):
+        temporaries.append(kwargs.get("suffix"))
+        return real_atomic_path(path, **kwargs)
+
+    monkeypatch.setattr(onnx_export, "atomic_path", recording_atomic_path)
     result = export_step_with_report(tiny, tmp_path / "d.onnx", simplify=False, attention_form="deform_conv",
                                      static_batch=True)
+    assert list(work.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["cwd", "d.onnx"]
+    assert temporaries == [".onnx"]  # a leftover temporary keeps the graph's extension
+    assert 0 < result.seconds_export < 600
     graph = onnx.load(str(tmp_path / "d.onnx"))
     assert (result.opset, result.ir_version, graph.ir_version, result.simplified) == (19, 9, 9, False)
     assert result.nodes_final == result.nodes_traced and result.seconds_simplify < 0.05
@@ -221,3 +236,74 @@ def test_the_literal_form_is_exported_unfolded(tiny, tmp_path, monkeypatch) -> N
                         lambda model, sampler, fold_projections: real(model, sampler=sampler, fold_projections=True))
     folded = export_step_with_report(tiny, tmp_path / "folded.onnx", simplify=False)
     assert literal.op_types != folded.op_types
+
+
+def test_the_trace_folds_constants(tiny, tmp_path, monkeypatch) -> None:
+    """torch's own constant folding at trace time: without it the traced graph is larger."""
+    folded = export_step_with_report(tiny, tmp_path / "folded.onnx", simplify=False)
+    real_export = torch.onnx.export
+
+    def unfolded_export(*args, **kwargs):
+        return real_export(*args, **{**kwargs, "do_constant_folding": False})
+
+    monkeypatch.setattr(torch.onnx, "export", unfolded_export)
+    unfolded = export_step_with_report(tiny, tmp_path / "unfolded.onnx", simplify=False)
+    assert folded.nodes_traced < unfolded.nodes_traced
+
+
+def test_a_graph_whose_names_differ_from_the_spec_is_refused(tiny, tmp_path, monkeypatch) -> None:
+    from e3dpsm.export.spec import StepIOSpec
+
+    real_declare = StepIOSpec.declare_on
+
+    def declare_and_rename(self, model):
+        real_declare(self, model)
+        model.graph.output[0].name = "renamed"
+
+    monkeypatch.setattr(StepIOSpec, "declare_on", declare_and_rename)
+    monkeypatch.setattr(onnx_export, "check_graph", lambda graph: None)  # the renamed output reads nothing
+    with pytest.raises(ExportError) as error:
+        export_step_with_report(tiny, tmp_path / "x.onnx", simplify=False)
+    spec = step_io_spec(tiny)
+    assert str(error.value) == (f"exported names differ from the spec: inputs {spec.input_names}, outputs "
+                                f"{['renamed', *spec.output_names[1:]]}")
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_the_simplifiers_probe_is_two_carried_steps_of_a_sparse_frame(tiny, unsimplified, monkeypatch) -> None:
+    """What _max_relative_difference feeds both graphs: one stream, the training window, a sparse
+    LNES-like frame (values in [0, 1), about 5% of the pixels), the initial states, then the
+    reference's states for the second step; on ONNX Runtime's CPU provider."""
+    import onnxruntime as ort
+
+    real_session = ort.InferenceSession
+    sessions = []
+
+    class Recording:
+        def __init__(self, model, providers):
+            assert providers == ["CPUExecutionProvider"]
+            self.inner, self.feeds, self.outputs = real_session(model, providers=providers), [], []
+            sessions.append(self)
+
+        def run(self, names, feeds):
+            self.feeds.append({k: v.copy() for k, v in feeds.items()})
+            self.outputs.append(self.inner.run(names, feeds))
+            return self.outputs[-1]
+
+    monkeypatch.setattr(ort, "InferenceSession", Recording)
+    spec, states = step_io_spec(tiny), tiny.state_spec()
+    onnx_export._max_relative_difference(unsimplified, unsimplified, spec, states, 25.0)
+    assert len(sessions) == 2 and [len(s.feeds) for s in sessions] == [2, 2]
+    frame = sessions[0].feeds[0]["lnes"]
+    assert frame.shape == (1, *spec.inputs[0].shape[1:]) and frame.dtype == np.float32
+    assert frame.min() >= 0 and frame.max() < 1 and 0.03 < np.count_nonzero(frame) / frame.size < 0.07
+    from e3dpsm.state import initial_states
+
+    for session in sessions:
+        first, second = session.feeds
+        assert first["window_ms"].tolist() == [25.0] and np.array_equal(first["lnes"], second["lnes"])
+        for s, value in zip(states, initial_states(states, 1).values()):
+            np.testing.assert_array_equal(first[s.input_name], value)
+        reference = dict(zip(spec.output_names, sessions[0].outputs[0]))
+        for s in states:
+            np.testing.assert_array_equal(second[s.input_name], reference[s.output_name])
