@@ -230,6 +230,7 @@ def test_the_qat_line(cfg, start, line) -> None:
     (12, list(range(12))),  # no more than asked: all of them
     (13, list(range(0, 13, 2))),  # stride 2 ends on the last
     (14, [*range(0, 13, 2), 13]),  # the last added
+    (21, list(range(0, 21, 2))),  # ceil(21 / 11) = 2
     (25, list(range(0, 25, 3))),
     (100, [*range(0, 100, 10), 99]),
 ])
@@ -255,3 +256,13 @@ def test_the_labels_term_gets_its_column_when_the_run_had_labels() -> None:
     lines = distill_run.report_markdown(report).splitlines()
     assert "| step | lr | loss | fused | direct | delta | labels |" in lines
     assert "| 0 | 1.23e-03 | 1.500 | 0.250 | 0.500 | 0.125 | 2.000 |" in lines
+
+
+def test_the_markdown_report_names_the_device_and_the_machine_as_known() -> None:
+    report = {**_report(log_steps=24, causal=True, stream_windows=2), "device": "cuda:0 (Some GPU)",
+              "machine": {}}
+    lines = distill_run.report_markdown(report).splitlines()
+    assert "- 300 steps x 4 windows in 61.2 s (0.204 s/step) on cuda:0 (Some GPU); CPU ?, ISA `?`" in lines
+    assert any(line.endswith("states carried over 2 consecutive windows per lane") for line in lines)
+    rows = [line for line in lines if line.startswith("| ") and line[2].isdigit()]
+    assert [int(r.split(" | ")[0][2:]) for r in rows] == [*range(0, 24, 3), 23]  # 24 records thinned to about 12
