@@ -126,6 +126,16 @@ def test_each_level_writes_the_rewrites_it_stands_for(conv_relu, tmp_path, level
     np.testing.assert_allclose(same[1], same[0], rtol=1e-5, atol=1e-5)
 
 
+def test_the_copy_is_written_through_a_hidden_onnx_temporary_and_timed(conv_relu, tmp_path, monkeypatch) -> None:
+    import e3dpsm.utils.io as io
+
+    suffixes = []
+    real = io.atomic_path
+    monkeypatch.setattr(io, "atomic_path", lambda path, **kwargs: suffixes.append(kwargs.get("suffix")) or real(path, **kwargs))
+    record = write_ort_optimized(conv_relu, tmp_path / "step_ort.onnx")
+    assert suffixes == [".onnx"] and 0 < record["seconds"] < 60
+
+
 def test_an_unknown_level_is_refused_and_nothing_written(conv_relu, tmp_path) -> None:
     assert ORT_LEVELS == ("basic", "extended", "all")
     with pytest.raises(ConfigError) as error:
