@@ -128,3 +128,13 @@ def test_convert_hands_executorch_the_program_and_the_contract_and_writes_what_i
     assert seconds["total"] >= max(seconds["export"], seconds["lower"], seconds["serialize"])
     assert result.to_dict()["delegation"] == result.delegation
     model.eval()
+
+
+def test_the_options_defaults_and_the_results_record() -> None:
+    import dataclasses
+
+    assert ExecuTorchOptions() == ExecuTorchOptions("grid_sample", True, True)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ExecuTorchOptions().attention_form = "gather"
+    bare = executorch_export.ExecuTorchResult(path="p", bytes=1, seconds={}, delegation={}, options={})
+    assert bare.to_dict()["artifact"] == {}
