@@ -83,3 +83,19 @@ def test_the_embedded_contract_is_an_fp32_artifacts_by_default(model) -> None:
     assert embedded == record and record["precision"] == "fp32" and record["attention_form"] == "gather"
     assert meta.quantization is None and meta.config["format"] == "litert"
     assert LiteRTOptions() == LiteRTOptions(attention_form="gather", keep_tensor_names=False)
+
+
+def test_the_written_file_goes_through_a_hidden_tflite_temporary_timed_in_seconds(model, tmp_path,
+                                                                                 monkeypatch) -> None:
+    import dataclasses
+
+    suffixes = []
+    real = litert_export.atomic_path
+    monkeypatch.setattr(litert_export, "atomic_path",
+                        lambda path, **kwargs: suffixes.append(kwargs.get("suffix")) or real(path, **kwargs))
+    result = write_litert(toy_tflite(), model, tmp_path / "step.tflite", LiteRTOptions(), "fp32", {})
+    assert suffixes == [".tflite"] and 0 <= result.seconds["write"] < 60
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        LiteRTOptions().attention_form = "grid_sample"
+    bare = litert_export.LiteRTResult(path="p", bytes=1, seconds={}, ops={}, options={})
+    assert bare.to_dict()["artifact"] == {}
