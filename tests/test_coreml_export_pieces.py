@@ -135,3 +135,28 @@ def test_the_linux_side_checks_of_a_package(model) -> None:
     dropped = next(iter(want_out))
     short = check_package(_package(spec, aliases, operations, drop_output=dropped), model, spec, aliases, "fp16")
     assert short["io_matches_spec"] is False and short["passed"] is False and dropped not in short["outputs"]["found"]
+
+
+def test_a_missing_extra_and_the_form_coremltools_takes(model, tmp_path, monkeypatch) -> None:
+    import dataclasses
+    import sys
+
+    class Reached(Exception):
+        pass
+
+    def reached(*_):
+        raise Reached
+
+    monkeypatch.setattr(coreml_export, "output_aliases", reached)
+    monkeypatch.setitem(sys.modules, "coremltools", types.ModuleType("coremltools"))
+    with pytest.raises(Reached):  # grid_sample and fp32 pass the checks: the conversion starts
+        convert_coreml(model, tmp_path / "step.mlpackage", CoreMLOptions(precision="fp32"))
+    monkeypatch.setitem(sys.modules, "coremltools", None)
+    with pytest.raises(ConfigError) as error:
+        convert_coreml(model, tmp_path / "step.mlpackage")
+    assert str(error.value) == 'coremltools is not installed (to write .mlpackage programs): pip install -e ".[coreml]"'
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        CoreMLOptions().precision = "fp32"
+    bare = coreml_export.CoreMLResult(path="p", bytes=1, seconds={}, checks={}, options={})
+    assert bare.to_dict() == {"path": "p", "bytes": 1, "seconds": {}, "checks": {}, "options": {}, "artifact": {}}
+    assert coreml_export.FORMAT == "coreml"
