@@ -66,6 +66,18 @@ class SimulatedHost:
                               {u.name: UnitLatency(share, 3) for u in units})
 
 
+def _simulated(monkeypatch, loads: list[float] = (), front: bool = False) -> SimulatedHost:
+    """A SimulatedHost standing in for the rounds' export, timing and profile (and, with
+    `front`, for run_prune's final side-by-side timing too)."""
+    host = SimulatedHost(list(loads))
+    monkeypatch.setattr(prune_module, "export_fp32", host.export)
+    monkeypatch.setattr(prune_module, "time_graphs", host.time)
+    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    if front:
+        monkeypatch.setattr(run_module, "time_graphs", host.time)
+    return host
+
+
 @pytest.fixture(scope="module")
 def teacher():
     from e3dpsm.checkpoint import load_checkpoint
@@ -83,10 +95,7 @@ def held_out(quant_data):
 
 def _run_loop(monkeypatch, teacher, quant_data, held_out, config, loads, tmp_path, heldout=None,
               work: Path | None = None):
-    host = SimulatedHost(loads)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    host = _simulated(monkeypatch, loads)
     if heldout is not None:
         monkeypatch.setattr(prune_module, "heldout_figures", heldout)
     recovered: list[int] = []
@@ -270,11 +279,7 @@ def test_the_int8_figures_and_a_recovery_without_steps() -> None:
 def test_run_prune_writes_the_chosen_model_its_report_and_provenance(monkeypatch, teacher, quant_data, tmp_path) -> None:
     from e3dpsm.checkpoint import load_checkpoint
 
-    host = SimulatedHost([])
-    for module in (prune_module, run_module):
-        monkeypatch.setattr(module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    _simulated(monkeypatch, front=True)
     config = _fast(target_macs=0.6, rounds=2, extra_rounds=0)
     out = tmp_path / "pruned"
     summary = run_module.run_prune(TRAINED_TINY, quant_data, out, config, eval_data=quant_data, eval_split="test",
@@ -531,17 +536,14 @@ def test_the_int8_graph_is_calibrated_on_train_and_checked_on_val(monkeypatch, q
 
 def test_run_prune_times_every_round_and_the_int8_graphs_side_by_side(monkeypatch, teacher, quant_data,
                                                                       tmp_path) -> None:
-    host = SimulatedHost([])
+    host = _simulated(monkeypatch)
     timings = []
 
     def time_front(graphs, frames, window_ms, threads, steps):
         timings.append((dict(graphs), frames, window_ms, threads, steps))
         return host.time({k: v for k, v in graphs.items() if "int8" not in k}, frames, window_ms, threads, steps)
 
-    monkeypatch.setattr(prune_module, "time_graphs", host.time)
     monkeypatch.setattr(run_module, "time_graphs", time_front)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
     quantised = []
 
     def fake_int8(graph, data, out, threads):
@@ -627,11 +629,8 @@ def test_run_prunes_library_defaults_all_splits_int8_on_and_distillation_with_a_
                                                                                    tmp_path) -> None:
     """Called as a library with the fewest arguments: held-out figures and timing on every split,
     the INT8 front on, recovery by distillation with its progress bar."""
-    host = SimulatedHost([])
+    _simulated(monkeypatch)
     frames_timed, quantised, recoveries = [], [], []
-    monkeypatch.setattr(prune_module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
     monkeypatch.setattr(run_module, "time_graphs",
                         lambda graphs, frames, *a: frames_timed.append(frames) or {k: 1.0 for k in graphs})
 
@@ -672,10 +671,7 @@ def test_run_prunes_library_defaults_all_splits_int8_on_and_distillation_with_a_
 
 def test_the_loop_runs_on_its_threads_and_gives_the_callers_back(monkeypatch, teacher, quant_data, held_out,
                                                                  tmp_path) -> None:
-    host = SimulatedHost([])
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    _simulated(monkeypatch)
     seen = []
 
     def recover(teacher_model, student, round_index):
@@ -704,11 +700,7 @@ def test_the_chosen_models_steps_and_cuts_stop_at_its_round(monkeypatch, teacher
     distillation steps and cuts alone, not round 2's."""
     from e3dpsm.checkpoint import read_checkpoint
 
-    host = SimulatedHost([])
-    for module in (prune_module, run_module):
-        monkeypatch.setattr(module, "time_graphs", host.time)
-    monkeypatch.setattr(prune_module, "export_fp32", host.export)
-    monkeypatch.setattr(prune_module, "_profile", host.profile)
+    _simulated(monkeypatch, front=True)
     real = prune_module.heldout_figures
     calls = []
 
