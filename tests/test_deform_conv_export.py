@@ -238,27 +238,41 @@ def test_deform_conv_sampling_counted_like_grid_sample(deform_conv_tiny) -> None
     assert conv_form.modules[group].sampling == grid_form.modules[group].sampling > 0
 
 
+# (inputs beyond x, w, offsets; attributes beyond kernel_shape): ONNX's defaults are stride 1,
+# no padding, dilation 1, one group and one offset group.
+GENERAL_NODES = {
+    "bias_and_mask": (("b", "mask"), {"group": 2, "offset_group": 2, "pads": [1, 1, 1, 1], "strides": [2, 2]}),
+    "neither": ((), {"group": 2, "offset_group": 2, "pads": [1, 1, 1, 1], "strides": [2, 2]}),
+    "bias_only_defaults": (("b",), {}),  # four inputs: a bias, no mask
+    "bias_only_dilated": (("b",), {"dilations": [2, 1]}),
+}
+
+
 @OPENVINO
-@pytest.mark.parametrize("with_bias_and_mask", [True, False])
-def test_openvino_rule_reads_general_deform_conv_nodes(with_bias_and_mask: bool, tmp_path) -> None:
-    """The conversion rule beyond our own nodes: a dense 2 x 3 kernel with stride, padding,
-    two groups and two offset groups, with a non-zero bias and a mask, or with neither;
-    ONNX Runtime's DeformConv is the reference."""
+@pytest.mark.parametrize("case", sorted(GENERAL_NODES))
+def test_openvino_rule_reads_general_deform_conv_nodes(case: str, tmp_path) -> None:
+    """The conversion rule beyond our own nodes: a dense 2 x 3 kernel with or without stride,
+    padding, groups, offset groups and dilation, a non-zero bias and a mask (each at ONNX's
+    defaults where absent); ONNX Runtime's DeformConv is the reference."""
     from onnx import TensorProto, helper, numpy_helper
 
+    extra_inputs, attributes = GENERAL_NODES[case]
+    group, offset_group = attributes.get("group", 1), attributes.get("offset_group", 1)
+    pad, stride = attributes.get("pads", [0] * 4)[0], attributes.get("strides", [1, 1])[0]
+    dh, dw = attributes.get("dilations", [1, 1])
     rng = np.random.default_rng(5)
     n, c_in, c_out, height, width, kh, kw = 1, 4, 6, 5, 7, 2, 3
-    out_h, out_w = (height + 2 - kh) // 2 + 1, (width + 2 - kw) // 2 + 1  # pads 1, stride 2
-    inputs = ["x", "w", "offsets"]
-    initializers = [numpy_helper.from_array(rng.normal(size=(c_out, c_in // 2, kh, kw)).astype(np.float32), "w")]
+    out_h = (height + 2 * pad - dh * (kh - 1) - 1) // stride + 1
+    out_w = (width + 2 * pad - dw * (kw - 1) - 1) // stride + 1
+    initializers = [numpy_helper.from_array(rng.normal(size=(c_out, c_in // group, kh, kw)).astype(np.float32), "w")]
     feeds = {"x": rng.normal(size=(n, c_in, height, width)).astype(np.float32),
-             "offsets": (rng.normal(size=(n, 2 * 2 * kh * kw, out_h, out_w)) * 1.5).astype(np.float32)}
-    if with_bias_and_mask:
+             "offsets": (rng.normal(size=(n, offset_group * 2 * kh * kw, out_h, out_w)) * 1.5).astype(np.float32)}
+    if "b" in extra_inputs:
         initializers.append(numpy_helper.from_array(rng.normal(size=c_out).astype(np.float32), "b"))
-        feeds["mask"] = rng.uniform(size=(n, 2 * kh * kw, out_h, out_w)).astype(np.float32)
-        inputs += ["b", "mask"]
-    node = helper.make_node("DeformConv", inputs, ["y"], group=2, offset_group=2, kernel_shape=[kh, kw],
-                            pads=[1, 1, 1, 1], strides=[2, 2])
+    if "mask" in extra_inputs:
+        feeds["mask"] = rng.uniform(size=(n, offset_group * kh * kw, out_h, out_w)).astype(np.float32)
+    node = helper.make_node("DeformConv", ["x", "w", "offsets", *extra_inputs], ["y"], kernel_shape=[kh, kw],
+                            **attributes)
     graph = helper.make_graph(
         [node], "deform_conv",
         [helper.make_tensor_value_info(k, TensorProto.FLOAT, list(v.shape)) for k, v in feeds.items()],

@@ -215,35 +215,3 @@ def test_an_unreadable_models_error_is_its_first_line_capped(tmp_path, monkeypat
     with pytest.raises(DataError) as error:
         read_openvino_model(path)
     assert str(error.value) == f"OpenVINO cannot read {path}: " + "x" * 299 + "y"
-
-
-@pytest.mark.parametrize("dilations", [None, (2, 1)])
-def test_the_deform_conv_rule_takes_a_bias_without_a_mask_and_the_attribute_defaults(tmp_path, dilations) -> None:
-    """DeformConv with a bias but no mask (four inputs) and no attribute but the kernel shape
-    (stride, padding, dilation, groups and offset groups at ONNX's defaults); ONNX Runtime's
-    DeformConv is the reference."""
-    import onnxruntime as ort
-    from onnx import numpy_helper
-
-    rng = np.random.default_rng(7)
-    n, c_in, c_out, height, width, kh, kw = 1, 3, 5, 6, 7, 3, 2
-    dh, dw = dilations or (1, 1)
-    out_h, out_w = height - dh * (kh - 1), width - dw * (kw - 1)
-    initializers = [numpy_helper.from_array(rng.normal(size=(c_out, c_in, kh, kw)).astype(np.float32), "w"),
-                    numpy_helper.from_array(rng.normal(size=c_out).astype(np.float32), "b")]
-    feeds = {"x": rng.normal(size=(n, c_in, height, width)).astype(np.float32),
-             "offsets": (rng.normal(size=(n, 2 * kh * kw, out_h, out_w)) * 1.5).astype(np.float32)}
-    node = helper.make_node("DeformConv", ["x", "w", "offsets", "b"], ["y"], kernel_shape=[kh, kw],
-                            **({"dilations": list(dilations)} if dilations else {}))
-    graph = helper.make_graph(
-        [node], "deform_conv",
-        [helper.make_tensor_value_info(k, TensorProto.FLOAT, list(v.shape)) for k, v in feeds.items()],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], initializer=initializers)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 19)], ir_version=9)
-    expected = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)[0]
-    path = tmp_path / "deform.onnx"
-    onnx.save(model, path)
-    core = openvino_session.openvino_core()
-    got = next(iter(core.compile_model(core.read_model(str(path)), "CPU", compile_config(1))(feeds).values()))
-    assert expected.shape == got.shape == (n, c_out, out_h, out_w)
-    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-5 * np.abs(expected).max())
