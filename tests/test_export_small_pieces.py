@@ -11,6 +11,7 @@ import torch
 from onnx import TensorProto, helper
 
 import e3dpsm
+from _io_helpers import record_temporaries
 from e3dpsm.errors import ConfigError
 from e3dpsm.export.ort_optimized import ORT_LEVELS, write_ort_optimized
 from e3dpsm.export.torch_stepper import TorchStepper
@@ -129,11 +130,10 @@ def test_each_level_writes_the_rewrites_it_stands_for(conv_relu, tmp_path, level
 def test_the_copy_is_written_through_a_hidden_onnx_temporary_and_timed(conv_relu, tmp_path, monkeypatch) -> None:
     import e3dpsm.utils.io as io
 
-    suffixes = []
-    real = io.atomic_path
-    monkeypatch.setattr(io, "atomic_path", lambda path, **kwargs: suffixes.append(kwargs.get("suffix")) or real(path, **kwargs))
+    temporaries = record_temporaries(monkeypatch, io)
     record = write_ort_optimized(conv_relu, tmp_path / "step_ort.onnx")
-    assert suffixes == [".onnx"] and 0 < record["seconds"] < 60
+    assert len(temporaries) == 1 and temporaries[0].startswith(".step_ort.onnx.") and temporaries[0].endswith(".onnx")
+    assert 0 < record["seconds"] < 60
 
 
 def test_an_unknown_level_is_refused_and_nothing_written(conv_relu, tmp_path) -> None:

@@ -9,6 +9,7 @@ import pytest
 pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) is not installed")
 
 import e3dpsm  # noqa: E402
+from _io_helpers import record_temporaries  # noqa: E402
 from _toy_tflite import toy_tflite  # noqa: E402
 from e3dpsm.export import litert_export  # noqa: E402
 from e3dpsm.export.edge_export import artifact_contract  # noqa: E402
@@ -89,12 +90,10 @@ def test_the_written_file_goes_through_a_hidden_tflite_temporary_timed_in_second
                                                                                  monkeypatch) -> None:
     import dataclasses
 
-    suffixes = []
-    real = litert_export.atomic_path
-    monkeypatch.setattr(litert_export, "atomic_path",
-                        lambda path, **kwargs: suffixes.append(kwargs.get("suffix")) or real(path, **kwargs))
+    temporaries = record_temporaries(monkeypatch, litert_export)
     result = write_litert(toy_tflite(), model, tmp_path / "step.tflite", LiteRTOptions(), "fp32", {})
-    assert suffixes == [".tflite"] and 0 <= result.seconds["write"] < 60
+    assert len(temporaries) == 1 and temporaries[0].startswith(".step.tflite.") and temporaries[0].endswith(".tflite")
+    assert 0 <= result.seconds["write"] < 60
     with pytest.raises(dataclasses.FrozenInstanceError):
         LiteRTOptions().attention_form = "grid_sample"
     bare = litert_export.LiteRTResult(path="p", bytes=1, seconds={}, ops={}, options={})

@@ -14,6 +14,7 @@ import torch
 from onnx import TensorProto, helper
 
 import e3dpsm
+from _io_helpers import record_temporaries
 from e3dpsm.export import onnx_export
 from e3dpsm.export.onnx_export import (SIMPLIFY_RTOL, ExportError, check_graph, export_step_with_report,
                                        foreign_ops, op_histogram)
@@ -122,18 +123,12 @@ def test_a_static_deform_conv_export_takes_opset_19_and_its_ir(tiny, tmp_path, m
     work = tmp_path / "cwd"
     work.mkdir()
     monkeypatch.chdir(work)  # the trace goes to a temporary folder, nothing to the working one
-    temporaries = []
-    real_atomic_path = onnx_export.atomic_path
-
-    def recording_atomic_path(path, **kwargs):
-        temporaries.append(kwargs.get("suffix"))
-        return real_atomic_path(path, **kwargs)
-
-    monkeypatch.setattr(onnx_export, "atomic_path", recording_atomic_path)
+    temporaries = record_temporaries(monkeypatch, onnx_export)
     result = export_step_with_report(tiny, tmp_path / "d.onnx", simplify=False, attention_form="deform_conv",
                                      static_batch=True)
     assert list(work.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["cwd", "d.onnx"]
-    assert temporaries == [".onnx"]  # a leftover temporary keeps the graph's extension
+    assert len(temporaries) == 1 and temporaries[0].startswith(".d.onnx.") and temporaries[0].endswith(".onnx")
+    # a leftover temporary is hidden and keeps the graph's extension
     assert 0 < result.seconds_export < 600
     graph = onnx.load(str(tmp_path / "d.onnx"))
     assert (result.opset, result.ir_version, graph.ir_version, result.simplified) == (19, 9, 9, False)

@@ -12,6 +12,7 @@ from pathlib import Path
 import onnx
 import pytest
 
+from _io_helpers import record_temporaries
 from _toy_step_graph import STATE, toy_step_graph
 from e3dpsm.errors import ConfigError, DataError
 from e3dpsm.export.tensorrt_build import PRECISIONS, TensorRTOptions, build_engine
@@ -208,23 +209,7 @@ def test_timings_temporaries_and_the_records_defaults(rec, graphs, tmp_path, mon
 
     clock = iter([100.0, 101.23456, 102.98765])
     monkeypatch.setattr(tensorrt_build.time, "perf_counter", lambda: next(clock))
-    temporaries = []
-    real_atomic_path = tensorrt_build.atomic_path
-
-    def recording_atomic_path(path, **kwargs):
-        context = real_atomic_path(path, **kwargs)
-
-        class Recorded:
-            def __enter__(self):
-                tmp = context.__enter__()
-                temporaries.append(tmp.name)
-                return tmp
-
-            def __exit__(self, *exc):
-                return context.__exit__(*exc)
-        return Recorded()
-
-    monkeypatch.setattr(tensorrt_build, "atomic_path", recording_atomic_path)
+    temporaries = record_temporaries(monkeypatch, tensorrt_build)
     result = build_engine(graphs["fp32"], tmp_path / "step.engine")
     assert result.seconds == {"build": 1.23, "total": 2.99}
     # Hidden temporaries that keep their file's extension: a crashed build's leftovers say what they were.
