@@ -211,8 +211,12 @@ def calibrator(inputs: Sequence[tuple[torch.Tensor, ...]]) -> Callable[[torch.nn
     return calibrate
 
 
-def _reads_dequantized(node: torch.fx.Node) -> bool:
-    return any(isinstance(a, torch.fx.Node) and _DEQUANTIZE in op_name(a) for a in node.args)
+def _runs_in_8_bits(node: torch.fx.Node) -> bool:
+    """Input and weight both arrive dequantized. One dequantized operand is not enough: a float
+    operator reading an 8-bit neighbour's output (a decomposed LayerNorm's matmul, a kept-float
+    convolution after a quantised one) gets a dequantized activation and runs in float."""
+    operands = node.args[:2]
+    return len(operands) == 2 and all(isinstance(a, torch.fx.Node) and _DEQUANTIZE in op_name(a) for a in operands)
 
 
 def _scope(node: torch.fx.Node) -> str:
@@ -223,8 +227,8 @@ def _scope(node: torch.fx.Node) -> str:
 
 
 def mac_nodes(graph: torch.fx.Graph) -> list[tuple[str, str, bool]]:
-    """(operator, module path, reads an 8-bit operand) of every MAC-carrying node of `graph`."""
-    return [(op_name(n), _scope(n), _reads_dequantized(n)) for n in graph.nodes
+    """(operator, module path, runs in 8 bits) of every MAC-carrying node of `graph`."""
+    return [(op_name(n), _scope(n), _runs_in_8_bits(n)) for n in graph.nodes
             if n.op == "call_function" and node_macs(n) > 0]
 
 
