@@ -409,3 +409,53 @@ def test_the_default_program_is_the_fp32_converters(tiny, tmp_path, monkeypatch)
                                             executorch_int8.EdgeInt8Options(search_rounds=0), tmp_path)
     convert = next(c for c in recorder.calls if c[0] == "convert")
     assert convert[2] == executorch_export.ExecuTorchOptions()
+
+
+def test_the_search_units_of_the_tiny_are_its_blocks_holding_8_bit_layers(tiny) -> None:
+    assert executorch_int8.search_groups(tiny) == [(name, [name]) for name in (
+        "model.stem", "model.stages.0", "model.stages.1", "model.stages.2", "model.stages.3", "model.attention.0",
+        "model.attention.1", "model.attention.2", "model.attention.3", "model.ssm", "model.decoder")]
+
+
+def test_a_blocks_units_are_its_8_bit_layers_largest_first_and_those_the_program_calls(tiny) -> None:
+    units = executorch_int8.operator_units(tiny, "model.ssm")
+    layers = {path: tiny.get_submodule(path.removeprefix("model.")) for path in units}
+    assert layers and all(type(m) in (nn.Conv2d, nn.Linear) for m in layers.values())
+    assert not [p for p in units if ".s5." in p]  # the recurrent type's own layers stay float
+    every = [f"model.ssm.{n}" for n, m in tiny.ssm.named_modules() if type(m) in (nn.Conv2d, nn.Linear)
+             and ".s5" not in f".{n}"]
+    assert sorted(units) == sorted(every)
+    sizes = [m.weight.numel() for m in layers.values()]
+    assert sizes == sorted(sizes, reverse=True) and sizes[0] > sizes[-1]
+    graph = torch.fx.Graph()
+    for path in (units[-1], units[0], "model.stem"):
+        node = graph.call_function(torch.relu, (graph.placeholder(f"x{len(graph.nodes)}"),))
+        node.meta["nn_module_stack"] = {"k": (path, object)}
+    program = types.SimpleNamespace(graph_module=types.SimpleNamespace(graph=graph))
+    assert executorch_int8.operator_units(tiny, "model.ssm", program) == [units[0], units[-1]]
+
+
+@pytest.mark.parametrize("fold", [True, False])
+def test_a_quantised_program_is_exported_again_and_folded_around_its_8_bit_weights(toy_program, monkeypatch,
+                                                                                  fold) -> None:
+    """export_step_program with a quantizer: the converted module exported again, calibrated
+    once, its weights 8-bit constants each behind a dequantize, folded or not (folded with
+    the fp32 program's skip list, an 8-bit weight and its dequantize become one float weight)."""
+    program, example = toy_program
+    monkeypatch.setattr(executorch_int8, "KEEP_FLOAT_TYPES", (ToyRecurrent,))
+    monkeypatch.setattr(executorch_export, "step_program", lambda model, options: program)
+    monkeypatch.setattr(executorch_export, "StepGraph",
+                        lambda model: types.SimpleNamespace(example_inputs=lambda batch: example))
+    calibrated = []
+    result = executorch_export.export_step_program(
+        "MODEL", executorch_export.ExecuTorchOptions(fold_constants=fold), xnnpack_int8_quantizer(),
+        lambda prepared: calibrated.append(prepared(*example)))
+    assert len(calibrated) == 1 and isinstance(result, torch.export.ExportedProgram)
+    targets = [str(n.target) for n in result.graph.nodes if n.op == "call_function"]
+    assert targets.count("quantized_decomposed.dequantize_per_channel.default") == 5  # one per 8-bit weight
+    int8_constants = [v for v in {**result.constants, **result.state_dict}.values()
+                      if isinstance(v, torch.Tensor) and v.dtype == torch.int8]
+    assert len(int8_constants) == 5  # PT2E's conversion quantised them; folding must not undo it
+    assert "quantized_decomposed.quantize_per_channel.default" not in targets
+    with torch.no_grad():
+        torch.testing.assert_close(result.module()(*example)[0], program.module()(*example)[0], atol=0.05, rtol=0.05)
