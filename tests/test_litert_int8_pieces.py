@@ -1,0 +1,381 @@
+"""The INT8 `.tflite` converter's own pieces (export/litert_int8.py), each in seconds on the toy
+flatbuffer of tests/_toy_litert_int8.py: where each multiply-accumulate operator falls (a
+group, a keep-float rule, neither, or two groups at once), the 8 bits placed by group and
+kept float by rule, the calibration ranges against the toy's own activations computed in
+PyTorch, the narrowing's units, and convert_litert_int8's order of work with the search's
+parts recorded. The tiny's real flatbuffer is test_litert_int8.py's (slow fixture)."""
+from __future__ import annotations
+
+import copy
+import re
+import types
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("ai_edge_quantizer", reason="ai-edge-quantizer (pip extra litert) is not installed")
+pytest.importorskip("litert_torch", reason="litert-torch (pip extra litert) is not installed")
+
+import e3dpsm  # noqa: E402
+from _edge_helpers import tflite_schema_graph  # noqa: E402
+from _toy_litert_int8 import toy_feeds, toy_litert, toy_model  # noqa: E402
+from e3dpsm.errors import ConfigError, DataError  # noqa: E402
+from e3dpsm.export import litert_int8  # noqa: E402
+from e3dpsm.export.edge_int8 import EdgeInt8Options  # noqa: E402
+from e3dpsm.export.litert_export import LiteRTOptions  # noqa: E402
+from e3dpsm.export.litert_int8 import (FLOAT_RULES, calibrate, choose_ranges, classify, group_patterns,  # noqa: E402
+                                       mac_op_scopes, operator_units, quantised_activations, quantised_content)
+
+TOY = "_toy_litert_int8"
+STEM = r"torch\.nn\.modules\.conv\.Conv2d_stem(?=[/;]|$)"
+GROUPS = [("model.stem", STEM), ("model.blocks", rf"{TOY}\.Block_\d(?=[/;]|$)")]
+POSE_HEADS = "pose heads (mm outputs)"
+
+
+@pytest.fixture(scope="module")
+def content() -> bytes:
+    return toy_litert()
+
+
+def _scopes(content: bytes) -> dict[str, str]:
+    """Short name -> scope of the toy's five operators, in graph order."""
+    scopes = [scope for _, scope in mac_op_scopes(content)]
+    assert len(scopes) == 5
+    return dict(zip(("stem", "extra", "block0", "block1", "head"), scopes))
+
+
+def test_the_operators_are_read_in_graph_order_with_their_activations_and_weights(content) -> None:
+    found = litert_int8._mac_operators(content)
+    assert [(op.name, op.weights) for op in found] == [("CONV_2D", 72), ("FULLY_CONNECTED", 16),
+                                                       ("FULLY_CONNECTED", 32), ("FULLY_CONNECTED", 64),
+                                                       ("FULLY_CONNECTED", 48)]
+    schema, _, graph, codes = tflite_schema_graph(content)
+    ops = [graph.Operators(i) for i in range(graph.OperatorsLength())]
+    macs = [op for op in ops if codes[op.OpcodeIndex()] in ("CONV_2D", "FULLY_CONNECTED")]
+    for op, read in zip(macs, found):
+        names = [graph.Tensors(i).Name().decode() for i in (op.Inputs(0), *[op.Outputs(j) for j in
+                                                                           range(op.OutputsLength())])]
+        assert list(read.tensors) == names
+    scopes = _scopes(content)
+    assert "Conv2d_stem" in scopes["stem"] and "Linear_extra" in scopes["extra"]
+    assert "Block_0" in scopes["block0"] and "Block_1" in scopes["block1"]
+    assert "Linear_direct_head" in scopes["head"]
+
+
+def test_each_operator_falls_in_one_group_under_a_rule_or_nowhere(content) -> None:
+    scopes = _scopes(content)
+    assert [litert_int8._place(s, GROUPS) for s in scopes.values()] == [
+        ("group", "model.stem"), ("none", None), ("group", "model.blocks"), ("group", "model.blocks"),
+        ("rule", POSE_HEADS)]
+    assert classify(mac_op_scopes(content), GROUPS) == {
+        "int8_candidates_by_group": {"model.stem": 1, "model.blocks": 2},
+        "float_by_rule": {why: (1 if why == POSE_HEADS else 0) for _, why in FLOAT_RULES},
+        "unmatched_float": [scopes["extra"]]}
+    # a rule wins over a group that also matches
+    assert litert_int8._place(scopes["head"], [("all", ".")]) == ("rule", POSE_HEADS)
+
+
+def test_two_groups_claiming_one_operator_is_a_naming_clash(content) -> None:
+    scopes = _scopes(content)
+    both = [("a", rf"{TOY}\.Block_0(?=[/;]|$)"), ("b", rf"{TOY}\.Block_1(?=[/;]|$)")]
+    assert litert_int8._place(scopes["block0"], both) == ("group", "a")
+    with pytest.raises(ConfigError, match=r"matches groups \['a', 'b'\]: the group patterns overlap"):
+        litert_int8._place(scopes["block1"], both)  # litert-torch names the fused output after both
+
+
+@pytest.mark.parametrize("rule, scope", [
+    ("S5 input drive and readouts (the recurrence)", "x/e3dpsm.layers.products.Projection_drive_re;1"),
+    (POSE_HEADS, "x/torch.nn.modules.linear.Linear_delta_head;2"),
+    (POSE_HEADS, "serving_default_pose_direct_output;"),
+    ("embedding of the fused-pose state", "x/torch.nn.modules.container.Sequential_pose_embed/y;1"),
+])
+def test_the_keep_float_rules_name_the_recurrence_the_heads_and_the_embedding(rule, scope) -> None:
+    assert litert_int8._place(scope, []) == ("rule", rule)
+    assert litert_int8._place(scope.replace("_", "-"), []) == ("none", None)
+
+
+def _weight_types(content: bytes) -> list[bool]:
+    """Whether each CONV_2D / FULLY_CONNECTED weight is int8, read with the TFLite schema."""
+    schema, _, graph, codes = tflite_schema_graph(content)
+    ops = [graph.Operators(i) for i in range(graph.OperatorsLength())]
+    return [graph.Tensors(op.Inputs(1)).Type() == schema.TensorType.INT8 for op in ops
+            if codes[op.OpcodeIndex()] in ("CONV_2D", "FULLY_CONNECTED")]
+
+
+def _calibration(count: int = 6, outlier: float = 0.0):
+    return types.SimpleNamespace(feeds=toy_feeds(count, outlier))
+
+
+@pytest.fixture(scope="module")
+def qsvs(content):
+    ranges, chosen, seconds = calibrate(content, _calibration(), GROUPS, threads=1)
+    assert chosen["rule"] == "mse" and chosen["tensors"] == 5 and seconds > 0
+    return ranges
+
+
+@pytest.mark.parametrize("keep_float, int8", [
+    ((), [True, False, True, True, False]),             # the groups' three; the unmatched and the head float
+    (("model.blocks",), [True, False, False, False, False]),
+    (("model.stem",), [False, False, True, True, False]),
+])
+def test_the_groups_not_kept_float_take_8_bit_weights(content, qsvs, keep_float, int8) -> None:
+    before = copy.deepcopy(qsvs)
+    quantised = quantised_content(content, qsvs, GROUPS, keep_float)
+    assert _weight_types(quantised) == int8
+    assert _weight_types(content) == [False] * 5
+    assert repr(qsvs) == repr(before)  # the trial's copy took the quantizer's writes
+
+
+def test_with_every_group_float_the_flatbuffer_is_returned_as_is(content, qsvs) -> None:
+    assert litert_int8._recipe(content, GROUPS, ("model.stem", "model.blocks")) is None
+    assert quantised_content(bytearray(content), qsvs, GROUPS, ("model.stem", "model.blocks")) == content
+    assert isinstance(quantised_content(bytearray(content), qsvs, GROUPS, ("model.stem", "model.blocks")), bytes)
+
+
+def test_the_quantizers_refusal_is_one_line(content) -> None:
+    with pytest.raises(DataError, match=r"^ai-edge-quantizer could not quantise the model: [^\n]+$"):
+        quantised_content(content, {}, GROUPS)
+
+
+def _toy_activations(feeds) -> dict[str, np.ndarray]:
+    """The toy's activations by role, computed in PyTorch (the independent reference)."""
+    model, seen = toy_model(), {}
+    hooks = [model.stem.register_forward_hook(lambda m, i, o: seen.setdefault("stem_out", []).append(o)),
+             model.blocks[0].register_forward_hook(lambda m, i, o: seen.setdefault("block0_in", []).append(i[0])),
+             # litert-torch moves block 0's bias into block 1's (W1 (W0 h + b0) + b1 = W1 W0 h + (W1 b0 + b1)):
+             # the flatbuffer's block-0 output is the product alone
+             model.blocks[0].register_forward_hook(
+                 lambda m, i, o: seen.setdefault("block0_out", []).append(o - m.proj.bias)),
+             model.blocks[1].register_forward_hook(lambda m, i, o: seen.setdefault("block1_out", []).append(o))]
+    with torch.no_grad():
+        for feed in feeds:
+            model(torch.from_numpy(feed["x"]), torch.from_numpy(feed["s"]))
+            seen.setdefault("x", []).append(torch.from_numpy(feed["x"]))
+    for hook in hooks:
+        hook.remove()
+    return {k: torch.cat([t.flatten() for t in v]).numpy() for k, v in seen.items()}
+
+
+def test_the_activations_to_range_are_the_groups_inputs_and_outputs_once_each(content) -> None:
+    ops = litert_int8._mac_operators(content)
+    stem, _, block0, block1, _ = ops
+    assert quantised_activations(content, GROUPS) == [*stem.tensors, *block0.tensors, block1.tensors[1]]
+    assert quantised_activations(content, [GROUPS[1]]) == [*block0.tensors, block1.tensors[1]]
+
+
+def test_minmax_ranges_are_the_true_extremes_with_zero(content) -> None:
+    feeds = toy_feeds(5)
+    ranges, _, _ = calibrate(content, types.SimpleNamespace(feeds=feeds), GROUPS, threads=1, rule="minmax")
+    qsvs = copy.deepcopy(ranges)
+    names = quantised_activations(content, GROUPS)
+    summary = choose_ranges(content, qsvs, names + ["not-a-tensor"], feeds, threads=1, rule="minmax")
+    assert summary == {"rule": "minmax", "tensors": 5, "narrowed": 0}
+    want = _toy_activations(feeds)
+    roles = dict(zip(("x", "stem_out", "block0_in", "block0_out", "block1_out"), names))
+    for role, name in roles.items():
+        values = want[role]
+        low, high = min(float(values.min()), 0.0), max(float(values.max()), 0.0)
+        np.testing.assert_allclose([qsvs[name]["min"].item(), qsvs[name]["max"].item()], [low, high], rtol=1e-5,
+                                   atol=1e-6, err_msg=role)
+        assert qsvs[name]["min"].shape == ranges[name]["min"].shape
+    np.testing.assert_allclose(ranges[roles["x"]]["max"].item(), max(float(want["x"].max()), 0.0), rtol=1e-5)
+    # the moving average ai-edge-quantizer keeps is inside the extremes for a tensor that varies
+    assert ranges[roles["stem_out"]]["max"].item() <= qsvs[roles["stem_out"]]["max"].item() + 1e-6
+
+
+def test_mse_ranges_come_from_histograms_over_the_true_extremes(content, monkeypatch) -> None:
+    """The "mse" rule histograms each tensor over its true min-max range (with zero), every
+    value of every feed counted once, and writes what choose_range picks (quantize/ranges.py,
+    tested there); a pick that is not min-max counts as narrowed."""
+    from e3dpsm.quantize import ranges as range_rules
+
+    feeds = toy_feeds(5)
+    names = quantised_activations(content, GROUPS)
+    qsvs, _, _ = calibrate(content, types.SimpleNamespace(feeds=feeds), GROUPS, threads=1, rule="minmax")
+    extremes = {n: (qsvs[n]["min"].item(), qsvs[n]["max"].item()) for n in names}
+    seen = []
+
+    def pick(hist):
+        seen.append(hist)
+        narrowed = len(seen) % 2 == 1  # every other tensor: its range halved
+        high = hist.high / 2 if narrowed else hist.high
+        return types.SimpleNamespace(kind="percentile" if narrowed else "minmax", low=hist.low, high=high)
+
+    monkeypatch.setattr(range_rules, "choose_range", pick)
+    summary = choose_ranges(content, qsvs, names, feeds, threads=1, rule="mse")
+    assert summary == {"rule": "mse", "tensors": 5, "narrowed": 3}
+    want = _toy_activations(feeds)
+    sizes = {"x": want["x"].size, "stem_out": want["stem_out"].size, "block0_in": want["block0_in"].size,
+             "block0_out": want["block0_out"].size, "block1_out": want["block1_out"].size}
+    assert [int(h.counts.sum()) for h in seen] == list(sizes.values())
+    assert [len(h.counts) for h in seen] == [range_rules.HISTOGRAM_BINS] * 5
+    for k, (hist, name) in enumerate(zip(seen, names)):
+        np.testing.assert_allclose([hist.low, hist.high], extremes[name], rtol=1e-6)
+        high = extremes[name][1] / 2 if k % 2 == 0 else extremes[name][1]
+        np.testing.assert_allclose([qsvs[name]["min"].item(), qsvs[name]["max"].item()], [extremes[name][0], high],
+                                   rtol=1e-6)
+
+
+def test_calibration_refuses_a_rule_it_does_not_know_and_feeds_for_another_model(content) -> None:
+    with pytest.raises(ValueError, match="range rule must be 'mse' or 'minmax', got 'max'"):
+        calibrate(content, _calibration(), GROUPS, threads=1, rule="max")
+    wrong = types.SimpleNamespace(feeds=[{"y": np.zeros((1, 4), np.float32)}])
+    with pytest.raises(DataError, match=r"^ai-edge-quantizer could not calibrate the model: [^\n]+$"):
+        calibrate(content, wrong, GROUPS, threads=1)
+
+
+def test_a_groups_units_are_its_operators_largest_first_each_matching_one_scope(content) -> None:
+    scopes = _scopes(content)
+    units = operator_units(content, GROUPS, "model.blocks")
+    assert [label for label, _ in units] == ["model.blocks/1:fully_connected(proj)",
+                                             "model.blocks/0:fully_connected(proj)"]
+    for (_, pattern), name in zip(units, ("block1", "block0")):
+        assert [n for n, s in scopes.items() if re.search(pattern, s)] == [name]
+    assert operator_units(content, GROUPS, "model.stem") == [("model.stem/0:conv_2d", "^" + re.escape(
+        scopes["stem"]) + "$")]
+
+
+def test_the_tinys_groups_are_named_as_litert_torch_names_its_scopes() -> None:
+    model = e3dpsm.create_model("tiny", height=32, width=64)
+    look = "(?=[/;]|$)"
+    step = re.escape("e3dpsm.export.wrapper.StepGraph_step/")
+    want = [("model.stem", re.escape("torch.nn.modules.container.Sequential_stem") + look)]
+    want += [(f"model.stages.{i}", re.escape(f"e3dpsm.layers.residual.EncoderStage_{i}") + look) for i in range(4)]
+    want += [(f"model.attention.{i}", re.escape(f"e3dpsm.layers.deformable.DeformableTransformerBlock_{i}") + look)
+             for i in range(4)]
+    want += [("model.ssm", step + re.escape("e3dpsm.layers.feedforward.GEGLU_ff") + look),
+             ("model.decoder", re.escape("e3dpsm.layers.decoder.JointQueryDecoder_decoder") + look)]
+    assert group_patterns(model) == want
+    stage = dict(want)["model.stages.1"]
+    assert re.search(stage, "a/e3dpsm.layers.residual.EncoderStage_1/b;2")
+    assert not re.search(stage, "a/e3dpsm.layers.residual.EncoderStage_12;2")
+
+
+def test_a_trial_writes_the_quantised_flatbuffer_with_its_contract_and_opens_it(tmp_path, monkeypatch) -> None:
+    opened = []
+    monkeypatch.setattr(litert_int8, "embed_contract",
+                        lambda content, model, litert, precision: (content + precision.encode(), {}))
+    monkeypatch.setattr(litert_int8, "open_stepper",
+                        lambda path, runtime, threads: opened.append((path.read_bytes(), path, runtime, threads))
+                        or "STEPPER")
+    trial = litert_int8._trial_opener("MODEL", lambda floats: ",".join(floats).encode(), tmp_path, LiteRTOptions(),
+                                      EdgeInt8Options(threads=3))
+    assert trial(["a", "b"]) == "STEPPER"
+    assert opened == [(b"a,bint8", tmp_path / "trial.tflite", "litert", 3)]
+
+
+def test_the_search_runs_over_the_groups_on_litert(tmp_path, monkeypatch) -> None:
+    seen = {}
+    monkeypatch.setattr(litert_int8, "search_float_groups", lambda groups, trial, search, options, runtime:
+                        seen.update(groups=groups, search=search, runtime=runtime, trial=trial) or "PLACEMENT")
+    monkeypatch.setattr(litert_int8, "_trial_opener", lambda *args: ("TRIAL", args))
+    options = EdgeInt8Options()
+    assert litert_int8.search_keep_float("MODEL", "Q", "SEARCH", options, GROUPS, tmp_path, "LT") == "PLACEMENT"
+    assert seen == {"groups": ["model.stem", "model.blocks"], "search": "SEARCH", "runtime": "LiteRT (XNNPACK)",
+                    "trial": ("TRIAL", ("MODEL", "Q", tmp_path, "LT", options))}
+
+
+def test_narrowing_splits_the_kept_groups_of_several_operators_into_units(content, qsvs, tmp_path,
+                                                                          monkeypatch) -> None:
+    calls = {}
+
+    def narrow(kept, units, trial, search, options, runtime):
+        calls.update(kept=kept, units=units, search=search, runtime=runtime)
+        calls["trial"] = trial(["model.stem", "model.blocks/1:fully_connected(proj)"])
+        return "NARROWING"
+
+    monkeypatch.setattr(litert_int8, "narrow_float_groups", narrow)
+    monkeypatch.setattr(litert_int8, "_trial_opener", lambda model, quantise, work, litert, options:
+                        lambda floats: quantise(floats))
+    fine, narrowing = litert_int8.narrow_keep_float("MODEL", content, qsvs, GROUPS, ["model.blocks", "model.stem"],
+                                                    "SEARCH", EdgeInt8Options(), tmp_path, LiteRTOptions())
+    units = operator_units(content, GROUPS, "model.blocks")
+    assert narrowing == "NARROWING"
+    assert fine == [GROUPS[0], *units]  # the stem's one operator is its own unit: not split
+    assert calls["kept"] == ["model.blocks", "model.stem"]
+    assert calls["units"] == {"model.blocks": [label for label, _ in units], "model.stem": ["model.stem/0:conv_2d"]}
+    assert (calls["search"], calls["runtime"]) == ("SEARCH", "LiteRT (XNNPACK)")
+    assert _weight_types(calls["trial"]) == [False, False, True, False, False]  # block 0 alone in 8 bits
+
+
+class _Calibration(types.SimpleNamespace):
+    def __len__(self) -> int:
+        return len(self.feeds)
+
+
+class Recorder:
+    """convert_litert_int8's long parts recorded; the toy's flatbuffer stands for the step's."""
+
+    def __init__(self, monkeypatch, content: bytes, float_groups: tuple[str, ...], narrowed: list[str] | None) -> None:
+        self.calls: list[tuple] = []
+        log = self.calls.append
+        calibration = _Calibration(feeds=toy_feeds(4), state_source="fp32 rollout", seconds=1.5)
+        placement = types.SimpleNamespace(float_nodes=float_groups)
+
+        def narrow(model, float_content, qsvs, groups, kept, search, options, work, litert):
+            log(("narrow", tuple(kept), search, work.parent))
+            units = operator_units(float_content, groups, "model.blocks")
+            fine = [GROUPS[0], *units]
+            return fine, types.SimpleNamespace(floats=narrowed, search_fields=lambda blocks: {"blocks": list(blocks)})
+
+        def write(content, model, path, litert, precision, seconds, record):
+            log(("write", path, precision, _weight_types(content)))
+            return types.SimpleNamespace(seconds=seconds, record=record)
+
+        patches = {
+            "fp32_reference": lambda model, work: log(("fp32_reference", work)) or "REF",
+            "calibration_set": lambda ref, data, options: log(("calibration", ref)) or calibration,
+            "litert_content": lambda model, litert: log(("litert_content", litert)) or content,
+            "group_patterns": lambda model: list(GROUPS),
+            "search_set": lambda ref, data, options: log(("search_set", ref)) or "SEARCH",
+            "search_keep_float": lambda model, quantise, search, options, groups, work, litert:
+                log(("search", search, work.parent, _weight_types(quantise(["model.stem"])))) or placement,
+            "search_record": lambda placement, search, options, runtime: {"runtime": runtime},
+            "narrow_keep_float": narrow,
+            "write_litert": write,
+            "held_out_set": lambda ref, data, options: log(("held_out", ref)) or "HELD",
+            "check_artifact": lambda path, runtime, held, options: log(("check", path, runtime, held)) or "CHECK",
+        }
+        for name, value in patches.items():
+            monkeypatch.setattr(litert_int8, name, value)
+
+
+@pytest.mark.parametrize("rounds, narrow, float_groups, narrowed, int8", [
+    (0, None, (), None, [True, False, True, True, False]),
+    (4, None, (), None, [True, False, True, True, False]),
+    (4, None, ("model.blocks",), ["model.blocks/1:fully_connected(proj)"], [True, False, True, False, False]),
+    (4, 0, ("model.blocks",), None, [True, False, False, False, False]),
+])
+def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_path, monkeypatch, rounds, narrow,
+                                                                   float_groups, narrowed, int8) -> None:
+    recorder = Recorder(monkeypatch, content, float_groups, narrowed)
+    options = EdgeInt8Options(search_rounds=rounds, narrow_trials=narrow, threads=1)
+    litert = LiteRTOptions(attention_form="gather")
+    path = tmp_path / "step.tflite"
+    result, check, held = litert_int8.convert_litert_int8("MODEL", "DATA", path, options, tmp_path, litert)
+    assert (check, held) == ("CHECK", "HELD")
+    searched, narrowing = rounds > 0, rounds > 0 and bool(float_groups) and narrow != 0
+    expected = [("fp32_reference", tmp_path), ("calibration", "REF"), ("litert_content", litert)]
+    if searched:
+        expected += [("search_set", "REF"), ("search", "SEARCH", tmp_path, [False, False, True, True, False])]
+    if narrowing:
+        expected += [("narrow", float_groups, "SEARCH", tmp_path)]
+    expected += [("write", path, "int8", int8), ("held_out", "REF"), ("check", path, "litert", "HELD")]
+    assert recorder.calls == expected
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith("e3dpsm-litert-search-")]  # trials cleaned up
+    record = result.record
+    keep = narrowed if narrowing else list(float_groups) if searched else []
+    assert record["keep_float"] == keep and record["int8_operators"] == sum(int8)
+    assert record["operators"] == ["CONV_2D", "FULLY_CONNECTED"] and record["groups"] == dict(GROUPS)
+    assert record["coverage"] == classify(mac_op_scopes(content), GROUPS)
+    assert record["float_rules"] == [why for _, why in FLOAT_RULES]
+    calibration = record["calibration"]
+    assert {k: calibration[k] for k in ("split", "frames", "state_source")} == {
+        "split": "train", "frames": 4, "state_source": "fp32 rollout"}
+    assert calibration["ranges"] == {"rule": "mse", "tensors": 5, "narrowed": calibration["ranges"]["narrowed"]}
+    assert calibration["seconds"] >= 1.5 and record["budget"] == options.budget.to_dict()
+    assert record["quantizer"].startswith("ai-edge-quantizer static range")
+    assert ("search" in record) is searched and ("blocks" in record.get("search", {})) is narrowing
+    assert list(result.seconds) == ["convert", "calibrate", "search", "quantize"]
+    assert all(v >= 0 and v == round(v, 2) for v in result.seconds.values())
