@@ -379,3 +379,93 @@ def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_
     assert ("search" in record) is searched and ("blocks" in record.get("search", {})) is narrowing
     assert list(result.seconds) == ["convert", "calibrate", "search", "quantize"]
     assert all(v >= 0 and v == round(v, 2) for v in result.seconds.values())
+
+
+# The weight-only `.tflite` (export/litert_weights8.py) on the same toy.
+def _weights_behind_dequantize(content: bytes) -> list[bool]:
+    """Whether each CONV_2D / FULLY_CONNECTED reads its weight from a DEQUANTIZE of int8 codes."""
+    schema, _, graph, codes = tflite_schema_graph(content)
+    ops = [graph.Operators(i) for i in range(graph.OperatorsLength())]
+    producers = {op.Outputs(0): op for op in ops}
+    found = []
+    for op in ops:
+        if codes[op.OpcodeIndex()] in ("CONV_2D", "FULLY_CONNECTED"):
+            source = producers.get(op.Inputs(1))
+            found.append(source is not None and codes[source.OpcodeIndex()] == "DEQUANTIZE"
+                         and graph.Tensors(source.Inputs(0)).Type() == schema.TensorType.INT8)
+    return found
+
+
+def test_weight_only_puts_every_operators_weights_in_8_bits_per_output_channel(content) -> None:
+    """Every CONV_2D / FULLY_CONNECTED, groups and rules alike, reads int8 codes through a
+    DEQUANTIZE with a scale per output channel, each weight within half a step of its float."""
+    from e3dpsm.export.litert_weights8 import weight_only_content
+
+    quantised = weight_only_content(content)
+    assert _weights_behind_dequantize(quantised) == [True] * 5 and _weights_behind_dequantize(content) == [False] * 5
+    schema, _, graph, codes = tflite_schema_graph(quantised)
+    _, _, float_graph, float_codes = tflite_schema_graph(content)
+    ops = [graph.Operators(i) for i in range(graph.OperatorsLength())]
+    producers = {op.Outputs(0): op for op in ops}
+    model = schema.Model.GetRootAs(quantised, 0)
+    float_model = schema.Model.GetRootAs(content, 0)
+    float_ops = [float_graph.Operators(i) for i in range(float_graph.OperatorsLength())
+                 if float_codes[float_graph.Operators(i).OpcodeIndex()] in ("CONV_2D", "FULLY_CONNECTED")]
+    macs = [op for op in ops if codes[op.OpcodeIndex()] in ("CONV_2D", "FULLY_CONNECTED")]
+    for op, float_op in zip(macs, float_ops):
+        dequantize = producers.get(op.Inputs(1))
+        assert dequantize is not None and codes[dequantize.OpcodeIndex()] == "DEQUANTIZE"
+        codes_tensor = graph.Tensors(dequantize.Inputs(0))
+        assert codes_tensor.Type() == schema.TensorType.INT8
+        q = codes_tensor.Quantization()
+        rows = codes_tensor.ShapeAsNumpy()[0]
+        assert q.ScaleLength() == rows and q.QuantizedDimension() == 0 and not q.ZeroPointAsNumpy().any()
+        int8 = np.frombuffer(model.Buffers(codes_tensor.Buffer()).DataAsNumpy().tobytes(), np.int8)
+        weight = float_graph.Tensors(float_op.Inputs(1))
+        floats = np.frombuffer(float_model.Buffers(weight.Buffer()).DataAsNumpy().tobytes(), np.float32)
+        scales = q.ScaleAsNumpy()[:, None]
+        restored = int8.reshape(rows, -1) * scales
+        assert np.all(np.abs(restored - floats.reshape(rows, -1)) <= scales / 2 + 1e-7)
+
+
+def test_weight_only_refusals_are_one_line_naming_the_other_ways(content, monkeypatch) -> None:
+    from ai_edge_quantizer import quantizer
+
+    from e3dpsm.export.litert_weights8 import weight_only_content
+
+    def refuse(self, **kwargs):
+        raise RuntimeError("no such tensor\nsecond line")
+
+    monkeypatch.setattr(quantizer.Quantizer, "quantize", refuse)
+    with pytest.raises(ConfigError, match=r"^ai-edge-quantizer could not quantise this model's weights \(no such "
+                                          r"tensor\); the fp32 `convert litert` or the static `--quantize int8` may "
+                                          r"still convert it$"):
+        weight_only_content(content)
+    monkeypatch.setattr(quantizer.Quantizer, "quantize", lambda self, **kwargs: (_ for _ in ()).throw(ValueError()))
+    with pytest.raises(ConfigError, match=r"weights \(ValueError\)"):
+        weight_only_content(content)
+
+
+def test_weight_only_convert_writes_and_judges_without_calibration(content, tmp_path, monkeypatch) -> None:
+    from e3dpsm.export import litert_weights8
+
+    calls = []
+    monkeypatch.setattr(litert_weights8, "fp32_reference", lambda model, work: calls.append(("ref", work)) or "REF")
+    monkeypatch.setattr(litert_weights8, "litert_content", lambda model, litert: calls.append(("convert", litert))
+                        or content)
+    monkeypatch.setattr(litert_weights8, "write_litert", lambda c, model, path, litert, precision, seconds, record:
+                        calls.append(("write", path, precision, _weights_behind_dequantize(c))) or
+                        types.SimpleNamespace(seconds=seconds, record=record))
+    monkeypatch.setattr(litert_weights8, "held_out_set", lambda ref, data, options: calls.append(("held", ref))
+                        or "HELD")
+    monkeypatch.setattr(litert_weights8, "check_artifact", lambda path, runtime, held, options:
+                        calls.append(("check", path, runtime, held)) or "CHECK")
+    options, litert, path = EdgeInt8Options(threads=1), LiteRTOptions(attention_form="gather"), tmp_path / "w.tflite"
+    result, check, held = litert_weights8.convert_litert_weights8("MODEL", "DATA", path, options, tmp_path, litert)
+    assert (check, held) == ("CHECK", "HELD")
+    assert calls == [("ref", tmp_path), ("convert", litert), ("write", path, "int8-weights", [True] * 5),
+                     ("held", "REF"), ("check", path, "litert", "HELD")]
+    assert result.record == {"quantizer": litert_weights8.RECIPE, "operators": ["CONV_2D", "FULLY_CONNECTED"],
+                             "int8_operators": 5, "arithmetic": "float", "budget": options.budget.to_dict()}
+    assert list(result.seconds) == ["convert", "quantize"] and all(v >= 0 for v in result.seconds.values())
+    assert result.seconds["quantize"] == round(result.seconds["quantize"], 2)
