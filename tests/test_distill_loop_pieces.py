@@ -35,6 +35,7 @@ class ToyPose(nn.Module):
         self.register_buffer("pose_prior_mm", torch.zeros(JOINTS, 3))
         self.calls: list[dict] = []
         self.poison_at: int | None = None
+        object.__setattr__(self, "fake_quant", None)  # QAT's ranges, not the model's own parameters
 
     def init_state(self, batch: int) -> dict[str, torch.Tensor]:
         return {"h": torch.full((batch, FEATURES), -1.0)}
@@ -51,6 +52,8 @@ class ToyPose(nn.Module):
                            "training": self.training, "lnes": lnes.clone()})
         batch, frames = lnes.shape[:2]
         x = lnes if state is None else lnes + state["h"][:, None]
+        if self.fake_quant is not None:
+            x = x * (1.0 + sum(q.weight.sum() for q in self.fake_quant.quantizers))
         y = self.head(self.norm(x.reshape(batch * frames, FEATURES))).view(batch, frames, 3, JOINTS, 3)
         if self.poison_at is not None and len(self.calls) == self.poison_at:
             y = y * float("nan")
@@ -249,11 +252,16 @@ class FakeWindows:
         return 40
 
 
-@pytest.mark.parametrize("prior", ["keep", "teacher", "data"])
-def test_distill_hands_back_both_models_as_it_found_them(monkeypatch, prior) -> None:
+def _fake_data(monkeypatch) -> FakeData:
     data = FakeData()
     monkeypatch.setattr(distill_module.PreparedData, "open", staticmethod(lambda path: data))
     monkeypatch.setattr(distill_module, "WindowDataset", FakeWindows)
+    return data
+
+
+@pytest.mark.parametrize("prior", ["keep", "teacher", "data"])
+def test_distill_hands_back_both_models_as_it_found_them(monkeypatch, prior) -> None:
+    data = _fake_data(monkeypatch)
     monkeypatch.setattr(distill_module, "teacher_mean_pose",
                         lambda teacher, dataset, config, window_ms: torch.full((JOINTS, 3), window_ms))
     ran = {}
@@ -283,3 +291,107 @@ def test_distill_hands_back_both_models_as_it_found_them(monkeypatch, prior) -> 
     assert summary["windows"] == 9 and summary["frames"] == 40 and summary["window_ms"] == 25.0 and summary["data"] == "PREP"
     assert summary["config"] == _config(prior=prior, threads=1).to_dict() and summary["prior_seconds"] >= 0
     assert math.isfinite(summary["prior_seconds"])
+
+
+class ToyFakeQuant(nn.Module):
+    """attach_fake_quant's handle: learned ranges as parameters, a payload, removal recorded."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.quantizers = nn.ModuleList([nn.Linear(1, 1, bias=False) for _ in range(3)])
+        self.config = types.SimpleNamespace(range_lr_scale=10.0)
+        self.weight_bits, self.removed = 7, 0
+
+    def ranges_payload(self) -> dict:
+        return {"ranges": [float(q.weight) for q in self.quantizers]}
+
+    def remove(self) -> None:
+        self.removed += 1
+
+
+def _recorded_adam(monkeypatch) -> list:
+    made = []
+    adam = torch.optim.Adam
+
+    def record(groups, lr):
+        made.append(([{**g, "params": list(g["params"])} for g in groups], lr))
+        return adam(groups, lr=lr)
+
+    monkeypatch.setattr(torch.optim, "Adam", record)
+    return made
+
+
+@pytest.mark.parametrize("ranges_only", [False, True])
+def test_qat_trains_the_ranges_beside_the_weights_or_alone(batches, monkeypatch, ranges_only) -> None:
+    made, clipped = _recorded_adam(monkeypatch), []
+    clip = torch.nn.utils.clip_grad_norm_
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_",
+                        lambda params, norm: clipped.append(list(params)) or clip(clipped[-1], norm))
+    teacher, student, fake_quant = ToyPose("big", 0).eval(), ToyPose("small", 1), ToyFakeQuant()
+    object.__setattr__(student, "fake_quant", fake_quant)
+    weights = [p.detach().clone() for p in student.parameters()]
+    ranges_before = [p.detach().clone() for p in fake_quant.parameters()]
+    student.requires_grad_(not ranges_only)  # distill freezes the weights for a ranges-only run
+    _run(teacher, student, "D", _config(steps=2, qat=True, qat_ranges_only=ranges_only), 20.0, None, False, fake_quant)
+    (groups, lr), = made
+    ranges = {"params": list(fake_quant.parameters()), "lr": 0.05 * 10.0}
+    # the ranges' gradients unclipped beside the weights' (as `train --qat`), clipped when alone
+    assert clipped == [ranges["params"] if ranges_only else list(student.parameters())] * 2
+    if ranges_only:
+        assert [g["params"] for g in groups] == [ranges["params"]] and groups[0]["lr"] == 0.5
+        assert all(torch.equal(a, b) for a, b in zip(weights, student.parameters()))
+    else:
+        assert [g["params"] for g in groups] == [list(student.parameters()), ranges["params"]]
+        assert groups[1]["lr"] == 0.5 and "lr" not in groups[0] and lr == 0.05
+        assert not all(torch.equal(a, b) for a, b in zip(weights, student.parameters()))
+    assert not student.norm.training  # QAT freezes the statistics
+    assert not any(torch.equal(a, b) for a, b in zip(ranges_before, fake_quant.parameters()))
+
+
+@pytest.mark.parametrize("rule, windows, streams, count", [
+    ("mse", 10, 1, 10), ("minmax", 10, 3, 4), ("mse", 2, 3, 2), ("mse", 30, 4, 8), ("first-batch", 10, 1, None)])
+def test_qat_ranges_start_from_calibration_on_whole_streams(monkeypatch, rule, windows, streams, count) -> None:
+    from e3dpsm.training import qat
+
+    _fake_data(monkeypatch)
+    fake_quant, calibrated, handed = ToyFakeQuant(), [], {}
+    monkeypatch.setattr(qat, "attach_fake_quant", lambda model, config: handed.update(
+        training=model.training, config=config) or fake_quant)
+    monkeypatch.setattr(qat, "calibrate_on_windows", lambda fq, model, dataset, n, window_ms, causal, init:
+                        calibrated.append((fq, dataset.seq_len, n, window_ms, causal, init)) or 2)
+    monkeypatch.setattr(distill_module, "_run", lambda teacher, student, dataset, config, window_ms, criterion,
+                        progress, fq: {"fake_quant": fq})
+    config = _config(qat=True, qat_range_init=rule, qat_calibration_windows=windows, stream_windows=streams,
+                     causal=streams > 1)
+    summary = distill_module.distill(ToyPose("big", 0), ToyPose("small", 1), "PREP", config, progress=False)
+    assert handed == {"training": True, "config": config.qat_config}
+    assert summary["fake_quant"] is fake_quant and fake_quant.removed == 1
+    assert summary["qat_ranges"] == fake_quant.ranges_payload()
+    start = {"rule": rule, "quantizers": 3, "calibrated": 0, "weight_bits": 7}
+    if count is None:
+        assert calibrated == [] and summary["qat_range_start"] == start
+    else:
+        assert calibrated == [(fake_quant, FRAMES * streams, count, 25.0, streams > 1, rule)]
+        assert summary["qat_range_start"] == {**start, "calibrated": 2, "windows": count,
+                                              "frames_per_window": FRAMES * streams}
+
+
+def test_qat_ranges_only_freezes_the_weights_for_the_run_and_removes_the_quantizers_on_failure(monkeypatch) -> None:
+    from e3dpsm.training import qat
+
+    _fake_data(monkeypatch)
+    fake_quant, seen = ToyFakeQuant(), {}
+    monkeypatch.setattr(qat, "attach_fake_quant", lambda model, config: fake_quant)
+    monkeypatch.setattr(qat, "calibrate_on_windows", lambda *args: 0)
+
+    def run(teacher, student, dataset, config, window_ms, criterion, progress, fq):
+        seen["grads"] = {p.requires_grad for p in student.parameters()}
+        raise DataError("stopped")
+
+    monkeypatch.setattr(distill_module, "_run", run)
+    student = ToyPose("small", 1).train()
+    with pytest.raises(DataError, match="stopped"):
+        distill_module.distill(ToyPose("big", 0), student, "PREP", _config(qat=True, qat_ranges_only=True),
+                               progress=False)
+    assert seen["grads"] == {False} and {p.requires_grad for p in student.parameters()} == {True}
+    assert fake_quant.removed == 1 and student.training
