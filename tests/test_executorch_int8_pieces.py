@@ -444,13 +444,15 @@ def test_a_quantised_program_is_exported_again_and_folded_around_its_8_bit_weigh
     program, example = toy_program
     monkeypatch.setattr(executorch_int8, "KEEP_FLOAT_TYPES", (ToyRecurrent,))
     monkeypatch.setattr(executorch_export, "step_program", lambda model, options: program)
-    monkeypatch.setattr(executorch_export, "StepGraph",
-                        lambda model: types.SimpleNamespace(example_inputs=lambda batch: example))
+    monkeypatch.setattr(executorch_export, "StepGraph", lambda model: types.SimpleNamespace(
+        example_inputs=lambda batch: (example[0].expand(batch, *example[0].shape[1:]).contiguous(),)))
     calibrated = []
     result = executorch_export.export_step_program(
         "MODEL", executorch_export.ExecuTorchOptions(fold_constants=fold), xnnpack_int8_quantizer(),
         lambda prepared: calibrated.append(prepared(*example)))
     assert len(calibrated) == 1 and isinstance(result, torch.export.ExportedProgram)
+    frame, = [n for n in result.graph.nodes if n.op == "placeholder" and n.name == "x"]
+    assert tuple(frame.meta["val"].shape) == (1, 1, 8, 8)  # exported at batch 1, the step's
     targets = [str(n.target) for n in result.graph.nodes if n.op == "call_function"]
     assert targets.count("quantized_decomposed.dequantize_per_channel.default") == 5  # one per 8-bit weight
     int8_constants = [v for v in {**result.constants, **result.state_dict}.values()
