@@ -105,8 +105,8 @@ def test_convert_hands_executorch_the_program_and_the_contract_and_writes_what_i
     options = ExecuTorchOptions(attention_form="gather", decompose_norms=False)
     quantizer, calibrate = (object(), lambda m: None) if quantized else (None, None)
     path = tmp_path / "out" / "step.pte"
-    result = convert_executorch(model, path, options, precision="int8" if quantized else "fp32", quantizer=quantizer,
-                                calibrate=calibrate, extra_record={"budget": {"limit_pct": 1.0}})
+    given = {"precision": "int8", "quantizer": quantizer, "calibrate": calibrate} if quantized else {}
+    result = convert_executorch(model, path, options, **given, extra_record={"budget": {"limit_pct": 1.0}})
     (_, training, given_options, given_quantizer, given_calibrate, grads), lower = lowering.calls
     assert training is False and grads == [False]  # exported from the frozen eval model
     assert (given_options, given_quantizer, given_calibrate) == (options, quantizer, calibrate)
@@ -138,3 +138,14 @@ def test_the_options_defaults_and_the_results_record() -> None:
         ExecuTorchOptions().attention_form = "gather"
     bare = executorch_export.ExecuTorchResult(path="p", bytes=1, seconds={}, delegation={}, options={})
     assert bare.to_dict()["artifact"] == {}
+
+
+def test_without_the_extra_nothing_is_written_and_the_line_names_it(model, tmp_path, monkeypatch) -> None:
+    from e3dpsm.errors import ConfigError
+
+    monkeypatch.setitem(__import__("sys").modules, "executorch", None)
+    path = tmp_path / "step.pte"
+    with pytest.raises(ConfigError, match=r'^executorch is not installed \(to write .pte programs\): '
+                                          r'pip install -e "\.\[executorch\]"$'):
+        convert_executorch(model, path)
+    assert not path.exists()

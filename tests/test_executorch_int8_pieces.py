@@ -189,13 +189,15 @@ def test_the_pt2e_stepper_hands_states_in_the_specs_order_and_splits_its_outputs
     calls = []
 
     def module(lnes, window, *states):
+        assert not torch.is_grad_enabled()  # a search steps thousands of frames: no graph kept
         calls.append((lnes, window, states))
         poses = tuple(torch.full((1, 2), float(i)) for i in range(len(OUTPUT_NAMES)))
         return poses + tuple(s + window[0] for s in states)
 
     stepper = QuantizedModuleStepper(module, tiny)
-    state = stepper.init_state(1)
-    assert list(state) == names and all(isinstance(v, np.ndarray) for v in state.values())
+    state = stepper.init_state()
+    assert list(state) == names and all(isinstance(v, np.ndarray) and v.shape[0] == 1 for v in state.values())
+    assert all(v.shape[0] == 3 for v in stepper.init_state(3).values())
     state = {n: np.full_like(v, k) for k, (n, v) in enumerate(state.items())}
     lnes = np.ones((1, 2, 32, 64), np.float32)
     poses, new_state = stepper.step(lnes, state, 20.0)
