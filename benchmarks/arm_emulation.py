@@ -10,7 +10,9 @@ of the fp32 graph on this host with the host's rollouts of the other graphs (`go
 CPU model of --cpus (qemu's `max`, every feature it implements, by default). With --trace,
 each QDQ graph also gets the kernel-parity trace (e3dpsm/golden/kernel_report.py): which
 quantised activations depart, first and on their own; each INT8 .tflite the code trace
-(e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's. With
+(e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's; each
+INT8 .pte the instruction trace (e3dpsm/golden/pte_trace.py, from ExecuTorch's ETDump):
+which kernel or XNNPACK partition's output first parts from the host's. With
 --portable, each QDQ graph also gets its portable form (e3dpsm/golden/kernel_cut.py:
 activation quantisation kept only where every op before it computes to the bit on any ISA)
 and that is checked too.
@@ -411,6 +413,38 @@ def tflite_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: E
     return traces
 
 
+def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: EmulatedCPU = DEFAULT_CPU,
+               host_python: str = sys.executable) -> dict:
+    """Where every INT8 .pte's computation parts from the host's (e3dpsm/golden/pte_trace.py):
+    digests of every instruction output at each step, from ETDump, recorded by `host_python`
+    and emulated, compared here."""
+    from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT, compare, read_trace
+    from e3dpsm.runtime.executorch_session import ExecuTorchStepSession
+
+    traces = {}
+    for graph in graphs:
+        if graph.suffix != ".pte" or ExecuTorchStepSession(graph).artifact.get("precision") != "int8":
+            continue
+        folder = work / "pte-traces" / _slug(cpu.name) / graph.stem
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        host, device = folder / "host.json", folder / "device.json"
+        env = {**os.environ, OTHER_RELEASE_ENV: "1"} if host_python != sys.executable else None
+        run([host_python, "-m", "e3dpsm.golden.pte_trace", "record", graph, work / "golden", host, "--steps", steps],
+            stdout=subprocess.DEVNULL, env=env)
+        done = _emulated_process(root, ["python3", "-m", "e3dpsm.golden.pte_trace", "record", _inside(root, graph),
+                                        _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)],
+                                 cpu, True)
+        if done.returncode == NO_EVENT_TRACER_EXIT:  # the root's ExecuTorch wheel: no ETDump to trace with
+            traces[graph.name] = {"not_traced": done.stderr.strip().splitlines()[-1].removeprefix(
+                "pte_trace: error: ")}
+            continue
+        if done.returncode:
+            fail(f"under emulation, pte_trace record {graph.name} exited {done.returncode}: {done.stderr[-2000:]}")
+        traces[graph.name] = compare(read_trace(host), read_trace(device))
+    return traces
+
+
 def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -> dict:
     """An INT8 graph is ARM-ready when the emulated rollout computes what the host computed
     (question (a) of `golden check`); where not, the trace names the quantised activations
@@ -418,9 +452,13 @@ def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -
     the code tensors that part first (a .tflite's code trace, tflite_trace.compare)."""
     same = check.get("same_as_host")
     ready = {"ready": bool(same) if same is not None else check["status"] == "passed"}
-    if code_trace and not ready["ready"]:
-        from e3dpsm.golden.tflite_trace import describe
-
+    if code_trace and not ready["ready"] and "not_traced" in code_trace:
+        ready["not_traced"] = code_trace["not_traced"]
+    elif code_trace and not ready["ready"]:
+        if "codes" in code_trace:  # a .tflite's code trace
+            from e3dpsm.golden.tflite_trace import describe
+        else:  # a .pte's instruction trace
+            from e3dpsm.golden.pte_trace import describe
         ready["departs_first"] = [describe(c) for c in code_trace["first_departures"][:3]]
         ready["first_step"] = code_trace["first_step"]
     elif trace and not ready["ready"]:
@@ -466,10 +504,18 @@ def markdown(report: dict) -> str:
                       + ", ".join(f"{name} {count}" for name, count in partitions.items()) + "."]
     for run in report["runs"]:
         for name, trace in run.get("code_traces", {}).items():
-            from e3dpsm.golden.tflite_trace import summary
+            if "not_traced" in trace:
+                lines += ["", f"## {name} on `{run['cpu']}`: not traced", "", trace["not_traced"] + "."]
+            elif "codes" in trace:
+                from e3dpsm.golden.tflite_trace import summary
 
-            lines += ["", f"## {name} on `{run['cpu']}`: where the codes part ({trace['codes']} code tensors)", "",
-                      summary(trace) + "."]
+                lines += ["", f"## {name} on `{run['cpu']}`: where the codes part ({trace['codes']} code tensors)", "",
+                          summary(trace) + "."]
+            else:
+                from e3dpsm.golden.pte_trace import summary as pte_summary
+
+                lines += ["", f"## {name} on `{run['cpu']}`: where the instruction outputs part ({trace['outputs']} "
+                          "values ETDump logs per step)", "", pte_summary(trace) + "."]
     for run in report["runs"]:
         for name, trace in run["traces"].items():
             lines += ["", f"## {name} on `{run['cpu']}`: where the codes depart ({trace['codes']} quantised activations)",
@@ -512,7 +558,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   "qemu 7.2's SME emulation is wrong, docs/edge.md)")
     parser.add_argument("--trace", action="store_true",
                         help="where the codes part: the kernel-parity trace of every QDQ graph, the code trace of "
-                             "every INT8 .tflite")
+                             "every INT8 .tflite, the instruction trace of every INT8 .pte")
     parser.add_argument("--portable", action="store_true", help="check each QDQ graph's portable form too")
     parser.add_argument("--host-python", default=sys.executable,
                         help="the Python that records the host's rollouts (default this one); for .pte programs, "
@@ -541,14 +587,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.portable:
         staged += portable_graphs(staged[1:], work)
     host_golden(staged[0], staged[1:], args.data, args.steps, work, args.host_python)
-    runs = [check_on(args.root, staged, work, args.steps, EmulatedCPU(None if m == "max" else m, qemu), args.trace)
+    runs = [check_on(args.root, staged, work, args.steps, EmulatedCPU(None if m == "max" else m, qemu), args.trace,
+                    args.host_python)
             for m in args.cpus]
     return write_report(args, runs, load)
 
 
-def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool) -> dict:
+def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: EmulatedCPU, trace: bool,
+             host_python: str = sys.executable) -> dict:
     """Every staged graph's golden check on one emulated CPU (with the traces if asked: the
-    kernel trace of each QDQ graph, the code trace of each INT8 .tflite)."""
+    kernel trace of each QDQ graph, the code trace of each INT8 .tflite, the instruction trace
+    of each INT8 .pte)."""
     refusal = executorch_refusal(root, cpu) if has_pte(staged) else None
     if refusal:  # the other graphs are still checked on this CPU
         print(f"{cpu.name}: .pte programs not run: {refusal}")
@@ -557,6 +606,8 @@ def check_on(root: Path, staged: list[Path], work: Path, steps: int, cpu: Emulat
     partitions = emulated_delegation(root, staged, cpu)
     traces = kernel_traces(root, staged[1:], work, steps, cpu) if trace else {}
     code_traces = tflite_traces(root, staged[1:], work, steps, cpu) if trace else {}
+    if trace and has_pte(staged):
+        code_traces.update(pte_traces(root, staged[1:], work, steps, cpu, host_python))
     for check in checks:
         name = Path(check["model"]).name
         check["xnnpack_partitions"] = partitions.get(name)

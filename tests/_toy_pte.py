@@ -16,9 +16,10 @@ def toy_pose(lnes: np.ndarray, window_ms: float | np.ndarray) -> np.ndarray:
     return (2 * np.asarray(lnes, np.float32) + np.float32(window_ms)).astype(np.float32)
 
 
-def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: bool = True) -> bytes:
+def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: bool = True,
+            delegated: bool = False) -> bytes:
     """The toy program's bytes; `version`: the ExecuTorch release its record names (default
-    this one's)."""
+    this one's); `delegated`: its arithmetic lowered to one XNNPACK partition."""
     import torch
     from executorch.exir import to_edge_transform_and_lower
 
@@ -42,4 +43,10 @@ def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: 
               "inputs": ["lnes", "window_ms", state_input_name(STATE)], "outputs": ["pose", state_output_name(STATE)]}
     program = torch.export.export(Toy(), example)
     methods = {PTE_METHOD: encode(meta, record)} if with_metadata else {}
-    return to_edge_transform_and_lower(program, constant_methods=methods).to_executorch().buffer
+    partitioner = []
+    if delegated:
+        from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
+
+        partitioner = [XnnpackPartitioner()]
+    return to_edge_transform_and_lower(program, partitioner=partitioner,
+                                       constant_methods=methods).to_executorch().buffer

@@ -9,6 +9,10 @@ CODE = {"name": "e3dpsm_code_11", "tensor_name": "s0t1521", "operator": 182, "fe
         "read_by": ["FULLY_CONNECTED"], "first_step": 9}
 CODE_TRACE = {"steps": 60, "codes": 71, "apart_by_end": 58, "first_step": 9, "first_departures": [CODE],
               "per_code": [CODE]}
+PARTITION = {"instruction": 19, "output": 3, "kernel": "DELEGATE_CALL", "operators": 3, "position": 21,
+             "operator_names": ["Convert (NC) #1", "Convolution (NHWC, QC8) IGEMM #1", "Add (ND) #1"], "first_step": 2}
+PTE_TRACE = {"steps": 60, "outputs": 291, "apart_by_end": 200, "first_step": 2, "first_departures": [PARTITION],
+             "per_output": [PARTITION]}
 KERNEL_TRACE = {"codes": 149, "first_departures": ["q28"], "propagated": [{"first_step": 3}], "isolated_identical": 148,
                 "isolated": [{"name": "q28", "segment": ["LayerNormalization"], "first_step": 3, "steps_apart": 3,
                               "apart": 3, "elements": 12288, "max_codes": 1}]}
@@ -27,6 +31,11 @@ def test_a_tflite_is_named_by_its_code_trace_an_onnx_graph_by_its_kernel_trace()
     onnx = SCRIPT.arm_ready(_check("q.onnx", False), KERNEL_TRACE)
     assert onnx["departs_first"] == ["q28"] and onnx["responsible"][0]["segment"] == ["LayerNormalization"]
     assert SCRIPT.arm_ready(_check("lt8.tflite", True), None, CODE_TRACE) == {"ready": True}
+    untraced = {"not_traced": "this ExecuTorch runtime (executorch 1.1.0) records no ETDump: ..."}
+    assert SCRIPT.arm_ready(_check("et8.pte", False), None, untraced) == {"ready": False, **untraced}
+    pte = SCRIPT.arm_ready(_check("et8.pte", False), None, PTE_TRACE)
+    assert pte == {"ready": False, "first_step": 2, "departs_first": [
+        "instruction 19 (XNNPACK partition of 3 operators, 1 of them 8-bit; value 3)"]}
 
 
 def test_the_report_gives_each_trace_kind_its_section():
@@ -37,11 +46,17 @@ def test_the_report_gives_each_trace_kind_its_section():
     report = {"steps": 60, "load_average": 0.5, "host": {"isa": {"kind": "vnni", "flags": ["avx2"]},
                                                          "onnxruntime": "1.31.1", "numpy": "2.4.6"},
               "runs": [{"cpu": "cortex-a72", "emulated": machine, "checks": checks,
-                        "traces": {"q.onnx": KERNEL_TRACE}, "code_traces": {"lt8.tflite": CODE_TRACE}}]}
+                        "traces": {"q.onnx": KERNEL_TRACE},
+                        "code_traces": {"lt8.tflite": CODE_TRACE, "et8.pte": PTE_TRACE,
+                                        "old.pte": {"not_traced": "no ETDump here"}}}]}
     text = SCRIPT.markdown(report)
     assert "## lt8.tflite on `cortex-a72`: where the codes part (71 code tensors)" in text
     assert "codes part first at step 9, most upstream e3dpsm_code_11" in text
     assert "## q.onnx on `cortex-a72`: where the codes depart (149 quantised activations)" in text
+    assert ("## et8.pte on `cortex-a72`: where the instruction outputs part (291 values ETDump logs per step)\n\n"
+            "instruction outputs part first at step 2, first in execution order instruction 19 (XNNPACK partition "
+            "of 3 operators, 1 of them 8-bit; value 3); 200 of 291 outputs apart by step 59.") in text
+    assert "## old.pte on `cortex-a72`: not traced\n\nno ETDump here." in text
     assert "| q28 | LayerNormalization | 3 | 3 | 3 / 12288 | 1 |" in text
     assert "XNNPACK partitions LiteRT made on `cortex-a72` (0 would mean its builtin kernels ran): lt8.tflite 6." in text
     assert "| cortex-a72 | lt8.tflite | int8 | pose | host_distance_mm | 2.4 | 1.34 | 0.5 / 5.0 | **over** | **no** |" in text
