@@ -140,3 +140,29 @@ def test_tiny_weight_only_artifacts_compute_the_hosts_poses_under_emulation(arm_
                 assert figures["mean_limit"] == 0.01 and figures["step_limit"] == 0.1 and figures["max"] <= 0.01
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def test_the_pte_trace_under_emulation_runs_or_names_the_missing_event_tracer(arm_root) -> None:
+    """pte_traces on a toy INT8-labelled `.pte` whose arithmetic is float (the same bits on any
+    ISA): with the root's ExecuTorch built with the event tracer, the two traces never part;
+    PyPI's aarch64 ExecuTorch 1.1.0 has none, and the trace says so in one reason."""
+    from _golden_fakes import golden_writer
+    from _toy_pte import toy_pte
+
+    script = _script()
+    script.install_executorch(arm_root)
+    script.install_packages(arm_root, executorch=True)
+    work = arm_root / script.WORK / f"pytest-pte-trace-{os.getpid()}"
+    try:
+        program = work / "toy.pte"
+        work.mkdir(parents=True)
+        program.write_bytes(toy_pte(precision="int8", delegated=True))
+        writer, manifest = golden_writer(4)
+        writer.write(work / "golden", {**manifest, "window_ms": 20.0, "joints": [f"j{i}" for i in range(16)]})
+        trace = script.pte_traces(arm_root, [program], work, 4)["toy.pte"]
+        if "not_traced" in trace:
+            assert "records no ETDump" in trace["not_traced"] and "EXECUTORCH_ENABLE_EVENT_TRACER" in trace["not_traced"]
+        else:
+            assert trace["first_step"] is None and trace["steps"] == 4
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
