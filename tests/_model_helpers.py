@@ -15,3 +15,10 @@ def randomised_tiny(seed: int, **overrides) -> e3dpsm.E3DPSM:
         for parameter in model.parameters():
             parameter.copy_(torch.randn(parameter.shape, generator=gen))
     return model
+
+
+def converter_tiny() -> e3dpsm.E3DPSM:
+    """The tiny at 32 x 64 (the smallest frame its four stages take), seeded, in eval mode: the
+    model the converters' pieces files export, lower or read a contract from, in seconds."""
+    torch.manual_seed(0)
+    return e3dpsm.create_model("tiny", height=32, width=64).eval()

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-import e3dpsm
+from _model_helpers import converter_tiny
 from e3dpsm.errors import ConfigError
 from e3dpsm.export import coreml_export
 from e3dpsm.export.coreml_export import (PRECISIONS, WEIGHT_RTOL, CoreMLOptions, _DistinctOutputs, _package_bytes,
@@ -23,8 +23,7 @@ FLOAT32, FLOAT16 = 65568, 65552  # ArrayFeatureType.FLOAT32 / FLOAT16
 
 @pytest.fixture(scope="module")
 def model():
-    torch.manual_seed(0)
-    return e3dpsm.create_model("tiny", height=32, width=64).eval()
+    return converter_tiny()
 
 
 def test_an_output_that_is_the_same_tensor_as_an_earlier_one_is_an_alias(model) -> None:

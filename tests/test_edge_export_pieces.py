@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import e3dpsm
+from _model_helpers import converter_tiny
 from e3dpsm.errors import ConfigError
 from e3dpsm.export import edge_export
 from e3dpsm.export.edge_export import (EDGE_ATTENTION_FORMS, EDGE_BATCH, NamedStepGraph, artifact_contract,
@@ -22,8 +23,7 @@ from e3dpsm.layers.deformable import DeformableTransformerBlock
 
 @pytest.fixture(scope="module")
 def model():
-    torch.manual_seed(0)
-    return e3dpsm.create_model("tiny", height=32, width=64).eval()
+    return converter_tiny()
 
 
 def test_the_named_step_module_is_the_positional_one_with_the_specs_names(model) -> None:

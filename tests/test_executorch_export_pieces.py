@@ -13,7 +13,7 @@ import torch
 
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
-import e3dpsm  # noqa: E402
+from _model_helpers import converter_tiny  # noqa: E402
 from _io_helpers import record_temporaries  # noqa: E402
 from e3dpsm.export import delegation, executorch_export  # noqa: E402
 from e3dpsm.export.edge_export import artifact_contract  # noqa: E402
@@ -26,8 +26,7 @@ NORMS = {"aten.layer_norm.default", "aten.group_norm.default"}
 
 @pytest.fixture(scope="module")
 def model():
-    torch.manual_seed(0)
-    return e3dpsm.create_model("tiny", height=32, width=64).eval()
+    return converter_tiny()
 
 
 def _targets(program) -> set[str]:

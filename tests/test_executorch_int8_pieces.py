@@ -16,7 +16,7 @@ from torch import nn
 
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
-import e3dpsm  # noqa: E402
+from _model_helpers import converter_tiny  # noqa: E402
 from e3dpsm.export import edge_export, executorch_export, executorch_int8  # noqa: E402
 from e3dpsm.export.executorch_int8 import (QuantizedModuleStepper, calibrator, in_quantised_scope,  # noqa: E402
                                            int8_coverage, keep_float_record, mac_nodes, step_inputs,
@@ -180,8 +180,7 @@ def test_the_calibrator_runs_every_recorded_step_without_gradients() -> None:
 
 @pytest.fixture(scope="module")
 def tiny():
-    torch.manual_seed(0)
-    return e3dpsm.create_model("tiny", height=32, width=64).eval()
+    return converter_tiny()
 
 
 def test_the_pt2e_stepper_hands_states_in_the_specs_order_and_splits_its_outputs(tiny) -> None:

@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) is not installed")
 
-import e3dpsm  # noqa: E402
+from _model_helpers import converter_tiny  # noqa: E402
 from _io_helpers import record_temporaries  # noqa: E402
 from _toy_tflite import toy_tflite  # noqa: E402
 from e3dpsm.export import litert_export  # noqa: E402
@@ -21,7 +21,7 @@ from e3dpsm.runtime.tflite_metadata import is_short_tensor_name, read_metadata  
 
 @pytest.fixture(scope="module")
 def model():
-    return e3dpsm.create_model("tiny", height=32, width=64).eval()
+    return converter_tiny()
 
 
 def _tensor_names(content: bytes) -> list[str]:
