@@ -469,3 +469,33 @@ def test_weight_only_convert_writes_and_judges_without_calibration(content, tmp_
                              "int8_operators": 5, "arithmetic": "float", "budget": options.budget.to_dict()}
     assert list(result.seconds) == ["convert", "quantize"] and all(v >= 0 for v in result.seconds.values())
     assert result.seconds["quantize"] == round(result.seconds["quantize"], 2)
+
+
+class _SSMBlock(torch.nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.norm, self.gate, self.ff = torch.nn.LayerNorm(4), torch.nn.Linear(4, 4), torch.nn.Linear(4, 4)
+
+
+class _FakeStep(torch.nn.Module):
+    """The quantised scopes with an SSM dict whose blocks hold two linear children each."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stem, self.stages, self.attention = torch.nn.Conv2d(1, 1, 1), torch.nn.ModuleList(), torch.nn.ModuleList()
+        self.ssm = torch.nn.ModuleDict({"0": _SSMBlock(), "3": _SSMBlock()})
+        self.decoder = torch.nn.Linear(4, 4)
+
+
+def test_a_dict_of_blocks_is_named_by_its_members_called_children_in_one_alternation() -> None:
+    """Children named alike in every block count once; the alternatives sorted, each under the
+    step graph's own scope (the dict itself is never called)."""
+    step = re.escape("e3dpsm.export.wrapper.StepGraph_step/")
+    linear = re.escape("torch.nn.modules.linear.Linear")
+    patterns = dict(group_patterns(_FakeStep()))
+    assert patterns["model.ssm"] == f"{step}{linear}_ff(?=[/;]|$)|{step}{linear}_gate(?=[/;]|$)"
+    for name in ("ff", "gate"):
+        assert re.search(patterns["model.ssm"], f"e3dpsm.export.wrapper.StepGraph_step/torch.nn.modules.linear."
+                                                f"Linear_{name};2")
+    assert not re.search(patterns["model.ssm"], "e3dpsm.export.wrapper.StepGraph_step/torch.nn.modules.normalization."
+                                                "LayerNorm_norm;1")
