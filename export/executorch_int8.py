@@ -29,7 +29,7 @@ import torch
 
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.export.delegation import DELEGATE_CALL, node_macs, op_name
+from e3dpsm.export.delegation import node_macs, op_name
 from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
                                      narrow_float_groups, search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_export import quantized_module
@@ -241,7 +241,7 @@ def int8_coverage(edge_manager: Any) -> dict[str, Any]:
         original = getattr(child, "original_module", None)
         if original is not None:
             delegated += mac_nodes(original.graph)
-    portable = [m for m in mac_nodes(program.graph) if DELEGATE_CALL not in m[0]]
+    portable = mac_nodes(program.graph)  # a delegate call carries no MACs of its own (node_macs)
     return {"xnnpack_int8": dict(Counter(op for op, _, q in delegated if q)),
             "xnnpack_float": dict(Counter(op for op, _, q in delegated if not q)),
             "portable": dict(Counter(op for op, _, _ in portable)),

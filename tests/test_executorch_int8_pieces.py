@@ -286,15 +286,18 @@ def test_mac_nodes_count_8_bits_where_input_and_weight_are_dequantized() -> None
 
 def test_coverage_splits_delegated_from_portable_by_operator() -> None:
     delegated = types.SimpleNamespace(original_module=types.SimpleNamespace(graph=_mac_graph()))
+    other = _mac_graph()  # a second partition: its operators count too
+    other.erase_node(next(n for n in other.nodes if str(n.target) == "aten.relu.default"))
     top = _mac_graph()  # its MAC nodes run on portable kernels, 8-bit or not
     call = top.call_function(torch.ops.higher_order.executorch_call_delegate, ())
     call.meta["val"] = torch.empty(2, 2)
-    program = types.SimpleNamespace(graph_module=types.SimpleNamespace(children=lambda: [delegated, nn.Identity()]),
+    partitions = [delegated, nn.Identity(), types.SimpleNamespace(original_module=types.SimpleNamespace(graph=other))]
+    program = types.SimpleNamespace(graph_module=types.SimpleNamespace(children=lambda: partitions),
                                     graph=top)
     coverage = int8_coverage(types.SimpleNamespace(exported_program=lambda: program))
     assert coverage == {
-        "xnnpack_int8": {"aten.convolution.default": 1},
-        "xnnpack_float": {"aten.convolution.default": 1, "aten.mm.default": 2},
+        "xnnpack_int8": {"aten.convolution.default": 2},
+        "xnnpack_float": {"aten.convolution.default": 2, "aten.mm.default": 4},
         "portable": {"aten.convolution.default": 2, "aten.mm.default": 2},
         "float_modules": ["model.attention.0.norm", "model.decoder", "model.stages.0"],
         "int8_modules": ["model.stem"]}
@@ -367,6 +370,7 @@ class _Ready:
 
 @pytest.mark.parametrize("rounds, narrow, float_nodes, narrowed", [
     (0, None, (), []),
+    (1, None, (), []),
     (4, None, (), []),
     (4, None, ("model.stem", "model.decoder"), ["model.stem.b", "model.decoder"]),
     (4, 0, ("model.stem",), ["unused"]),
