@@ -10,13 +10,25 @@ import torch
 from torch import nn
 
 
-class Block(nn.Module):
+class FeedForward(nn.Module):
     def __init__(self, features_in: int, features_out: int) -> None:
         super().__init__()
-        self.proj = nn.Linear(features_in, features_out)
+        self.proj_in = nn.Linear(features_in, features_out)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.proj(x)
+        return self.proj_in(x)
+
+
+class Block(nn.Module):
+    """Its layer two modules down, names with underscores: `ff_net.proj_in`, as the step's
+    `ff.proj_in` (the narrowing's unit labels read that path)."""
+
+    def __init__(self, features_in: int, features_out: int) -> None:
+        super().__init__()
+        self.ff_net = FeedForward(features_in, features_out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.ff_net(x)
 
 
 class Toy(nn.Module):

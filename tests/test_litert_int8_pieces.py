@@ -146,7 +146,7 @@ def _toy_activations(feeds) -> dict[str, np.ndarray]:
              # litert-torch moves block 0's bias into block 1's (W1 (W0 h + b0) + b1 = W1 W0 h + (W1 b0 + b1)):
              # the flatbuffer's block-0 output is the product alone
              model.blocks[0].register_forward_hook(
-                 lambda m, i, o: seen.setdefault("block0_out", []).append(o - m.proj.bias)),
+                 lambda m, i, o: seen.setdefault("block0_out", []).append(o - m.ff_net.proj_in.bias)),
              model.blocks[1].register_forward_hook(lambda m, i, o: seen.setdefault("block1_out", []).append(o))]
     with torch.no_grad():
         for feed in feeds:
@@ -228,8 +228,8 @@ def test_calibration_refuses_a_rule_it_does_not_know_and_feeds_for_another_model
 def test_a_groups_units_are_its_operators_largest_first_each_matching_one_scope(content) -> None:
     scopes = _scopes(content)
     units = operator_units(content, GROUPS, "model.blocks")
-    assert [label for label, _ in units] == ["model.blocks/1:fully_connected(proj)",
-                                             "model.blocks/0:fully_connected(proj)"]
+    assert [label for label, _ in units] == ["model.blocks/1:fully_connected(ff_net.proj_in)",
+                                             "model.blocks/0:fully_connected(ff_net.proj_in)"]
     for (_, pattern), name in zip(units, ("block1", "block0")):
         assert [n for n, s in scopes.items() if re.search(pattern, s)] == [name]
     assert operator_units(content, GROUPS, "model.stem") == [("model.stem/0:conv_2d", "^" + re.escape(
@@ -282,7 +282,7 @@ def test_narrowing_splits_the_kept_groups_of_several_operators_into_units(conten
 
     def narrow(kept, units, trial, search, options, runtime):
         calls.update(kept=kept, units=units, search=search, runtime=runtime)
-        calls["trial"] = trial(["model.stem", "model.blocks/1:fully_connected(proj)"])
+        calls["trial"] = trial(["model.stem", "model.blocks/1:fully_connected(ff_net.proj_in)"])
         return "NARROWING"
 
     monkeypatch.setattr(litert_int8, "narrow_float_groups", narrow)
@@ -344,7 +344,7 @@ class Recorder:
 @pytest.mark.parametrize("rounds, narrow, float_groups, narrowed, int8", [
     (0, None, (), None, [True, False, True, True, False]),
     (4, None, (), None, [True, False, True, True, False]),
-    (4, None, ("model.blocks",), ["model.blocks/1:fully_connected(proj)"], [True, False, True, False, False]),
+    (4, None, ("model.blocks",), ["model.blocks/1:fully_connected(ff_net.proj_in)"], [True, False, True, False, False]),
     (4, 0, ("model.blocks",), None, [True, False, False, False, False]),
 ])
 def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_path, monkeypatch, rounds, narrow,
