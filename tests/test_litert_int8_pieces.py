@@ -499,3 +499,35 @@ def test_a_dict_of_blocks_is_named_by_its_members_called_children_in_one_alterna
                                                 f"Linear_{name};2")
     assert not re.search(patterns["model.ssm"], "e3dpsm.export.wrapper.StepGraph_step/torch.nn.modules.normalization."
                                                 "LayerNorm_norm;1")
+
+
+def test_classify_counts_every_operator_of_a_rule_and_a_group() -> None:
+    scopes = [("FULLY_CONNECTED", "x/torch.nn.modules.linear.Linear_direct_head;1"),
+              ("FULLY_CONNECTED", "x/torch.nn.modules.linear.Linear_delta_head;1"),
+              ("CONV_2D", "x/torch.nn.modules.conv.Conv2d_stem;1"), ("CONV_2D", "x/torch.nn.modules.conv.Conv2d_stem;2"),
+              ("FULLY_CONNECTED", "y/unknown;1")]
+    assert classify(scopes, [GROUPS[0]]) == {
+        "int8_candidates_by_group": {"model.stem": 2},
+        "float_by_rule": {why: (2 if why == POSE_HEADS else 0) for _, why in FLOAT_RULES},
+        "unmatched_float": ["y/unknown;1"]}
+    long = "y/" + "u" * 400
+    assert classify([("CONV_2D", long)], [])["unmatched_float"] == [long[:300]]
+
+
+def test_an_overlap_names_the_scope_cut_to_200_characters() -> None:
+    scope = "a/" + "b" * 300
+    with pytest.raises(ConfigError) as error:
+        litert_int8._place(scope, [("one", "a/"), ("two", "b{3}")])
+    assert str(error.value) == f"operator scope {scope[:200]!r} matches groups ['one', 'two']: the group patterns overlap"
+
+
+def test_units_of_equal_weights_keep_their_graph_order(monkeypatch) -> None:
+    """Largest weights first; a tie keeps the order the operators run in (the narrowing tries
+    the earlier one first)."""
+    found = [litert_int8.MacOperator("FULLY_CONNECTED", f"g/torch.nn.modules.linear.Linear_{name};1",
+                                     ("in", f"g/torch.nn.modules.linear.Linear_{name};1"), weights)
+             for name, weights in (("z_late", 8), ("a_early", 8), ("m_big", 16))]
+    monkeypatch.setattr(litert_int8, "_mac_operators", lambda content: found)
+    units = operator_units(b"", [("grp", "g(?=[/;]|$)")], "grp")
+    assert [label for label, _ in units] == ["grp/2:fully_connected(m_big)", "grp/0:fully_connected(z_late)",
+                                             "grp/1:fully_connected(a_early)"]
