@@ -524,10 +524,12 @@ def test_an_overlap_names_the_scope_cut_to_200_characters() -> None:
 def test_units_of_equal_weights_keep_their_graph_order(monkeypatch) -> None:
     """Largest weights first; a tie keeps the order the operators run in (the narrowing tries
     the earlier one first)."""
+    names = [("z_late", 8), ("a_early", 8), ("m_big", 16)] + [(f"n{k}", 8) for k in range(9)]  # 12: labels 10, 11
     found = [litert_int8.MacOperator("FULLY_CONNECTED", f"g/torch.nn.modules.linear.Linear_{name};1",
                                      ("in", f"g/torch.nn.modules.linear.Linear_{name};1"), weights)
-             for name, weights in (("z_late", 8), ("a_early", 8), ("m_big", 16))]
+             for name, weights in names]
     monkeypatch.setattr(litert_int8, "_mac_operators", lambda content: found)
     units = operator_units(b"", [("grp", "g(?=[/;]|$)")], "grp")
     assert [label for label, _ in units] == ["grp/2:fully_connected(m_big)", "grp/0:fully_connected(z_late)",
-                                             "grp/1:fully_connected(a_early)"]
+                                             "grp/1:fully_connected(a_early)"] + [
+        f"grp/{k + 3}:fully_connected(n{k})" for k in range(9)]  # graph order, not the labels' (10 < 3)
