@@ -219,14 +219,15 @@ def test_the_data_prior_is_the_mean_teacher_pose_of_the_first_windows(monkeypatc
     teacher = ToyPose("big", 0).eval()
     teacher.pose_prior_mm.fill_(100.0)
     monkeypatch.setattr(distill_module, "seeded_batches", lambda dataset, size, seed: _batches(50, size, seed))
-    config = _config(prior="data", prior_windows=3, batch_size=2, seed=4, causal=True)
+    config = _config(prior="data", prior_windows=4, batch_size=2, seed=4, causal=True)
     got = teacher_mean_pose(teacher, "D", config, window_ms=33.0)
-    # windows of FRAMES frames: 3 windows = 9 frames; batches of 2 windows: two batches (12 frames) reach it
+    # windows of FRAMES frames: 4 windows = 12 frames; batches of 2 windows: two batches reach it exactly
     poses = [teacher.forward_sequence(b["lnes"])["pose"].detach() for _, b in _batches(2, 2, 4)]
     want = torch.cat([p.reshape(-1, JOINTS, 3) for p in poses]).double().mean(0).float()
     torch.testing.assert_close(got, want)
     assert got.dtype == torch.float32 and got.shape == (JOINTS, 3)
     assert [(c["causal"], c["window_ms"], c["grad"]) for c in teacher.calls[:2]] == [(True, 33.0, False)] * 2
+    assert len(teacher.calls) == 2 + 2  # two batches drawn, then the two of the reference above
 
 
 class FakeData:
@@ -290,7 +291,26 @@ def test_distill_hands_back_both_models_as_it_found_them(monkeypatch, prior) -> 
     assert summary["steps"] == 12 and summary["prior"] == prior and summary["split"] == "all"
     assert summary["windows"] == 9 and summary["frames"] == 40 and summary["window_ms"] == 25.0 and summary["data"] == "PREP"
     assert summary["config"] == _config(prior=prior, threads=1).to_dict() and summary["prior_seconds"] >= 0
-    assert math.isfinite(summary["prior_seconds"])
+    assert math.isfinite(summary["prior_seconds"]) and summary["prior_seconds"] < 60
+
+
+def test_labels_gt_builds_the_pose_criterion_from_the_data_on_the_students_device(monkeypatch) -> None:
+    from e3dpsm.training import trainer
+
+    data = _fake_data(monkeypatch)
+    moved, ran = [], {}
+
+    class Criterion:
+        def to(self, device):
+            moved.append(device)
+            return self
+
+    monkeypatch.setattr(trainer, "pose_criterion", lambda given: Criterion() if given is data else None)
+    monkeypatch.setattr(distill_module, "_run", lambda teacher, student, dataset, config, window_ms, criterion,
+                        progress, fq: ran.update(criterion=criterion, progress=progress) or {})
+    distill_module.distill(ToyPose("big", 0), ToyPose("small", 1), "PREP", _config(labels="gt"), split="train")
+    assert isinstance(ran["criterion"], Criterion) and moved == [torch.device("cpu")]
+    assert ran["progress"] is True and data.splits == ["train"]  # a bar by default; the split asked for
 
 
 class ToyFakeQuant(nn.Module):

@@ -134,6 +134,8 @@ def test_scalars_are_digested_by_value_and_unknown_tensor_types_refused() -> Non
     ends = []
     assert pte_trace._value_bytes(listed, debug, ends) == [debug[:24], debug[24:40]]
     assert ends == [0, 24, 24, 40] and pte_trace._span(ends) == 40
+    assert pte_trace._span([]) == 0 and pte_trace._span([100, 150, 150, 300]) == 200
+    assert pte_trace._span([50, 60, 10, 20]) == 50  # from the lowest start to the highest end
     zero_d = V(tensor=V(scalar_type=6, sizes=[], offset=4), tensor_list=None)
     assert pte_trace._value_bytes(zero_d, debug) == [debug[4:8]]
     with pytest.raises(ValueError, match="scalar type 99"):
