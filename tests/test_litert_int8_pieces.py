@@ -119,9 +119,10 @@ def qsvs(content):
     (("model.blocks",), [True, False, False, False, False]),
     (("model.stem",), [False, False, True, True, False]),
 ])
-def test_the_groups_not_kept_float_take_8_bit_weights(content, qsvs, keep_float, int8) -> None:
+def test_the_groups_not_kept_float_take_8_bit_weights(content, qsvs, keep_float, int8, capfd) -> None:
     before = copy.deepcopy(qsvs)
     quantised = quantised_content(content, qsvs, GROUPS, keep_float)
+    assert capfd.readouterr() == ("", "")  # no progress bar or report: a search quantises hundreds of times
     assert _weight_types(quantised) == int8
     assert _weight_types(content) == [False] * 5
     assert repr(qsvs) == repr(before)  # the trial's copy took the quantizer's writes
@@ -133,9 +134,37 @@ def test_with_every_group_float_the_flatbuffer_is_returned_as_is(content, qsvs) 
     assert isinstance(quantised_content(bytearray(content), qsvs, GROUPS, ("model.stem", "model.blocks")), bytes)
 
 
-def test_the_quantizers_refusal_is_one_line(content) -> None:
+def test_the_quantizers_refusal_is_one_line(content, monkeypatch) -> None:
     with pytest.raises(DataError, match=r"^ai-edge-quantizer could not quantise the model: [^\n]+$"):
         quantised_content(content, {}, GROUPS)
+
+    class Refusing:
+        def quantize(self, *args, **kwargs):
+            raise RuntimeError("r" * 400 + "\nsecond line")
+
+    monkeypatch.setattr(litert_int8, "_recipe", lambda *args: Refusing())
+    with pytest.raises(DataError) as error:
+        quantised_content(content, {}, GROUPS)
+    assert str(error.value) == "ai-edge-quantizer could not quantise the model: " + "r" * 300
+
+
+def test_the_activations_take_the_calibrated_ranges(content, qsvs) -> None:
+    """Each quantised activation's scale and zero point in the flatbuffer are the asymmetric
+    8-bit ones of its range in `qsvs` (scale (max - min) / 255, zero point -128 - min / scale)."""
+    schema, _, graph, _ = tflite_schema_graph(quantised_content(content, qsvs, GROUPS))
+    tensors = {graph.Tensors(i).Name().decode(): graph.Tensors(i) for i in range(graph.TensorsLength())}
+    checked = 0
+    for name in quantised_activations(content, GROUPS):
+        low, high = float(qsvs[name]["min"].item()), float(qsvs[name]["max"].item())
+        coded = [t for n, t in tensors.items() if n == name and t.Type() == schema.TensorType.INT8]
+        if not coded:
+            continue
+        q = coded[0].Quantization()
+        scale = (high - low) / 255.0
+        assert q.ScaleAsNumpy()[0] == pytest.approx(scale, rel=1e-5), name
+        assert q.ZeroPointAsNumpy()[0] == pytest.approx(-128 - low / scale, abs=1.0), name
+        checked += 1
+    assert checked >= 3
 
 
 def _toy_activations(feeds) -> dict[str, np.ndarray]:
@@ -169,7 +198,9 @@ def test_minmax_ranges_are_the_true_extremes_with_zero(content) -> None:
     ranges, _, _ = calibrate(content, types.SimpleNamespace(feeds=feeds), GROUPS, threads=1, rule="minmax")
     qsvs = copy.deepcopy(ranges)
     names = quantised_activations(content, GROUPS)
-    summary = choose_ranges(content, qsvs, names + ["not-a-tensor"], feeds, threads=1, rule="minmax")
+    head = litert_int8._mac_operators(content)[4].tensors[1]  # a tensor of the graph the recipe has no range for
+    assert head not in qsvs
+    summary = choose_ranges(content, qsvs, names + ["not-a-tensor", head], feeds, threads=1, rule="minmax")
     assert summary == {"rule": "minmax", "tensors": 5, "narrowed": 0}
     want = _toy_activations(feeds)
     roles = dict(zip(("x", "stem_out", "block0_in", "block0_out", "block1_out"), names))
@@ -203,7 +234,7 @@ def test_mse_ranges_come_from_histograms_over_the_true_extremes(content, monkeyp
         return types.SimpleNamespace(kind="percentile" if narrowed else "minmax", low=hist.low, high=high)
 
     monkeypatch.setattr(range_rules, "choose_range", pick)
-    summary = choose_ranges(content, qsvs, names, feeds, threads=1, rule="mse")
+    summary = choose_ranges(content, qsvs, names, feeds, threads=1)  # "mse" by default
     assert summary == {"rule": "mse", "tensors": 5, "narrowed": 3}
     want = _toy_activations(feeds)
     sizes = {"x": want["x"].size, "stem_out": want["stem_out"].size, "block0_in": want["block0_in"].size,

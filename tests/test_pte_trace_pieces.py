@@ -138,7 +138,7 @@ def test_scalars_are_digested_by_value_and_unknown_tensor_types_refused() -> Non
     assert pte_trace._span([50, 60, 10, 20]) == 50  # from the lowest start to the highest end
     zero_d = V(tensor=V(scalar_type=6, sizes=[], offset=4), tensor_list=None)
     assert pte_trace._value_bytes(zero_d, debug) == [debug[4:8]]
-    with pytest.raises(ValueError, match="scalar type 99"):
+    with pytest.raises(ValueError, match=r"^ETDump tensor of scalar type 99: not one this trace reads$"):
         pte_trace._value_bytes(V(tensor=V(scalar_type=99, sizes=[1], offset=0), tensor_list=None), debug)
 
 
@@ -194,7 +194,7 @@ def test_steps_run_in_chunks_whose_buffers_are_sized_from_the_first_step(trace, 
 def test_a_tensor_past_the_debug_buffer_is_an_error() -> None:
     from types import SimpleNamespace as V
 
-    with pytest.raises(ValueError, match="past its 8-byte debug buffer"):
+    with pytest.raises(ValueError, match=r"^ETDump tensor at bytes 0-12 past its 8-byte debug buffer$"):
         pte_trace._value_bytes(V(tensor=V(scalar_type=6, sizes=[3], offset=0), tensor_list=None), bytes(8))
 
 
@@ -220,3 +220,13 @@ def test_a_runtime_without_the_event_tracer_is_named_in_one_line_exit_3(toy, gol
     err = capsys.readouterr().err
     assert err.startswith("pte_trace: error: this ExecuTorch runtime (executorch ") and err.count("\n") == 1
     assert "EXECUTORCH_ENABLE_EVENT_TRACER" in err and not out.exists()
+
+
+def test_an_etdump_of_no_steps_holds_nothing(monkeypatch) -> None:
+    from executorch.devtools.etdump import serialize
+
+    from types import SimpleNamespace as V
+
+    init = V(events=[V(profile_event=V(name="Method::init"), debug_event=None)])
+    monkeypatch.setattr(serialize, "deserialize_from_etdump_flatcc", lambda data: V(run_data=[init]))
+    assert pte_trace.instruction_outputs(b"", b"") == ([], [], 0)
