@@ -102,25 +102,26 @@ def _config(**fields) -> DistillConfig:
 def test_the_student_learns_the_frozen_teacher_under_the_schedule(batches) -> None:
     teacher, student = ToyPose("big", 0).eval(), ToyPose("small", 1)
     before = {k: v.clone() for k, v in teacher.state_dict().items()}
-    config = _config(seed=3)
+    config = _config(seed=3, steps=20)
     summary = _run(teacher, student, "DATASET", config, 20.0, None, False)
+    assert torch.initial_seed() == 3000  # seeded as `train` seeds a fresh run
     assert batches["seeded"] == ("DATASET", 2, 3)
     assert all(torch.equal(v, before[k]) for k, v in teacher.state_dict().items())
     assert all(not c["grad"] for c in teacher.calls) and all(c["grad"] and c["training"] for c in student.calls)
     assert [(c["causal"], c["window_ms"], c["state"]) for c in teacher.calls + student.calls] == [
-        (False, 20.0, None)] * 24
+        (False, 20.0, None)] * 40
     for t, s in zip(teacher.calls, student.calls):
         assert torch.equal(t["lnes"], s["lnes"])
-    assert summary["steps"] == 12 and len(student.calls) == 12
-    assert [r["step"] for r in summary["log"]] == [1, 5, 10, 12]
+    assert summary["steps"] == 20 and len(student.calls) == 20
+    assert [r["step"] for r in summary["log"]] == [1, 5, 10, 15, 20]
     assert summary["initial"] == summary["log"][0] and summary["final"] == summary["log"][-1]
     assert summary["final"]["loss"] < 0.5 * summary["initial"]["loss"]
-    schedule = WarmupCosine(12, 1, 0.05)  # warm-up: min(4, max(1, 12 // 10))
+    schedule = WarmupCosine(20, 2, 0.05)  # warm-up: min(4, max(1, 20 // 10))
     for record in summary["log"]:
         assert record["lr"] == pytest.approx(0.05 * schedule(record["step"] - 1))
         assert record["loss"] == pytest.approx(record["fused"] + record["direct"] + record["delta"], rel=1e-5)
         assert record["grad_norm"] > 0
-    assert summary["seconds_per_step"] == pytest.approx(summary["seconds"] / 12)
+    assert summary["seconds_per_step"] == pytest.approx(summary["seconds"] / 20)
     assert summary["teacher"] == {"variant": "big", "parameters": teacher.num_parameters()}
     assert summary["student"] == {"variant": "small", "parameters": student.num_parameters()}
 
@@ -173,8 +174,8 @@ def test_a_non_finite_loss_names_its_step_and_terms(batches) -> None:
 
 def test_a_streamed_run_carries_each_lanes_states_and_restarts_the_fresh_ones(batches) -> None:
     teacher, student = ToyPose("big", 0).eval(), ToyPose("small", 1)
-    _run(teacher, student, "D", _config(steps=4, causal=True, stream_windows=3), 20.0, None, False)
-    assert batches["stream"] == ("D", 2, 0, 3) and "seeded" not in batches
+    _run(teacher, student, "D", _config(steps=4, causal=True, stream_windows=2), 20.0, None, False)
+    assert batches["stream"] == ("D", 2, 0, 2) and "seeded" not in batches
     fresh = [torch.tensor([s % 2 == 0, s % 3 == 0]) for s in range(4)]
     for model in (teacher, student):
         assert all(c["causal"] is True and c["window_ms"] == 20.0 for c in model.calls)
@@ -415,3 +416,11 @@ def test_qat_ranges_only_freezes_the_weights_for_the_run_and_removes_the_quantiz
                                progress=False)
     assert seen["grads"] == {False} and {p.requires_grad for p in student.parameters()} == {True}
     assert fake_quant.removed == 1 and student.training
+
+
+@pytest.mark.parametrize("progress", [False, True])
+def test_the_progress_bar_shows_only_when_asked(batches, capfd, progress) -> None:
+    _run(ToyPose("big", 0).eval(), ToyPose("small", 1), "D", _config(steps=3), 20.0, None, progress)
+    err = capfd.readouterr().err
+    assert ("distill big -> small" in err and "3/3" in err and "step" in err) is progress
+    assert err == "" or progress
