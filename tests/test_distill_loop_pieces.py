@@ -121,7 +121,7 @@ def test_the_student_learns_the_frozen_teacher_under_the_schedule(batches) -> No
         assert record["lr"] == pytest.approx(0.05 * schedule(record["step"] - 1))
         assert record["loss"] == pytest.approx(record["fused"] + record["direct"] + record["delta"], rel=1e-5)
         assert record["grad_norm"] > 0
-    assert summary["seconds_per_step"] == pytest.approx(summary["seconds"] / 20)
+    assert summary["seconds_per_step"] == pytest.approx(summary["seconds"] / 20) and 0 < summary["seconds"] < 60
     assert summary["teacher"] == {"variant": "big", "parameters": teacher.num_parameters()}
     assert summary["student"] == {"variant": "small", "parameters": student.num_parameters()}
 

@@ -110,7 +110,7 @@ def _calibration(count: int = 6, outlier: float = 0.0):
 @pytest.fixture(scope="module")
 def qsvs(content):
     ranges, chosen, seconds = calibrate(content, _calibration(), GROUPS, threads=1)
-    assert chosen["rule"] == "mse" and chosen["tensors"] == 5 and seconds > 0
+    assert chosen["rule"] == "mse" and chosen["tensors"] == 5 and 0 < seconds < 60
     return ranges
 
 
@@ -249,11 +249,22 @@ def test_mse_ranges_come_from_histograms_over_the_true_extremes(content, monkeyp
 
 
 def test_calibration_refuses_a_rule_it_does_not_know_and_feeds_for_another_model(content) -> None:
-    with pytest.raises(ValueError, match="range rule must be 'mse' or 'minmax', got 'max'"):
+    with pytest.raises(ValueError, match="^range rule must be 'mse' or 'minmax', got 'max'$"):
         calibrate(content, _calibration(), GROUPS, threads=1, rule="max")
     wrong = types.SimpleNamespace(feeds=[{"y": np.zeros((1, 4), np.float32)}])
     with pytest.raises(DataError, match=r"^ai-edge-quantizer could not calibrate the model: [^\n]+$"):
         calibrate(content, wrong, GROUPS, threads=1)
+
+
+def test_a_calibration_refusal_is_cut_to_300_characters(content, monkeypatch) -> None:
+    class Refusing:
+        def calibrate(self, *args, **kwargs):
+            raise KeyError("k" * 400)
+
+    monkeypatch.setattr(litert_int8, "_recipe", lambda *args: Refusing())
+    with pytest.raises(DataError) as error:
+        calibrate(content, _calibration(), GROUPS, threads=1)
+    assert str(error.value) == "ai-edge-quantizer could not calibrate the model: '" + "k" * 299
 
 
 def test_a_groups_units_are_its_operators_largest_first_each_matching_one_scope(content) -> None:

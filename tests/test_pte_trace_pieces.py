@@ -56,6 +56,7 @@ def test_a_record_digests_every_value_the_program_logs_at_every_step(trace, gold
     kinds = [o["kernel"] for o in trace["outputs"]]
     assert kinds[0] == "_to_dim_order_copy.out"  # a portable kernel, named without ETDump's "native_call_"
     assert kinds[-2:] == [pte_trace.PROGRAM_OUTPUT] * 2 and pte_trace.DELEGATE_CALL in kinds
+    assert [o["instruction"] for o in trace["outputs"][-2:]] == [-1, -1]  # what the method returns: no instruction
     partition = next(o for o in trace["outputs"] if o["kernel"] == pte_trace.DELEGATE_CALL)
     assert partition["operators"] == len(partition["operator_names"]) >= 2
     assert any(n.startswith("Multiply") for n in partition["operator_names"])
