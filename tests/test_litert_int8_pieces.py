@@ -420,7 +420,19 @@ def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_
     assert record["quantizer"].startswith("ai-edge-quantizer static range")
     assert ("search" in record) is searched and ("blocks" in record.get("search", {})) is narrowing
     assert list(result.seconds) == ["convert", "calibrate", "search", "quantize"]
-    assert all(v >= 0 and v == round(v, 2) for v in result.seconds.values())
+    assert all(0 <= v < 60 and v == round(v, 2) for v in result.seconds.values())
+
+
+def test_without_the_extra_the_int8_converter_names_it_and_writes_nothing(tmp_path, monkeypatch) -> None:
+    monkeypatch.setitem(__import__("sys").modules, "ai_edge_quantizer", None)
+    with pytest.raises(ConfigError, match=r'^ai_edge_quantizer is not installed \(to write INT8 .tflite models\): '
+                                          r'pip install -e "\.\[litert\]"$'):
+        litert_int8.convert_litert_int8("MODEL", "DATA", tmp_path / "s.tflite", EdgeInt8Options(), tmp_path)
+    from e3dpsm.export import litert_weights8
+
+    with pytest.raises(ConfigError, match=r'^ai_edge_quantizer is not installed \(to write INT8 .tflite models\): '):
+        litert_weights8.convert_litert_weights8("MODEL", "DATA", tmp_path / "s.tflite", EdgeInt8Options(), tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 # The weight-only `.tflite` (export/litert_weights8.py) on the same toy.

@@ -175,8 +175,9 @@ def test_a_broken_trace_is_one_line_and_exit_2(tmp_path, capsys, content, messag
 
 
 def test_a_trace_of_no_steps_is_refused(toy, golden) -> None:
-    with pytest.raises(InputError, match="--steps 0: a trace needs at least one step"):
+    with pytest.raises(InputError, match="^--steps 0: a trace needs at least one step$"):
         record(toy, golden, steps=0)
+    assert record(toy, golden, steps=1)["steps"] == 1
 
 
 def test_steps_run_in_chunks_whose_buffers_are_sized_from_the_first_step(trace, toy, golden, monkeypatch) -> None:
@@ -232,3 +233,17 @@ def test_an_etdump_of_no_steps_holds_nothing(monkeypatch) -> None:
     init = V(events=[V(profile_event=V(name="Method::init"), debug_event=None)])
     monkeypatch.setattr(serialize, "deserialize_from_etdump_flatcc", lambda data: V(run_data=[init]))
     assert pte_trace.instruction_outputs(b"", b"") == ([], [], 0)
+
+
+def test_steps_that_ran_other_instructions_are_not_one_programs(monkeypatch) -> None:
+    from executorch.devtools.etdump import serialize
+
+    from types import SimpleNamespace as V
+
+    def run(instruction):
+        value = V(tensor=V(scalar_type=6, sizes=[1], offset=0), tensor_list=None)
+        return V(events=[V(profile_event=None, debug_event=V(instruction_id=instruction, debug_entry=value))])
+
+    monkeypatch.setattr(serialize, "deserialize_from_etdump_flatcc", lambda data: V(run_data=[run(3), run(4)]))
+    with pytest.raises(ValueError, match="^step 1 ran other instructions than step 0: not one program's steps$"):
+        pte_trace.instruction_outputs(b"", bytes(4))
