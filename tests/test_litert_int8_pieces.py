@@ -372,7 +372,8 @@ class Recorder:
             "group_patterns": lambda model: list(GROUPS),
             "search_set": lambda ref, data, options: log(("search_set", ref)) or "SEARCH",
             "search_keep_float": lambda model, quantise, search, options, groups, work, litert:
-                log(("search", search, work.parent, _weight_types(quantise(["model.stem"])))) or placement,
+                log(("search", search, work.parent, work.name.startswith("e3dpsm-litert-search-"),
+                     _weight_types(quantise(["model.stem"])))) or placement,
             "search_record": lambda placement, search, options, runtime: {"runtime": runtime},
             "narrow_keep_float": narrow,
             "write_litert": write,
@@ -385,6 +386,7 @@ class Recorder:
 
 @pytest.mark.parametrize("rounds, narrow, float_groups, narrowed, int8", [
     (0, None, (), None, [True, False, True, True, False]),
+    (1, None, (), None, [True, False, True, True, False]),
     (4, None, (), None, [True, False, True, True, False]),
     (4, None, ("model.blocks",), ["model.blocks/1:fully_connected(ff_net.proj_in)"], [True, False, True, False, False]),
     (4, 0, ("model.blocks",), None, [True, False, False, False, False]),
@@ -400,7 +402,7 @@ def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_
     searched, narrowing = rounds > 0, rounds > 0 and bool(float_groups) and narrow != 0
     expected = [("fp32_reference", tmp_path), ("calibration", "REF"), ("litert_content", litert)]
     if searched:
-        expected += [("search_set", "REF"), ("search", "SEARCH", tmp_path, [False, False, True, True, False])]
+        expected += [("search_set", "REF"), ("search", "SEARCH", tmp_path, True, [False, False, True, True, False])]
     if narrowing:
         expected += [("narrow", float_groups, "SEARCH", tmp_path)]
     expected += [("write", path, "int8", int8), ("held_out", "REF"), ("check", path, "litert", "HELD")]
@@ -416,7 +418,8 @@ def test_convert_writes_and_judges_the_flatbuffer_its_search_chose(content, tmp_
     assert {k: calibration[k] for k in ("split", "frames", "state_source")} == {
         "split": "train", "frames": 4, "state_source": "fp32 rollout"}
     assert calibration["ranges"] == {"rule": "mse", "tensors": 5, "narrowed": calibration["ranges"]["narrowed"]}
-    assert calibration["seconds"] >= 1.5 and record["budget"] == options.budget.to_dict()
+    assert 1.5 <= calibration["seconds"] < 60 and calibration["seconds"] == round(calibration["seconds"], 2)
+    assert record["budget"] == options.budget.to_dict()
     assert record["quantizer"].startswith("ai-edge-quantizer static range")
     assert ("search" in record) is searched and ("blocks" in record.get("search", {})) is narrowing
     assert list(result.seconds) == ["convert", "calibrate", "search", "quantize"]
