@@ -135,9 +135,9 @@ def test_scalars_are_digested_by_value_and_unknown_tensor_types_refused() -> Non
                                                    V(scalar_type=4, sizes=[2], offset=24)]))
     ends = []
     assert pte_trace._value_bytes(listed, debug, ends) == [debug[:24], debug[24:40]]
-    assert ends == [0, 24, 24, 40] and pte_trace._span(ends) == 40
-    assert pte_trace._span([]) == 0 and pte_trace._span([100, 150, 150, 300]) == 200
-    assert pte_trace._span([50, 60, 10, 20]) == 50  # from the lowest start to the highest end
+    assert ends == [0, 24, 24, 40] and pte_trace._used(ends) == 40
+    assert pte_trace._used([]) == 0 and pte_trace._used([100, 150, 150, 300]) == 300
+    assert pte_trace._used([50, 60, 10, 20]) == 60  # up to the furthest end, wherever it sits in the list
     zero_d = V(tensor=V(scalar_type=6, sizes=[], offset=4), tensor_list=None)
     assert pte_trace._value_bytes(zero_d, debug) == [debug[4:8]]
     with pytest.raises(ValueError, match=r"^ETDump tensor of scalar type 99: not one this trace reads$"):
@@ -187,7 +187,12 @@ def test_steps_run_in_chunks_whose_buffers_are_sized_from_the_first_step(trace, 
     load, written = pte_trace._traced_module, pte_trace._written
     monkeypatch.setattr(pte_trace, "CHUNK_STEPS", 2)
     monkeypatch.setattr(pte_trace, "_traced_module", lambda model, size: sizes.append(size) or load(model, size))
-    monkeypatch.setattr(pte_trace, "_written", lambda traced: used.append(written(traced)[2]) or written(traced))
+    def recorded(traced):
+        found = written(traced)  # once: ETDump hands its runs out once
+        used.append(found[2])
+        return found
+
+    monkeypatch.setattr(pte_trace, "_written", recorded)
     chunked = record(toy, golden)
     assert chunked["digests"] == trace["digests"] and chunked["outputs"] == trace["outputs"]
     assert sizes[0] == pte_trace.FIRST_STEP_DEBUG_BYTES and len(sizes) == 3  # steps 0 | 1-2 | 3-4

@@ -41,9 +41,9 @@ PROGRAM_OUTPUT = "(program output)"
 TRACE_FIELDS = ("model", "steps", "outputs", "digests", "isa")
 
 
-def _span(ends: list[int]) -> int:
-    """Bytes of the debug buffer between the first tensor's start and the last tensor's end."""
-    return max(ends[1::2], default=0) - min(ends[0::2], default=0)
+def _used(ends: list[int]) -> int:
+    """Bytes of the debug buffer up to the last tensor's end (its start and any padding counted)."""
+    return max(ends[1::2], default=0)
 
 
 def _value_bytes(value: Any, debug: bytes, ends: list[int] | None = None) -> list[bytes]:
@@ -116,7 +116,7 @@ def instruction_outputs(etdump: bytes, debug: bytes) -> tuple[list[dict[str, Any
             outputs = found
         elif _keys(found) != _keys(outputs):
             raise ValueError(f"step {index} ran other instructions than step 0: not one program's steps")
-        used = max(used, _span(ends))
+        used = max(used, _used(ends))
         digests.append(step)
     return outputs, digests, used
 
