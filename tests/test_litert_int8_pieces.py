@@ -372,7 +372,7 @@ class Recorder:
             # 12 ms of conversion: a third decimal for the seconds' rounding to show
             "litert_content": lambda model, litert: log(("litert_content", litert)) or time.sleep(0.0123) or content,
             "group_patterns": lambda model: list(GROUPS),
-            "search_set": lambda ref, data, options: log(("search_set", ref)) or "SEARCH",
+            "search_set": lambda ref, data, options: log(("search_set", ref)) or time.sleep(0.0123) or "SEARCH",
             "search_keep_float": lambda model, quantise, search, options, groups, work, litert:
                 log(("search", search, work.parent, work.name.startswith("e3dpsm-litert-search-"),
                      _weight_types(quantise(["model.stem"])))) or placement,
@@ -455,12 +455,13 @@ def _weights_behind_dequantize(content: bytes) -> list[bool]:
     return found
 
 
-def test_weight_only_puts_every_operators_weights_in_8_bits_per_output_channel(content) -> None:
+def test_weight_only_puts_every_operators_weights_in_8_bits_per_output_channel(content, capfd) -> None:
     """Every CONV_2D / FULLY_CONNECTED, groups and rules alike, reads int8 codes through a
     DEQUANTIZE with a scale per output channel, each weight within half a step of its float."""
     from e3dpsm.export.litert_weights8 import weight_only_content
 
     quantised = weight_only_content(content)
+    assert capfd.readouterr() == ("", "")  # no progress bar or report
     assert _weights_behind_dequantize(quantised) == [True] * 5 and _weights_behind_dequantize(content) == [False] * 5
     schema, _, graph, codes = tflite_schema_graph(quantised)
     _, _, float_graph, float_codes = tflite_schema_graph(content)
@@ -524,6 +525,8 @@ def test_weight_only_convert_writes_and_judges_without_calibration(content, tmp_
     assert (check, held) == ("CHECK", "HELD")
     assert calls == [("ref", tmp_path), ("convert", litert), ("write", path, "int8-weights", [True] * 5),
                      ("held", "REF"), ("check", path, "litert", "HELD")]
+    assert litert_weights8.RECIPE == ("ai-edge-quantizer weight-only: int8 weights symmetric per output channel, "
+                                      "float activations and arithmetic")  # what convert.json tells a reader
     assert result.record == {"quantizer": litert_weights8.RECIPE, "operators": ["CONV_2D", "FULLY_CONNECTED"],
                              "int8_operators": 5, "arithmetic": "float", "budget": options.budget.to_dict()}
     assert list(result.seconds) == ["convert", "quantize"] and all(v >= 0 for v in result.seconds.values())

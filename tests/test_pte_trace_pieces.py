@@ -253,3 +253,17 @@ def test_steps_that_ran_other_instructions_are_not_one_programs(monkeypatch) -> 
     monkeypatch.setattr(serialize, "deserialize_from_etdump_flatcc", lambda data: V(run_data=[run(3), run(4)]))
     with pytest.raises(ValueError, match="^step 1 ran other instructions than step 0: not one program's steps$"):
         pte_trace.instruction_outputs(b"", bytes(4))
+
+
+@pytest.mark.parametrize("later, message", [
+    ("other", "^steps from 1 ran other instructions than step 0: not one program's steps$"),
+    ("short", "^ETDump holds 1 of steps 1-2$"),
+])
+def test_a_chunk_of_another_program_or_missing_steps_is_refused(toy, golden, monkeypatch, later, message) -> None:
+    first = ([{"instruction": 1, "output": 0}], [["a"]], 100)
+    chunks = iter([first, ([{"instruction": 2, "output": 0}], [["b"], ["c"]], 100) if later == "other"
+                   else (first[0], [["b"]], 100)])
+    monkeypatch.setattr(pte_trace, "CHUNK_STEPS", 2)
+    monkeypatch.setattr(pte_trace, "_written", lambda traced: next(chunks))
+    with pytest.raises(ValueError, match=message):
+        record(toy, golden, steps=3)
