@@ -17,9 +17,7 @@ machines part. The trace narrows to a partition, not to one operator inside it.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
-import json
 import os
 import sys
 import tempfile
@@ -27,6 +25,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+
+from e3dpsm.golden.trace_files import TraceKind, first_steps_apart, read_record, trace_main
 
 # The debug buffer of the first step, which runs alone (record): ample for `small` and `paper`
 # (what one step logs, every instruction output, is a few MB); later loads are sized from it.
@@ -38,7 +38,8 @@ _ITEM_BYTES = {0: 1, 1: 1, 2: 2, 3: 4, 4: 8, 5: 2, 6: 4, 7: 8, 11: 1, 15: 2}
 DELEGATE_CALL = "DELEGATE_CALL"
 METHOD_EXECUTE = "Method::execute"
 PROGRAM_OUTPUT = "(program output)"
-TRACE_FIELDS = ("model", "steps", "outputs", "digests", "isa")
+TRACE = TraceKind(name="pte_trace", items="outputs", key="instruction", what="outputs",
+                  described="instruction outputs")
 
 
 def _used(ends: list[int]) -> int:
@@ -206,24 +207,8 @@ class _Traced:
 
 
 def read_trace(path: str | os.PathLike) -> dict[str, Any]:
-    """A record written by `record`, checked for what `compare` reads (DataError, one line)."""
-    from e3dpsm.errors import DataError
-
-    try:
-        trace = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: not a JSON trace ({exc})") from exc
-    if not isinstance(trace, dict) or any(field not in trace for field in TRACE_FIELDS):
-        raise DataError(f"{path}: not a pte_trace record (it needs {', '.join(TRACE_FIELDS)})")
-    steps, outputs, digests = trace["steps"], trace["outputs"], trace["digests"]
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise DataError(f"{path}: a trace of {steps!r} steps compares nothing")
-    if not isinstance(outputs, list) or not all(isinstance(o, dict) and "instruction" in o for o in outputs):
-        raise DataError(f"{path}: its outputs are not a list of instruction outputs")
-    if (not isinstance(digests, list) or len(digests) != steps
-            or not all(isinstance(row, list) and len(row) == len(outputs) for row in digests)):
-        raise DataError(f"{path}: its digests are not {steps} steps of {len(outputs)} outputs each")
-    return trace
+    """A record written by `record`, checked for what `compare` reads (trace_files.read_record)."""
+    return read_record(path, TRACE)
 
 
 def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
@@ -232,21 +217,15 @@ def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
     key = lambda o: (o["instruction"], o["output"])  # noqa: E731
     if [key(o) for o in host["outputs"]] != [key(o) for o in device["outputs"]]:
         raise ValueError("the two traces are of different programs (their instructions differ)")
-    steps = min(host["steps"], device["steps"])
-    per_output = []
-    for k, output in enumerate(host["outputs"]):
-        first = next((s for s in range(steps) if host["digests"][s][k] != device["digests"][s][k]), None)
-        per_output.append({**output, "position": k, "first_step": first})
-    apart = [o for o in per_output if o["first_step"] is not None]
-    first_step = min((o["first_step"] for o in apart), default=None)
-    return {"steps": steps, "outputs": len(per_output), "apart_by_end": len(apart), "first_step": first_step,
-            "first_departures": [o for o in apart if o["first_step"] == first_step],
-            "per_output": per_output, "host_isa": host["isa"], "device_isa": device["isa"]}
+    apart = first_steps_apart(host, device, TRACE, position=True)
+    return {"steps": apart["steps"], "outputs": len(apart["items"]), "apart_by_end": apart["apart_by_end"],
+            "first_step": apart["first_step"], "first_departures": apart["first_departures"],
+            "per_output": apart["items"], "host_isa": host["isa"], "device_isa": device["isa"]}
 
 
 def describe(output: dict[str, Any]) -> str:
-    """`instruction 19 (XNNPACK partition of 214 operators: 9 QS8 / QC8 ...)` or `instruction
-    4 (grid_sampler_2d.out)`."""
+    """`instruction 19 (XNNPACK partition of 75 operators, 9 of them 8-bit; value 3)`,
+    `instruction 4 (grid_sampler_2d.out)` or `(program output) 283`."""
     if output["kernel"] == PROGRAM_OUTPUT:
         return f"{PROGRAM_OUTPUT} {output['position']}"
     if output["kernel"] != DELEGATE_CALL:
@@ -268,38 +247,10 @@ def summary(report: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from e3dpsm.errors import E3DPSMError
-
-    parser = argparse.ArgumentParser(prog="python -m e3dpsm.golden.pte_trace", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    rec = sub.add_parser("record", help="digests of every instruction output at every golden step, on this machine")
-    rec.add_argument("model")
-    rec.add_argument("golden")
-    rec.add_argument("out")
-    rec.add_argument("--steps", type=int)
-    rec.add_argument("--threads", type=int, default=1)
-    cmp_ = sub.add_parser("compare", help="where two machines' instruction outputs part (host first)")
-    cmp_.add_argument("host")
-    cmp_.add_argument("device")
-    cmp_.add_argument("--out", help="write the comparison as JSON")
-    args = parser.parse_args(argv)
-    try:
-        if args.command == "record":
-            from e3dpsm.utils.io import write_json_atomic
-
-            write_json_atomic(args.out, record(args.model, args.golden, args.steps, args.threads))
-            return 0
-        report = compare(read_trace(args.host), read_trace(args.device))
-    except (E3DPSMError, OSError, ValueError, KeyError, NoEventTracer) as exc:
-        print(f"pte_trace: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return NO_EVENT_TRACER_EXIT if isinstance(exc, NoEventTracer) else 2
-    if args.out:
-        from e3dpsm.utils.io import write_json_atomic
-
-        write_json_atomic(args.out, report)
-    print(summary(report))
-    return 0
+    return trace_main(argv, TRACE, __doc__, record=record, compare=compare, summary=summary,
+                      record_help="digests of every instruction output at every golden step, on this machine",
+                      compare_help="where two machines' instruction outputs part (host first)",
+                      exit_codes={NoEventTracer: NO_EVENT_TRACER_EXIT})
 
 
 if __name__ == "__main__":

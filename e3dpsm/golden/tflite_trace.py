@@ -18,9 +18,7 @@ Torch-free: ai-edge-litert and numpy, as on a device.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
-import json
 import os
 import sys
 import tempfile
@@ -28,6 +26,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+
+from e3dpsm.golden.trace_files import TraceKind, first_steps_apart, read_record, trace_main
 
 CODE_PREFIX = "e3dpsm_code_"
 
@@ -108,29 +108,13 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
     return {"model": str(model), "steps": count, "codes": codes, "digests": digests, "isa": detect_isa().to_dict()}
 
 
-TRACE_FIELDS = ("model", "steps", "codes", "digests", "isa")
+TRACE = TraceKind(name="tflite_trace", items="codes", key="name", what="code tensors",
+                  described="named code tensors")
 
 
 def read_trace(path: str | os.PathLike) -> dict[str, Any]:
-    """A record written by `record`, checked for what `compare` reads: a DataError naming the
-    file and what is wrong, not a KeyError or an IndexError from inside the comparison."""
-    from e3dpsm.errors import DataError
-
-    try:
-        trace = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: not a JSON trace ({exc})") from exc
-    if not isinstance(trace, dict) or any(field not in trace for field in TRACE_FIELDS):
-        raise DataError(f"{path}: not a tflite_trace record (it needs {', '.join(TRACE_FIELDS)})")
-    steps, codes, digests = trace["steps"], trace["codes"], trace["digests"]
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise DataError(f"{path}: a trace of {steps!r} steps compares nothing")
-    if not isinstance(codes, list) or not all(isinstance(c, dict) and "name" in c for c in codes):
-        raise DataError(f"{path}: its codes are not a list of named code tensors")
-    if (not isinstance(digests, list) or len(digests) != steps
-            or not all(isinstance(row, list) and len(row) == len(codes) for row in digests)):
-        raise DataError(f"{path}: its digests are not {steps} steps of {len(codes)} code tensors each")
-    return trace
+    """A record written by `record`, checked for what `compare` reads (trace_files.read_record)."""
+    return read_record(path, TRACE)
 
 
 def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
@@ -138,16 +122,10 @@ def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
     that part first: where the two machines' arithmetic first differs."""
     if [c["name"] for c in host["codes"]] != [c["name"] for c in device["codes"]]:
         raise ValueError("the two traces are of different graphs (their code tensors differ)")
-    steps = min(host["steps"], device["steps"])
-    per_code = []
-    for k, code in enumerate(host["codes"]):
-        first = next((s for s in range(steps) if host["digests"][s][k] != device["digests"][s][k]), None)
-        per_code.append({**code, "first_step": first})
-    apart = [c for c in per_code if c["first_step"] is not None]
-    first_step = min((c["first_step"] for c in apart), default=None)
-    return {"steps": steps, "codes": len(per_code), "apart_by_end": len(apart), "first_step": first_step,
-            "first_departures": [c for c in apart if c["first_step"] == first_step],
-            "per_code": per_code, "host_isa": host["isa"], "device_isa": device["isa"]}
+    apart = first_steps_apart(host, device, TRACE)
+    return {"steps": apart["steps"], "codes": len(apart["items"]), "apart_by_end": apart["apart_by_end"],
+            "first_step": apart["first_step"], "first_departures": apart["first_departures"],
+            "per_code": apart["items"], "host_isa": host["isa"], "device_isa": device["isa"]}
 
 
 def describe(code: dict[str, Any]) -> str:
@@ -174,38 +152,9 @@ def summary(report: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from e3dpsm.errors import E3DPSMError
-
-    parser = argparse.ArgumentParser(prog="python -m e3dpsm.golden.tflite_trace", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    rec = sub.add_parser("record", help="digests of every code tensor at every golden step, on this machine")
-    rec.add_argument("model")
-    rec.add_argument("golden")
-    rec.add_argument("out")
-    rec.add_argument("--steps", type=int)
-    rec.add_argument("--threads", type=int, default=1)
-    cmp_ = sub.add_parser("compare", help="where two machines' codes part (host first)")
-    cmp_.add_argument("host")
-    cmp_.add_argument("device")
-    cmp_.add_argument("--out", help="write the comparison as JSON")
-    args = parser.parse_args(argv)
-    try:
-        if args.command == "record":
-            from e3dpsm.utils.io import write_json_atomic
-
-            write_json_atomic(args.out, record(args.model, args.golden, args.steps, args.threads))
-            return 0
-        report = compare(read_trace(args.host), read_trace(args.device))
-    except (E3DPSMError, OSError, ValueError, KeyError) as exc:
-        print(f"tflite_trace: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-    if args.out:
-        from e3dpsm.utils.io import write_json_atomic
-
-        write_json_atomic(args.out, report)
-    print(summary(report))
-    return 0
+    return trace_main(argv, TRACE, __doc__, record=record, compare=compare, summary=summary,
+                      record_help="digests of every code tensor at every golden step, on this machine",
+                      compare_help="where two machines' codes part (host first)")
 
 
 if __name__ == "__main__":
