@@ -419,19 +419,16 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
     digests of every instruction output at each step, from ETDump, recorded by `host_python`
     and emulated, compared here."""
     from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT, compare, read_trace
-    from e3dpsm.runtime.executorch_session import ExecuTorchStepSession
+    from e3dpsm.runtime.executorch_session import load_program, program_metadata
 
     traces = {}
     for graph in graphs:
-        if graph.suffix != ".pte" or ExecuTorchStepSession(graph).artifact.get("precision") != "int8":
+        if graph.suffix != ".pte" or program_metadata(graph, load_program(graph))[1].get("precision") != "int8":
             continue
         folder = work / "pte-traces" / _slug(cpu.name) / graph.stem
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
         host, device = folder / "host.json", folder / "device.json"
-        env = {**os.environ, OTHER_RELEASE_ENV: "1"} if host_python != sys.executable else None
-        run([host_python, "-m", "e3dpsm.golden.pte_trace", "record", graph, work / "golden", host, "--steps", steps],
-            stdout=subprocess.DEVNULL, env=env)
         done = _emulated_process(root, ["python3", "-m", "e3dpsm.golden.pte_trace", "record", _inside(root, graph),
                                         _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)],
                                  cpu, True)
@@ -441,6 +438,9 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
             continue
         if done.returncode:
             fail(f"under emulation, pte_trace record {graph.name} exited {done.returncode}: {done.stderr[-2000:]}")
+        env = {**os.environ, OTHER_RELEASE_ENV: "1"} if host_python != sys.executable else None
+        run([host_python, "-m", "e3dpsm.golden.pte_trace", "record", graph, work / "golden", host, "--steps", steps],
+            stdout=subprocess.DEVNULL, env=env)  # only where the device side traced: nothing to compare otherwise
         traces[graph.name] = compare(read_trace(host), read_trace(device))
     return traces
 
