@@ -17,7 +17,6 @@ machines part. The trace narrows to a partition, not to one operator inside it.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import tempfile
@@ -26,7 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from e3dpsm.golden.trace_files import TraceKind, first_steps_apart, read_record, trace_main
+from e3dpsm.golden.trace_files import TraceKind, digest, first_steps_apart, read_record, trace_main
 
 # The debug buffer of the first step, which runs alone (record): ample for `small` and `paper`
 # (what one step logs, every instruction output, is a few MB); later loads are sized from it.
@@ -112,7 +111,7 @@ def instruction_outputs(etdump: bytes, debug: bytes) -> tuple[list[dict[str, Any
                 found.append({"instruction": instruction, "output": logged[instruction], "kernel": kernel,
                               "operators": len(operators.get(instruction, [])),
                               "operator_names": operators.get(instruction, [])})
-                step.append(hashlib.blake2b(chunk, digest_size=8).hexdigest())
+                step.append(digest(chunk))
         if index == 0:
             outputs = found
         elif _keys(found) != _keys(outputs):

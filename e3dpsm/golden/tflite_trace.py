@@ -18,7 +18,6 @@ Torch-free: ai-edge-litert and numpy, as on a device.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import tempfile
@@ -27,7 +26,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from e3dpsm.golden.trace_files import TraceKind, first_steps_apart, read_record, trace_main
+from e3dpsm.golden.trace_files import TraceKind, digest, first_steps_apart, read_record, trace_main
 
 CODE_PREFIX = "e3dpsm_code_"
 
@@ -103,7 +102,7 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
         for step in range(count):
             raw = session._run_one(session.feeds(golden.frame(step), state, golden.window_ms(step)))
             state = {s.name: raw[s.output_name] for s in session.meta.states}
-            digests.append([hashlib.blake2b(np.ascontiguousarray(raw[c["name"]]).tobytes(), digest_size=8).hexdigest()
+            digests.append([digest(np.ascontiguousarray(raw[c["name"]]).tobytes())
                             for c in codes])
     return {"model": str(model), "steps": count, "codes": codes, "digests": digests, "isa": detect_isa().to_dict()}
 

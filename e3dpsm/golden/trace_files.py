@@ -4,6 +4,7 @@ and the `record | compare` command line each runs on the host and on the device.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -25,6 +26,12 @@ class TraceKind:
     @property
     def fields(self) -> tuple[str, ...]:
         return ("model", "steps", self.items, "digests", "isa")
+
+
+def digest(data: bytes) -> str:
+    """The 8-byte digest a record keeps of one value at one step (the host's file stays small,
+    the device needs no host arrays)."""
+    return hashlib.blake2b(data, digest_size=8).hexdigest()
 
 
 def read_record(path: str | os.PathLike, kind: TraceKind) -> dict[str, Any]:
