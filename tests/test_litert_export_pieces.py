@@ -4,6 +4,9 @@ and the file written, on the numpy-sized `.tflite` of tests/_toy_tflite.py. lite
 conversion itself runs in the edge fixtures (tests/_edge_helpers.py)."""
 from __future__ import annotations
 
+import sys
+import time
+
 import pytest
 
 pytest.importorskip("ai_edge_litert", reason="ai-edge-litert (pip extra litert) is not installed")
@@ -13,7 +16,7 @@ from _io_helpers import record_temporaries  # noqa: E402
 from _toy_tflite import toy_tflite  # noqa: E402
 from e3dpsm.export import litert_export  # noqa: E402
 from e3dpsm.export.edge_export import artifact_contract  # noqa: E402
-from e3dpsm.export.litert_export import (MAC_OPS, LiteRTOptions, delegate_partitions, embed_contract,  # noqa: E402
+from e3dpsm.export.litert_export import (MAC_OPS, LiteRTOptions, convert_litert, delegate_partitions, embed_contract,  # noqa: E402
                                          tflite_op_histogram, write_litert)
 from e3dpsm.runtime.artifact_metadata import EMBEDDED_NAME, decode  # noqa: E402
 from e3dpsm.runtime.tflite_metadata import is_short_tensor_name, read_metadata  # noqa: E402
@@ -98,3 +101,48 @@ def test_the_written_file_goes_through_a_hidden_tflite_temporary_timed_in_second
         LiteRTOptions().attention_form = "grid_sample"
     bare = litert_export.LiteRTResult(path="p", bytes=1, seconds={}, ops={}, options={})
     assert bare.to_dict()["artifact"] == {}
+
+
+@pytest.fixture()
+def converted(monkeypatch):
+    """litert_content replaced by the toy after 12 ms: what convert_litert asked for, in order."""
+    calls = []
+
+    def content(model, options):
+        calls.append((model, options))
+        time.sleep(0.0123)
+        return toy_tflite()
+
+    monkeypatch.setattr(litert_export, "litert_content", content)
+    return calls
+
+
+def test_convert_litert_writes_the_content_it_converted_timed_in_hundredths(model, tmp_path, converted) -> None:
+    options = LiteRTOptions(attention_form="grid_sample")
+    result = convert_litert(model, tmp_path / "step.tflite", options)
+    assert converted == [(model, options)]
+    assert (tmp_path / "step.tflite").read_bytes() == open(result.path, "rb").read()
+    assert result.artifact["precision"] == "fp32" and result.artifact["attention_form"] == "grid_sample"
+    assert "calibration" not in result.artifact
+    seconds = result.seconds
+    assert list(seconds) == ["convert", "write", "total"]
+    assert 0.01 <= seconds["convert"] < 60 and seconds["convert"] == round(seconds["convert"], 2)
+    assert seconds["total"] == round(seconds["convert"] + seconds["write"], 2)
+
+
+def test_convert_litert_passes_the_precision_and_record_on(model, tmp_path, converted) -> None:
+    result = convert_litert(model, tmp_path / "step.tflite", LiteRTOptions(), "int8", {"calibration": "x"})
+    meta, record = decode(read_metadata((tmp_path / "step.tflite").read_bytes())[EMBEDDED_NAME], "x")
+    assert record == result.artifact and record["precision"] == "int8" and record["calibration"] == "x"
+    assert meta.quantization["mode"] == "int8"
+
+
+@pytest.mark.parametrize("missing", ["litert_torch", "ai_edge_litert"])
+def test_litert_content_names_the_extra_of_a_missing_converter(model, monkeypatch, missing) -> None:
+    from e3dpsm.errors import ConfigError
+
+    pytest.importorskip("litert_torch")  # imported first: it imports ai_edge_litert itself
+    monkeypatch.setitem(sys.modules, missing, None)
+    with pytest.raises(ConfigError, match=rf"^{missing} is not installed \(to write \.tflite models\): "
+                                          r'pip install -e "\.\[litert\]"$'):
+        litert_export.litert_content(model)
