@@ -1,10 +1,13 @@
 """The Core ML converter's own logic (export/coreml_export.py) without converting: the outputs
 that alias another, the step without them, the package's size on disk, the refusals before
 coremltools runs, and the Linux-side checks on a stand-in for a converted package (its
-description and its ML program's constants). The conversion itself runs in the edge fixtures
+description and its ML program's constants), and what `convert_coreml` hands coremltools (a
+stand-in module that records the call). The real conversion runs in the edge fixtures
 (tests/_edge_helpers.py coreml_result)."""
 from __future__ import annotations
 
+import os
+import time
 import types
 
 import numpy as np
@@ -159,3 +162,76 @@ def test_a_missing_extra_and_the_form_coremltools_takes(model, tmp_path, monkeyp
     bare = coreml_export.CoreMLResult(path="p", bytes=1, seconds={}, checks={}, options={})
     assert bare.to_dict() == {"path": "p", "bytes": 1, "seconds": {}, "checks": {}, "options": {}, "artifact": {}}
     assert coreml_export.FORMAT == "coreml"
+
+
+class _FakeCoremltools(types.ModuleType):
+    """coremltools' surface that convert_coreml touches, recording the conversion it is asked
+    for; its package writes a 10-byte file when saved."""
+
+    def __init__(self) -> None:
+        super().__init__("coremltools")
+        self.precision = types.SimpleNamespace(FLOAT16="float16 compute", FLOAT32="float32 compute")
+        self.target = types.SimpleNamespace(iOS17="iOS17")
+        self.converted: dict = {}
+
+    @staticmethod
+    def TensorType(name, dtype):  # noqa: N802 (coremltools' name)
+        return (name, dtype)
+
+    def convert(self, program, **kwargs):
+        self.converted = {"program": program, **kwargs}
+        time.sleep(0.0123)
+
+        class Package:
+            user_defined_metadata: dict = {}
+
+            def save(self, path):
+                os.makedirs(path)
+                with open(os.path.join(path, "weight.bin"), "wb") as f:
+                    f.write(b"0123456789")
+
+        return Package()
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_convert_coreml_hands_coremltools_the_exported_step_without_aliases(model, tmp_path, monkeypatch,
+                                                                            precision) -> None:
+    import sys
+
+    from e3dpsm.runtime.artifact_metadata import EMBEDDED_NAME, decode
+
+    fake = _FakeCoremltools()
+    monkeypatch.setitem(sys.modules, "coremltools", fake)
+    checked = []
+    monkeypatch.setattr(coreml_export, "check_package",
+                        lambda package, m, spec, aliases, p: checked.append((package, m, aliases, p)) or {"passed": 1})
+    path = tmp_path / "step.mlpackage"
+    result = convert_coreml(model, path, CoreMLOptions(precision=precision))
+
+    named = NamedStepGraph(model).eval()
+    names = [n for n in named.spec.output_names if n != "fusion_pose_out"]
+    converted = fake.converted
+    assert converted.pop("outputs") == [(n, np.float32) for n in names]
+    assert converted.pop("convert_to") == "mlprogram" and converted.pop("minimum_deployment_target") == "iOS17"
+    assert converted.pop("compute_precision") == f"float{precision[2:]} compute"
+    program = converted.pop("program")
+    assert converted == {}
+    # the exported program computes the step without the alias
+    kwargs = named.example_kwargs()
+    with torch.no_grad():
+        want = named(**kwargs)
+    got = program.module()(**kwargs)
+    assert list(got) == names
+    for name in names:
+        torch.testing.assert_close(got[name], want[name], rtol=0, atol=1e-5)
+
+    package, checked_model, aliases, checked_precision = checked[0]
+    assert (checked_model, aliases, checked_precision) == (model, {"fusion_pose_out": "pose"}, precision)
+    meta, record = decode(package.user_defined_metadata[EMBEDDED_NAME], "package")
+    assert record == result.artifact and record["precision"] == precision and record["format"] == "coreml"
+    assert record["output_aliases"] == {"fusion_pose_out": "pose"} and meta.config["format"] == "coreml"
+    assert result.path == str(path) and result.bytes == 10 and result.checks == {"passed": 1}
+    assert result.options == {"attention_form": "grid_sample", "precision": precision}
+    seconds = result.seconds
+    assert list(seconds) == ["convert", "save", "total"] and all(v == round(v, 2) for v in seconds.values())
+    assert 0.01 <= seconds["convert"] <= seconds["total"] < 300 and 0 <= seconds["save"] <= seconds["total"]
