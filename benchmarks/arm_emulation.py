@@ -12,7 +12,9 @@ each QDQ graph also gets the kernel-parity trace (e3dpsm/golden/kernel_report.py
 quantised activations depart, first and on their own; each INT8 .tflite the code trace
 (e3dpsm/golden/tflite_trace.py): where its 8-bit codes first part from the host's; each
 INT8 .pte the instruction trace (e3dpsm/golden/pte_trace.py, from ExecuTorch's ETDump):
-which kernel or XNNPACK partition's output first parts from the host's. With
+which kernel or XNNPACK partition's output first parts from the host's; where the root's
+ExecuTorch has no event tracer, the taps trace of the `*_taps.pte` beside it
+(e3dpsm/golden/pte_taps.py): which quantised activation's codes first part. With
 --portable, each QDQ graph also gets its portable form (e3dpsm/golden/kernel_cut.py:
 activation quantisation kept only where every op before it computes to the bit on any ISA)
 and that is checked too.
@@ -37,6 +39,7 @@ import argparse
 import importlib.metadata
 import importlib.util
 import json
+import operator
 import os
 import shutil
 import subprocess
@@ -292,6 +295,8 @@ def portable_graphs(graphs: list[Path], folder: Path) -> list[Path]:
 
 def stage_graphs(graphs: list[Path], work: Path) -> list[Path]:
     """Copies of the graphs under distinct names (two `step_int8.onnx` from two folders)."""
+    from e3dpsm.export.executorch_taps import taps_path
+
     work.mkdir(parents=True, exist_ok=True)
     staged = []
     for graph in graphs:
@@ -299,6 +304,8 @@ def stage_graphs(graphs: list[Path], work: Path) -> list[Path]:
         target = work / name
         if target.resolve() != graph.resolve():
             shutil.copyfile(graph, target)
+            if Path(taps_path(graph)).is_file():  # an INT8 .pte's taps program travels with it (pte_traces)
+                shutil.copyfile(taps_path(graph), taps_path(target))
         staged.append(target)
     return staged
 
@@ -418,6 +425,7 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
     """Where every INT8 .pte's computation parts from the host's (e3dpsm/golden/pte_trace.py):
     digests of every instruction output at each step, from ETDump, recorded by `host_python`
     and emulated, compared here."""
+    from e3dpsm.export.executorch_taps import taps_path
     from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT, compare, read_trace
     from e3dpsm.runtime.executorch_session import load_program, program_metadata
 
@@ -433,8 +441,11 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
                                         _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)],
                                  cpu, True)
         if done.returncode == NO_EVENT_TRACER_EXIT:  # the root's ExecuTorch wheel: no ETDump to trace with
-            traces[graph.name] = {"not_traced": done.stderr.strip().splitlines()[-1].removeprefix(
-                "pte_trace: error: ")}
+            reason = done.stderr.strip().splitlines()[-1].removeprefix("pte_trace: error: ")
+            taps = Path(taps_path(graph))
+            traces[graph.name] = (taps_trace(root, taps, folder, work, steps, cpu, host_python) if taps.is_file() else
+                                  {"not_traced": f"{reason}; and no {taps.name} beside it to trace instead (e3dpsm "
+                                                 "convert executorch --quantize int8 --taps)"})
             continue
         if done.returncode:
             fail(f"under emulation, pte_trace record {graph.name} exited {done.returncode}: {done.stderr[-2000:]}")
@@ -443,6 +454,22 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
             stdout=subprocess.DEVNULL, env=env)  # only where the device side traced: nothing to compare otherwise
         traces[graph.name] = compare(read_trace(host), read_trace(device))
     return traces
+
+
+def taps_trace(root: Path, taps: Path, folder: Path, work: Path, steps: int, cpu: EmulatedCPU,
+               host_python: str) -> dict:
+    """Where an INT8 .pte's taps part from the host's (e3dpsm/golden/pte_taps.py): its taps
+    program, the same arithmetic returning every quantised activation's codes, recorded by
+    `host_python` and emulated (no event tracer needed), compared here."""
+    from e3dpsm.golden.pte_taps import compare, read_trace
+
+    host, device = folder / "host_taps.json", folder / "device_taps.json"
+    emulated(root, ["python3", "-m", "e3dpsm.golden.pte_taps", "record", _inside(root, taps),
+                    _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)], cpu)
+    env = {**os.environ, OTHER_RELEASE_ENV: "1"} if host_python != sys.executable else None
+    run([host_python, "-m", "e3dpsm.golden.pte_taps", "record", taps, work / "golden", host, "--steps", steps],
+        stdout=subprocess.DEVNULL, env=env)
+    return compare(read_trace(host), read_trace(device))
 
 
 def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -> dict:
@@ -457,6 +484,8 @@ def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -
     elif code_trace and not ready["ready"]:
         if "codes" in code_trace:  # a .tflite's code trace
             from e3dpsm.golden.tflite_trace import describe
+        elif "taps" in code_trace:  # a .pte's taps trace: the tap's name says where
+            describe = operator.itemgetter("tap")
         else:  # a .pte's instruction trace
             from e3dpsm.golden.pte_trace import describe
         ready["departs_first"] = [describe(c) for c in code_trace["first_departures"][:3]]
@@ -511,6 +540,11 @@ def markdown(report: dict) -> str:
 
                 lines += ["", f"## {name} on `{run['cpu']}`: where the codes part ({trace['codes']} code tensors)", "",
                           summary(trace) + "."]
+            elif "taps" in trace:
+                from e3dpsm.golden.pte_taps import summary as taps_summary
+
+                lines += ["", f"## {name} on `{run['cpu']}`: where its taps part ({trace['taps']} quantised "
+                          "activations, from its taps program)", "", taps_summary(trace) + "."]
             else:
                 from e3dpsm.golden.pte_trace import summary as pte_summary
 

@@ -48,21 +48,25 @@ class ExecuTorchResult:
     delegation: dict[str, Any]
     options: dict[str, Any]
     artifact: dict[str, Any] = field(default_factory=dict)
+    taps: dict[str, Any] = field(default_factory=dict)  # a taps program: its tap count; an INT8 one: its taps program
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(vars(self))
+        return {k: v for k, v in vars(self).items() if k != "taps" or v}
 
 
 def export_step_program(model: E3DPSM, options: ExecuTorchOptions, quantizer: Any = None,
-                        calibrate: Any = None) -> torch.export.ExportedProgram:
+                        calibrate: Any = None, transform: Any = None) -> torch.export.ExportedProgram:
     """The step wrapper as an ExportedProgram ready to lower; with a PT2E `quantizer`,
-    `calibrate(prepared_module)` feeds it before conversion (export/executorch_int8.py)."""
+    `calibrate(prepared_module)` feeds it before conversion (export/executorch_int8.py), and
+    `transform(converted_module)` rewrites the converted module before it is exported again
+    (export/executorch_taps.with_taps)."""
     from executorch.exir.passes.constant_prop_pass import constant_prop_pass
 
     example = StepGraph(model).example_inputs(1)
     program = step_program(model, options)
     if quantizer is not None:
-        program = torch.export.export(quantized_module(program, quantizer, calibrate), example, strict=False)
+        module = quantized_module(program, quantizer, calibrate)
+        program = torch.export.export(transform(module) if transform else module, example, strict=False)
     if options.fold_constants:
         program = constant_prop_pass(program, custom_skip_targets=fold_skip_targets(quantized=quantizer is not None))
     return program
@@ -109,8 +113,10 @@ def fold_skip_targets(quantized: bool) -> set[Any] | None:
 
 def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTorchOptions = ExecuTorchOptions(),
                        precision: str = "fp32", quantizer: Any = None, calibrate: Any = None,
-                       extra_record: dict[str, Any] | None = None) -> ExecuTorchResult:
-    """Write `path` (.pte); returns sizes, timings and what runs in XNNPACK."""
+                       extra_record: dict[str, Any] | None = None, taps: bool = False) -> ExecuTorchResult:
+    """Write `path` (.pte); returns sizes, timings and what runs in XNNPACK. `taps` (with a
+    `quantizer`): the program also returns every quantised activation's codes, their names in
+    its TAPS_METHOD (export/executorch_taps.py)."""
     require("executorch", "to write .pte programs")
     from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
     from executorch.exir import to_edge_transform_and_lower
@@ -119,12 +125,26 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
 
     meta, record = artifact_contract(model, FORMAT, precision, options.attention_form, ("executorch",),
                                      {"decompose_norms": options.decompose_norms, **(extra_record or {})})
+    if taps and quantizer is None:
+        raise ValueError("taps are the codes of quantised activations: an fp32 program has none")
+    tap_names: list[str] = []
+
+    def tapped(module: torch.fx.GraphModule) -> torch.fx.GraphModule:
+        from e3dpsm.export.executorch_taps import with_taps
+
+        module, names = with_taps(module)
+        tap_names.extend(names)
+        return module
     started = time.perf_counter()
     with export_ready(model, options.attention_form):  # frozen parameters until serialised
-        program = export_step_program(model, options, quantizer, calibrate)
+        program = export_step_program(model, options, quantizer, calibrate, tapped if taps else None)
         exported = time.perf_counter()
-        edge = to_edge_transform_and_lower(program, partitioner=[XnnpackPartitioner()],
-                                           constant_methods={PTE_METHOD: encode(meta, record)})
+        methods = {PTE_METHOD: encode(meta, record)}
+        if taps:
+            from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, encode_taps
+
+            methods[TAPS_METHOD] = encode_taps(tap_names)
+        edge = to_edge_transform_and_lower(program, partitioner=[XnnpackPartitioner()], constant_methods=methods)
         delegation = delegation_summary(edge)
         if quantizer is not None:
             from e3dpsm.export.executorch_int8 import int8_coverage
@@ -144,4 +164,5 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
         seconds={"export": round(exported - started, 2), "lower": round(lowered - exported, 2),
                  "serialize": round(done - lowered, 2), "total": round(done - started, 2)},
         delegation=delegation, options=vars(options).copy(), artifact=record,
+        taps={"count": len(tap_names)} if taps else {},
     )

@@ -250,10 +250,11 @@ def int8_coverage(edge_manager: Any) -> dict[str, Any]:
 
 
 def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.PathLike, options: EdgeInt8Options,
-                            work: Path, program: Any = None) -> tuple[Any, BudgetCheck, HeldOut]:
+                            work: Path, program: Any = None, taps: bool = False) -> tuple[Any, BudgetCheck, HeldOut]:
     """Write the INT8 program to `path` and judge it: (ExecuTorchResult with the calibration
     and the kept-float modules recorded, the budget check, the held-out frames). `program`:
-    ExecuTorchOptions (default: the fp32 converter's)."""
+    ExecuTorchOptions (default: the fp32 converter's). `taps`: also its taps program beside it
+    (export/executorch_taps.py), checked against it here (`result.taps`)."""
     from e3dpsm.export.edge_export import export_ready, step_spec
     from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch, step_program
 
@@ -284,5 +285,36 @@ def convert_executorch_int8(model: E3DPSM, data: PreparedData, path: str | os.Pa
     result = convert_executorch(model, path, program, precision="int8",
                                 quantizer=xnnpack_int8_quantizer(keep_float), calibrate=calibrate,
                                 extra_record=record)
+    if taps:
+        result.taps = write_taps_program(model, path, program, keep_float, calibrate, record, calibration,
+                                         options.threads)
     held = held_out_set(reference, data, options)
     return result, check_artifact(path, "executorch", held, options), held
+
+
+TAPS_CHECK_STEPS = 32  # calibration frames both programs step through, states carried, before the taps are trusted
+
+
+def write_taps_program(model: E3DPSM, path: str | os.PathLike, program: Any, keep_float: Sequence[str],
+                       calibrate: Callable[[torch.nn.Module], None], record: dict[str, Any],
+                       calibration: CalibrationSet, threads: int | None) -> dict[str, Any]:
+    """The taps program of the INT8 program at `path` (the same quantizer, calibration and
+    kept-float modules: PT2E's observers are deterministic, so the same codes), written beside
+    it and checked to compute its poses and states bit for bit here; a ValueError otherwise."""
+    from e3dpsm.export.edge_export import step_spec
+    from e3dpsm.export.executorch_export import convert_executorch
+    from e3dpsm.export.executorch_taps import steps_identical, taps_path
+    from e3dpsm.export.onnx_export import ExportError
+
+    twin = taps_path(path)
+    written = convert_executorch(model, twin, program, precision="int8", quantizer=xnnpack_int8_quantizer(keep_float),
+                                 calibrate=calibrate, extra_record={**record, "taps_of": Path(path).name}, taps=True)
+    frame_name, window_name = step_spec(model).input_names[:2]
+    feeds = calibration.feeds[:TAPS_CHECK_STEPS]
+    same = steps_identical(path, twin, [f[frame_name] for f in feeds], [float(f[window_name][0]) for f in feeds],
+                           threads)
+    if same < len(feeds):
+        raise ExportError(f"the taps program {twin} parts from {Path(path).name} at step {same} on this host: it "
+                         "would not describe the program shipped; convert again without --taps")
+    return {"file": Path(twin).name, "bytes": written.bytes, "taps": written.taps["count"],
+            "identical_steps": same, "seconds": written.seconds["total"]}

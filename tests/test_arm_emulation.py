@@ -142,27 +142,36 @@ def test_tiny_weight_only_artifacts_compute_the_hosts_poses_under_emulation(arm_
         shutil.rmtree(work, ignore_errors=True)
 
 
-def test_the_pte_trace_under_emulation_runs_or_names_the_missing_event_tracer(arm_root) -> None:
+def test_the_pte_trace_under_emulation_runs_or_traces_the_taps_program(arm_root) -> None:
     """pte_traces on a toy INT8-labelled `.pte` whose arithmetic is float (the same bits on any
     ISA): with the root's ExecuTorch built with the event tracer, the two traces never part;
-    PyPI's aarch64 ExecuTorch 1.1.0 has none, and the trace says so in one reason."""
+    PyPI's aarch64 ExecuTorch 1.1.0 has none, so the taps program beside the first toy is traced
+    instead (its taps never part either), and the second toy, without one, is not traced, for
+    the reason the trace gives."""
     from _golden_fakes import golden_writer
-    from _toy_pte import toy_pte
+    from _toy_pte import TAP_NAMES, toy_pte
 
     script = _script()
     script.install_executorch(arm_root)
     script.install_packages(arm_root, executorch=True)
     work = arm_root / script.WORK / f"pytest-pte-trace-{os.getpid()}"
     try:
-        program = work / "toy.pte"
         work.mkdir(parents=True)
-        program.write_bytes(toy_pte(precision="int8", delegated=True))
+        for name in ("toy.pte", "bare.pte"):
+            (work / name).write_bytes(toy_pte(precision="int8", delegated=True))
+        (work / "toy_taps.pte").write_bytes(toy_pte(precision="int8", delegated=True, taps=True))
         writer, manifest = golden_writer(4)
         writer.write(work / "golden", {**manifest, "window_ms": 20.0, "joints": [f"j{i}" for i in range(16)]})
-        trace = script.pte_traces(arm_root, [program], work, 4)["toy.pte"]
-        if "not_traced" in trace:
-            assert "records no ETDump" in trace["not_traced"] and "EXECUTORCH_ENABLE_EVENT_TRACER" in trace["not_traced"]
+        traces = script.pte_traces(arm_root, [work / "toy.pte", work / "bare.pte"], work, 4)
+        if "outputs" in traces["toy.pte"]:  # a root whose ExecuTorch has the event tracer
+            assert traces["toy.pte"]["first_step"] is None and traces["bare.pte"]["first_step"] is None
         else:
-            assert trace["first_step"] is None and trace["steps"] == 4
+            taps = traces["toy.pte"]
+            assert taps["taps"] == len(TAP_NAMES) and taps["steps"] == 4 and taps["first_step"] is None
+            assert "asimd" in taps["device_isa"]["flags"] and "asimd" not in taps["host_isa"]["flags"]
+            reason = traces["bare.pte"]["not_traced"]
+            assert "records no ETDump" in reason and "EXECUTORCH_ENABLE_EVENT_TRACER" in reason
+            assert reason.endswith("; and no bare_taps.pte beside it to trace instead (e3dpsm convert executorch "
+                                   "--quantize int8 --taps)")
     finally:
         shutil.rmtree(work, ignore_errors=True)

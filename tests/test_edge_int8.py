@@ -27,7 +27,7 @@ def int8_run(tmp_path_factory, quant_data) -> dict:
     skip_without("executorch")
     out = tmp_path_factory.mktemp("int8") / "et"
     code = main(["convert", "executorch", "--checkpoint", str(TRAINED_TINY), "--out", str(out), "--quantize", "int8",
-                 "--data", str(quant_data), "--frames", str(CALIBRATION_FRAMES), "--threads", "1"])
+                 "--data", str(quant_data), "--frames", str(CALIBRATION_FRAMES), "--threads", "1", "--taps"])
     return {"code": code, "out": out, "report": json.loads((out / "convert.json").read_text())}
 
 
@@ -84,6 +84,21 @@ def test_int8_program_is_within_budget(int8_run, quant_data) -> None:
         assert metric["upper_pct"] <= metric["limit_pct"] and metric["upper_pct"] >= metric["change_pct"]
     assert budget["distance_to_fp32_mm"] > 0.01  # quantised: not the fp32 program under another name
     assert report["artifact"]["precision"] == "int8" and (int8_run["out"] / "step.pte").is_file()
+
+
+@pytest.mark.slow
+def test_the_taps_program_computes_the_programs_steps_and_names_its_activations(int8_run, edge_golden) -> None:
+    """--taps: step_taps.pte beside step.pte, checked by the converter to step as it does (on
+    every calibration frame), its taps every quantised activation, readable by pte_taps."""
+    from e3dpsm.golden.pte_taps import record
+
+    taps = int8_run["report"]["taps"]
+    assert taps["file"] == "step_taps.pte" and taps["identical_steps"] == CALIBRATION_FRAMES
+    trace = record(int8_run["out"] / "step_taps.pte", edge_golden, steps=3)
+    assert len(trace["taps"]) == taps["taps"] > 40 and trace["steps"] == 3
+    assert {t["dtype"] for t in trace["taps"]} == {"int8"}
+    assert any(t["tap"].startswith("model.stem") for t in trace["taps"])
+    assert not any(".s5" in t["tap"] or t["tap"].startswith("model.fusion") for t in trace["taps"])  # float
 
 
 @pytest.mark.slow
@@ -157,6 +172,8 @@ def test_quantize_without_data(capsys, tmp_path) -> None:
            "--quantize int8 needs --data PREP")
     _fails(capsys, ["convert", "executorch", "--variant", "tiny", "--out", str(out), "--data", str(tmp_path)],
            "--data is read only with --quantize;")
+    _fails(capsys, ["convert", "executorch", "--variant", "tiny", "--out", str(out), "--taps"],
+           "--taps taps the quantised activations of an INT8 program: add --quantize int8 --data PREP")
     assert not out.exists()
 
 

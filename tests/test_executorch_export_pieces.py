@@ -79,8 +79,8 @@ class Lowering:
     def __init__(self) -> None:
         self.calls: list[tuple] = []
 
-    def export_step_program(self, model, options, quantizer, calibrate):
-        self.calls.append(("export", model.training, options, quantizer, calibrate,
+    def export_step_program(self, model, options, quantizer, calibrate, transform):
+        self.calls.append(("export", model.training, options, quantizer, calibrate, transform,
                            [p.requires_grad for p in model.parameters()][:1]))
         return "PROGRAM"
 
@@ -110,11 +110,12 @@ def test_convert_hands_executorch_the_program_and_the_contract_and_writes_what_i
     path = tmp_path / "out" / "step.pte"
     given = {"precision": "int8", "quantizer": quantizer, "calibrate": calibrate} if quantized else {}
     result = convert_executorch(model, path, options, **given, extra_record={"budget": {"limit_pct": 1.0}})
-    (_, training, given_options, given_quantizer, given_calibrate, grads), lower = lowering.calls
-    assert training is False and grads == [False]  # exported from the frozen eval model
+    (_, training, given_options, given_quantizer, given_calibrate, transform, grads), lower = lowering.calls
+    assert training is False and grads == [False] and transform is None  # exported from the frozen eval model
     assert (given_options, given_quantizer, given_calibrate) == (options, quantizer, calibrate)
     assert model.training  # given back
     assert lower[:3] == ("lower", "PROGRAM", ["XnnpackPartitioner"])
+    assert list(lower[3]) == [PTE_METHOD]  # no taps method unless asked
     meta, record = decode(lower[3][PTE_METHOD], "x")
     expected_meta, expected_record = artifact_contract(
         model, "executorch", "int8" if quantized else "fp32", "gather", ("executorch",),

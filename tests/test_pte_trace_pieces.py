@@ -267,3 +267,15 @@ def test_a_chunk_of_another_program_or_missing_steps_is_refused(toy, golden, mon
     monkeypatch.setattr(pte_trace, "_written", lambda traced: next(chunks))
     with pytest.raises(ValueError, match=message):
         record(toy, golden, steps=3)
+
+
+def test_item_sizes_are_those_of_the_etdump_scalar_types_torch_names() -> None:
+    """Each ETDump scalar type the trace reads takes the bytes torch's dtype of that name takes."""
+    import torch
+    from executorch.devtools.etdump.schema_flatcc import ScalarType
+
+    dtypes = {"BYTE": torch.uint8, "CHAR": torch.int8, "SHORT": torch.int16, "INT": torch.int32, "LONG": torch.int64,
+              "HALF": torch.float16, "FLOAT": torch.float32, "DOUBLE": torch.float64, "BOOL": torch.bool,
+              "BFLOAT16": torch.bfloat16}
+    assert pte_trace._ITEM_BYTES == {ScalarType[name].value: torch.empty(0, dtype=dtype).element_size()
+                                     for name, dtype in dtypes.items()}

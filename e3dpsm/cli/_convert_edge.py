@@ -31,6 +31,10 @@ def register(formats: argparse._SubParsersAction) -> None:
     et.add_argument("--native-norms", action="store_true",
                     help="keep LayerNorm / GroupNorm as they are (portable kernels) instead of as matmuls XNNPACK runs")
     add_int8_options(et)
+    et.add_argument("--taps", action="store_true",
+                    help="with --quantize int8: also OUT/step_taps.pte, the same program returning every quantised "
+                         "activation's codes, for `python -m e3dpsm.golden.pte_taps` on a device whose ExecuTorch "
+                         "has no event tracer (docs/edge.md#where-a-pte-parts-without-an-event-tracer)")
     et.set_defaults(func=run_executorch)
 
     lt = formats.add_parser("litert", help="LiteRT model (.tflite, XNNPACK delegate)",
@@ -86,10 +90,13 @@ def summary_line(fmt: str, path: Path, report: dict) -> str:
 
 def run_executorch(args: argparse.Namespace) -> int:
     from e3dpsm.cli._convert_int8 import refuse_weights_only_pte
+    from e3dpsm.errors import ConfigError
     from e3dpsm.export.executorch_export import ExecuTorchOptions, convert_executorch
 
     refuse_weights_only_pte(args)
     check_int8_args(args)
+    if args.taps and args.quantize != "int8":
+        raise ConfigError("--taps taps the quantised activations of an INT8 program: add --quantize int8 --data PREP")
     if args.quantize:
         from e3dpsm.cli._convert_int8 import run_executorch_int8
 

@@ -80,9 +80,14 @@ def run_executorch_int8(args: argparse.Namespace) -> int:
         counts = result.delegation["int8"]["xnnpack_int8"]
         return "XNNPACK INT8: " + (", ".join(f"{k} x{v}" for k, v in counts.items()) or "none")
 
+    def coverage_and_taps(result: Any) -> str:
+        taps = result.taps
+        return coverage(result) + (f"; wrote {taps['file']} ({taps['taps']} taps, the same poses and states as "
+                                   f"step.pte at all {taps['identical_steps']} steps checked)" if taps else "")
+
     return _run_edge_int8(args, "executorch", "step.pte", ("executorch",),
                           lambda model, data, path, options, work: convert_executorch_int8(
-                              model, data, path, options, work, program), coverage)
+                              model, data, path, options, work, program, taps=args.taps), coverage_and_taps)
 
 
 def run_litert_int8(args: argparse.Namespace) -> int:

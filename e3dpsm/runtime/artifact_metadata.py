@@ -16,13 +16,14 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 
 KEY_ARTIFACT = "e3dpsm.artifact"
 EMBEDDED_NAME = "e3dpsm"  # TFLite metadata buffer name
 PTE_METHOD = "e3dpsm_metadata"  # ExecuTorch constant method
+TAPS_METHOD = "e3dpsm_taps"  # an INT8 .pte's taps program: its tap names (export/executorch_taps.py)
 SIDECAR_SUFFIX = ".json"
 
 
@@ -42,6 +43,22 @@ def decode(text: str | bytes, source: str) -> tuple[GraphMetadata, dict[str, Any
     except ValueError as exc:
         raise MetadataError(f"{source} carries broken e3dpsm metadata: {exc}") from exc
     return GraphMetadata.from_props(props, source), artifact
+
+
+def encode_taps(names: Sequence[str]) -> str:
+    """A taps program's tap names, in the order it returns them, as TAPS_METHOD's JSON."""
+    return json.dumps(list(names))
+
+
+def decode_taps(text: str, source: str) -> list[str]:
+    """The tap names TAPS_METHOD returns, checked (a ValueError naming `source` otherwise)."""
+    try:
+        names = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{source}: its {TAPS_METHOD} is not JSON ({exc})") from exc
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"{source}: its {TAPS_METHOD} is not a list of tap names")
+    return names
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
