@@ -465,7 +465,7 @@ def taps_trace(root: Path, taps: Path, folder: Path, work: Path, steps: int, cpu
 
     host, device = folder / "host_taps.json", folder / "device_taps.json"
     emulated(root, ["python3", "-m", "e3dpsm.golden.pte_taps", "record", _inside(root, taps),
-                    _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)], cpu)
+                    _inside(root, work / "golden"), _inside(root, device), "--steps", str(steps)], cpu, executorch=True)
     env = {**os.environ, OTHER_RELEASE_ENV: "1"} if host_python != sys.executable else None
     run([host_python, "-m", "e3dpsm.golden.pte_taps", "record", taps, work / "golden", host, "--steps", steps],
         stdout=subprocess.DEVNULL, env=env)

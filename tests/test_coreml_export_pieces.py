@@ -230,6 +230,7 @@ def test_convert_coreml_hands_coremltools_the_exported_step_without_aliases(mode
     meta, record = decode(package.user_defined_metadata[EMBEDDED_NAME], "package")
     assert record == result.artifact and record["precision"] == precision and record["format"] == "coreml"
     assert record["output_aliases"] == {"fusion_pose_out": "pose"} and meta.config["format"] == "coreml"
+    assert set(record["versions"]) == {"torch", "coremltools"} and all(record["versions"].values())
     assert result.path == str(path) and result.bytes == 10 and result.checks == {"passed": 1}
     assert result.options == {"attention_form": "grid_sample", "precision": precision}
     seconds = result.seconds
