@@ -39,7 +39,6 @@ import argparse
 import importlib.metadata
 import importlib.util
 import json
-import operator
 import os
 import shutil
 import subprocess
@@ -484,8 +483,8 @@ def arm_ready(check: dict, trace: dict | None, code_trace: dict | None = None) -
     elif code_trace and not ready["ready"]:
         if "codes" in code_trace:  # a .tflite's code trace
             from e3dpsm.golden.tflite_trace import describe
-        elif "taps" in code_trace:  # a .pte's taps trace: the tap's name says where
-            describe = operator.itemgetter("tap")
+        elif "taps" in code_trace:  # a .pte's taps trace
+            from e3dpsm.golden.pte_taps import describe
         else:  # a .pte's instruction trace
             from e3dpsm.golden.pte_trace import describe
         ready["departs_first"] = [describe(c) for c in code_trace["first_departures"][:3]]

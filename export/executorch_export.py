@@ -115,8 +115,8 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
                        precision: str = "fp32", quantizer: Any = None, calibrate: Any = None,
                        extra_record: dict[str, Any] | None = None, taps: bool = False) -> ExecuTorchResult:
     """Write `path` (.pte); returns sizes, timings and what runs in XNNPACK. `taps` (with a
-    `quantizer`): the program also returns every quantised activation's codes, their names in
-    its TAPS_METHOD (export/executorch_taps.py)."""
+    `quantizer`): the program also returns every quantised activation's codes, their names and
+    segments in its TAPS_METHOD (export/executorch_taps.py)."""
     require("executorch", "to write .pte programs")
     from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner
     from executorch.exir import to_edge_transform_and_lower
@@ -127,13 +127,13 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
                                      {"decompose_norms": options.decompose_norms, **(extra_record or {})})
     if taps and quantizer is None:
         raise ValueError("taps are the codes of quantised activations: an fp32 program has none")
-    tap_names: list[str] = []
+    taps_made: list[dict[str, Any]] = []
 
     def tapped(module: torch.fx.GraphModule) -> torch.fx.GraphModule:
         from e3dpsm.export.executorch_taps import with_taps
 
-        module, names = with_taps(module)
-        tap_names.extend(names)
+        module, made = with_taps(module)
+        taps_made.extend(made)
         return module
     started = time.perf_counter()
     with export_ready(model, options.attention_form):  # frozen parameters until serialised
@@ -143,7 +143,7 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
         if taps:
             from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, encode_taps
 
-            methods[TAPS_METHOD] = encode_taps(tap_names)
+            methods[TAPS_METHOD] = encode_taps(taps_made)
         edge = to_edge_transform_and_lower(program, partitioner=[XnnpackPartitioner()], constant_methods=methods)
         delegation = delegation_summary(edge)
         if quantizer is not None:
@@ -164,5 +164,5 @@ def convert_executorch(model: E3DPSM, path: str | os.PathLike, options: ExecuTor
         seconds={"export": round(exported - started, 2), "lower": round(lowered - exported, 2),
                  "serialize": round(done - lowered, 2), "total": round(done - started, 2)},
         delegation=delegation, options=vars(options).copy(), artifact=record,
-        taps={"count": len(tap_names)} if taps else {},
+        taps={"count": len(taps_made)} if taps else {},
     )

@@ -11,9 +11,10 @@ converter checks that on this host, the taps program's poses and states equal th
 program's bit for bit at every checked step (convert_executorch_int8); a program that did not
 would say nothing about the one shipped and is refused.
 
-The tap names, `<module path>:<node>` in the order the program returns them, travel in the
-program as the constant method TAPS_METHOD (JSON; runtime/artifact_metadata.py), so the
-device reads them without torch.fx or onnx (golden/pte_taps.py).
+The taps, in the order the program returns them, travel in the program as the constant method
+TAPS_METHOD (JSON; runtime/artifact_metadata.py), so the device reads them without torch.fx or
+onnx (golden/pte_taps.py): each its name, `<module path>:<node>`, and its segment, the
+operators between the codes it reads and it.
 """
 from __future__ import annotations
 
@@ -49,11 +50,29 @@ def tap_name(node: torch.fx.Node) -> str:
     return f"{_scope(source)}:{source.name}"
 
 
-def with_taps(module: torch.fx.GraphModule) -> tuple[torch.fx.GraphModule, list[str]]:
+def tap_segment(node: torch.fx.Node) -> list[str]:
+    """The operators between the codes and constants a tap's quantize reads (dequantize ops,
+    program inputs, parameters) and it, in graph order, by ATen name (`softmax`, `conv2d`):
+    the arithmetic a tap that parts first points at."""
+    from e3dpsm.export.delegation import op_name
+
+    inside: set[torch.fx.Node] = set()
+    stack = [node.args[0]]
+    while stack:
+        current = stack.pop()
+        if current in inside or current.op != "call_function" or "dequantize" in op_name(current):
+            continue
+        inside.add(current)
+        stack.extend(current.all_input_nodes)
+    order = {n: k for k, n in enumerate(node.graph.nodes)}
+    return [op_name(n).removeprefix("aten.").split(".")[0] for n in sorted(inside, key=order.__getitem__)]
+
+
+def with_taps(module: torch.fx.GraphModule) -> tuple[torch.fx.GraphModule, list[dict[str, object]]]:
     """`module` (PT2E-converted, changed in place) returning its outputs and then the 8-bit
-    codes of every activation quantize, and the taps' names in that order. Its inputs and
-    outputs become flat positional tuples (torch.export traces it again as it traced the step
-    wrapper: lnes, window, states)."""
+    codes of every activation quantize, and the taps in that order: `{"tap": name, "segment":
+    operators}`. Its inputs and outputs become flat positional tuples (torch.export traces it
+    again as it traced the step wrapper: lnes, window, states)."""
     taps = activation_quantizes(module.graph)
     if not taps:
         raise ValueError("the module has no quantised activation to tap: tap a PT2E-converted INT8 module")
@@ -64,7 +83,7 @@ def with_taps(module: torch.fx.GraphModule) -> tuple[torch.fx.GraphModule, list[
     output.args = ((*returned, *taps),)
     module.graph._codegen = torch.fx.graph.CodeGen()  # flat in and out: the pytree specs named the old outputs
     module.recompile()
-    return module, [tap_name(n) for n in taps]
+    return module, [{"tap": tap_name(n), "segment": tap_segment(n)} for n in taps]
 
 
 def steps_identical(shipped: str | os.PathLike, taps: str | os.PathLike, frames: Sequence[np.ndarray],

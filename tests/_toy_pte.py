@@ -5,7 +5,7 @@ contract as the constant method `e3dpsm convert executorch` writes, and
     pose      = 2 * lnes + window_ms
     state_out = state_in + window_ms
 
-and, as a taps program (`taps=True`), two int8 taps after them: `toy.frame:codes`, lnes * 4
+and, as a taps program (`taps=True`), two int8 taps after them (TAPS): `toy.frame:codes`, lnes * 4
 rounded and saturated, and `toy.state:codes`, state_out rounded and saturated (toy_taps).
 """
 from __future__ import annotations
@@ -19,7 +19,8 @@ def toy_pose(lnes: np.ndarray, window_ms: float | np.ndarray) -> np.ndarray:
     return (2 * np.asarray(lnes, np.float32) + np.float32(window_ms)).astype(np.float32)
 
 
-TAP_NAMES = ["toy.frame:codes", "toy.state:codes"]
+TAPS = [{"tap": "toy.frame:codes", "segment": ["mul", "round", "clamp"]},
+        {"tap": "toy.state:codes", "segment": ["add", "round", "clamp"]}]
 
 
 def toy_taps(lnes: np.ndarray, state_out: np.ndarray) -> list[np.ndarray]:
@@ -32,7 +33,7 @@ def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: 
             delegated: bool = False, taps: bool = False, pose_offset: float = 0.0) -> bytes:
     """The toy program's bytes; `version`: the ExecuTorch release its record names (default
     this one's); `delegated`: its arithmetic lowered to one XNNPACK partition; `taps`: the taps
-    program (TAP_NAMES in its taps method); `pose_offset`: added to the pose (another program)."""
+    program (TAPS in its taps method); `pose_offset`: added to the pose (another program)."""
     import torch
     from executorch.exir import to_edge_transform_and_lower
 
@@ -63,7 +64,7 @@ def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: 
     if taps:
         from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, encode_taps
 
-        methods[TAPS_METHOD] = encode_taps(TAP_NAMES)
+        methods[TAPS_METHOD] = encode_taps(TAPS)
     partitioner = []
     if delegated:
         from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner

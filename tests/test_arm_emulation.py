@@ -149,7 +149,7 @@ def test_the_pte_trace_under_emulation_runs_or_traces_the_taps_program(arm_root)
     instead (its taps never part either), and the second toy, without one, is not traced, for
     the reason the trace gives."""
     from _golden_fakes import golden_writer
-    from _toy_pte import TAP_NAMES, toy_pte
+    from _toy_pte import TAPS, toy_pte
 
     script = _script()
     script.install_executorch(arm_root)
@@ -167,7 +167,7 @@ def test_the_pte_trace_under_emulation_runs_or_traces_the_taps_program(arm_root)
             assert traces["toy.pte"]["first_step"] is None and traces["bare.pte"]["first_step"] is None
         else:
             taps = traces["toy.pte"]
-            assert taps["taps"] == len(TAP_NAMES) and taps["steps"] == 4 and taps["first_step"] is None
+            assert taps["taps"] == len(TAPS) and taps["steps"] == 4 and taps["first_step"] is None
             assert "asimd" in taps["device_isa"]["flags"] and "asimd" not in taps["host_isa"]["flags"]
             reason = traces["bare.pte"]["not_traced"]
             assert "records no ETDump" in reason and "EXECUTORCH_ENABLE_EVENT_TRACER" in reason

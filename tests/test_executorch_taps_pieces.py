@@ -18,7 +18,7 @@ from _model_helpers import converter_tiny  # noqa: E402
 from _toy_pt2e import ToyRecurrent, toy_program  # noqa: E402
 from e3dpsm.export import executorch_export, executorch_int8  # noqa: E402
 from e3dpsm.export.executorch_int8 import calibrator, xnnpack_int8_quantizer  # noqa: E402
-from e3dpsm.export.executorch_taps import activation_quantizes, tap_name, with_taps  # noqa: E402
+from e3dpsm.export.executorch_taps import activation_quantizes, tap_name, tap_segment, with_taps  # noqa: E402
 
 
 
@@ -43,9 +43,13 @@ def test_a_tapped_module_returns_its_outputs_then_every_activations_codes(conver
         want = module(*example)
     quantizes = activation_quantizes(module.graph)
     first_scale, first_zero = quantizes[0].args[1:3]
-    tapped, names = with_taps(module)
+    tapped, taps = with_taps(module)
+    names = [t["tap"] for t in taps]
     assert names == [":x", "model.stem:conv2d", "model.stages.0:conv2d_1", "model.stages.1:conv2d_2", "model:mean",
                      "model.ssm.proj:linear", "model.ssm.rec.lin:linear_1", "model.decoder:linear_2"]
+    # each segment: the operators from the codes (or parameters) it reads to its quantize
+    assert [t["segment"] for t in taps] == [[], ["conv2d"], ["conv2d"], ["conv2d"], ["mean"], ["linear"],
+                                            ["linear"], ["linear"]]
     with torch.no_grad():
         got = tapped(*example)
     assert len(got) == len(want) + len(names)
@@ -65,7 +69,7 @@ def test_weights_are_no_taps_and_a_module_without_activations_is_refused(convert
     quantized = [graph.call_function(quantize, (v, 0.1, 0, -128, 127, torch.int8)) for v in (x, weight)]
     graph.output((quantized[0], quantized[1]))
     assert activation_quantizes(graph) == [quantized[0]]
-    assert tap_name(quantized[0]) == ":x"
+    assert tap_name(quantized[0]) == ":x" and tap_segment(quantized[0]) == []
     root = torch.nn.Module()
     root.register_buffer("w", torch.ones(2))
     with pytest.raises(ValueError, match="has no quantised activation"):
@@ -108,8 +112,9 @@ def test_convert_writes_the_tap_names_into_the_program(converted, tmp_path, monk
     result = executorch_export.convert_executorch(model, tmp_path / "t.pte", precision="int8", quantizer=object(),
                                                   calibrate=None, taps=True)
     assert set(lowering.methods) == {PTE_METHOD, TAPS_METHOD}
-    names = decode_taps(lowering.methods[TAPS_METHOD], "t")
-    assert len(names) == 8 and names[0] == ":x" and result.taps == {"count": 8}
+    taps = decode_taps(lowering.methods[TAPS_METHOD], "t")
+    assert len(taps) == 8 and taps[1] == {"tap": "model.stem:conv2d", "segment": ["conv2d"]}
+    assert result.taps == {"count": 8}
     assert result.to_dict()["taps"] == {"count": 8}
     plain = executorch_export.convert_executorch(model, tmp_path / "p.pte", precision="int8", quantizer=object(),
                                                  calibrate=None)

@@ -15,10 +15,10 @@ import pytest
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
 from _golden_fakes import STATE_SHAPE, golden_writer  # noqa: E402
-from _toy_pte import TAP_NAMES, toy_pose, toy_pte, toy_taps  # noqa: E402
+from _toy_pte import TAPS, toy_pose, toy_pte, toy_taps  # noqa: E402
 from e3dpsm.errors import InputError  # noqa: E402
 from e3dpsm.export.executorch_taps import steps_identical, taps_path  # noqa: E402
-from e3dpsm.golden.pte_taps import compare, main, program_taps, read_trace, record, summary  # noqa: E402
+from e3dpsm.golden.pte_taps import compare, describe, main, program_taps, read_trace, record, summary  # noqa: E402
 from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, decode_taps, encode_taps  # noqa: E402
 
 STEPS = 5
@@ -56,8 +56,8 @@ def test_a_record_digests_every_tap_at_every_step_against_numpy(trace, golden) -
     from e3dpsm.golden.store import load_golden
 
     assert trace["steps"] == STEPS and len(trace["digests"]) == STEPS and trace["isa"]["kind"]
-    assert trace["taps"] == [{"tap": TAP_NAMES[0], "shape": [1, 2, 4, 4], "dtype": "int8"},
-                             {"tap": TAP_NAMES[1], "shape": [1, *STATE_SHAPE], "dtype": "int8"}]
+    assert trace["taps"] == [{**TAPS[0], "shape": [1, 2, 4, 4], "dtype": "int8"},
+                             {**TAPS[1], "shape": [1, *STATE_SHAPE], "dtype": "int8"}]
     stored = load_golden(golden)
     state = np.zeros((1, *STATE_SHAPE), np.float32)
     for step in range(STEPS):
@@ -92,13 +92,16 @@ def test_the_first_tap_apart_is_at_the_earliest_step_then_in_program_order(trace
     device = _parted(_parted(trace, 3, [0]), 1, [1])
     report = compare(trace, device)
     assert report["first_step"] == 1 and report["apart_by_end"] == 2
-    assert [t["tap"] for t in report["first_departures"]] == [TAP_NAMES[1]]
+    assert [t["tap"] for t in report["first_departures"]] == [TAPS[1]["tap"]]
     assert [t["first_step"] for t in report["per_tap"]] == [3, 1]
-    assert summary(report) == (f"taps part first at step 1, first in program order {TAP_NAMES[1]} (tap 1); "
-                               f"2 of 2 taps apart by step {STEPS - 1}")
+    assert summary(report) == ("taps part first at step 1, first in program order toy.state:codes (tap 1, after "
+                               f"add, round, clamp); 2 of 2 taps apart by step {STEPS - 1}")
     both = compare(trace, _parted(trace, 2, [0, 1]))
-    assert summary(both) == (f"taps part first at step 2, first in program order {TAP_NAMES[0]} (tap 0), then 1 "
-                             f"more at that step; 2 of 2 taps apart by step {STEPS - 1}")
+    assert summary(both) == ("taps part first at step 2, first in program order toy.frame:codes (tap 0, after mul, "
+                             f"round, clamp), then 1 more at that step; 2 of 2 taps apart by step {STEPS - 1}")
+    no_segment = json.loads(json.dumps(both["first_departures"][0]))
+    no_segment["segment"] = []
+    assert describe(no_segment) == "toy.frame:codes (tap 0, a program input)"
     renamed = json.loads(json.dumps(trace))
     renamed["taps"][0]["tap"] = "elsewhere:codes"
     with pytest.raises(ValueError, match="different programs"):
@@ -131,11 +134,13 @@ def test_the_taps_program_computes_its_shipped_programs_steps(programs) -> None:
 def test_the_tap_names_travel_in_the_program(programs) -> None:
     from e3dpsm.runtime.executorch_session import load_program
 
-    assert program_taps(load_program(programs["taps"]), "t") == TAP_NAMES
+    assert program_taps(load_program(programs["taps"]), "t") == TAPS
     assert program_taps(load_program(programs["shipped"]), "s") is None
-    assert TAPS_METHOD == "e3dpsm_taps" and decode_taps(encode_taps(["a:b"]), "x") == ["a:b"]
-    for text, message in (("{", "not JSON"), ("[]", "not a list of tap names"), ('["a", 1]', "not a list"),
-                          ('{"a": 1}', "not a list")):
-        with pytest.raises(ValueError, match=f"^src: its e3dpsm_taps is {message}"):
+    assert TAPS_METHOD == "e3dpsm_taps" and decode_taps(encode_taps(TAPS), "x") == TAPS
+    for text in ("[]", '[{"tap": "a"}]', '[{"tap": 1, "segment": []}]', '[{"tap": "a", "segment": "x"}]', '["a"]',
+                 '{"tap": "a", "segment": []}'):
+        with pytest.raises(ValueError, match="^src: its e3dpsm_taps is not a list of taps \\(each a name and its "):
             decode_taps(text, "src")
+    with pytest.raises(ValueError, match="^src: its e3dpsm_taps is not JSON"):
+        decode_taps("{", "src")
     assert taps_path("et8/step.pte") == "et8/step_taps.pte" and taps_path(Path("a.b/p")) == "a.b/p_taps"

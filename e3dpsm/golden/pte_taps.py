@@ -54,8 +54,8 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
     golden = load_golden(golden_dir)
     count = golden.steps if steps is None else min(steps, golden.steps)
     session = ExecuTorchStepSession(model, threads=threads)
-    names = program_taps(session._program, str(model))
-    if names is None:
+    made = program_taps(session._program, str(model))
+    if made is None:
         raise InputError(f"{model} has no taps: write its taps program with `e3dpsm convert executorch --quantize "
                          "int8 --taps` (step_taps.pte)")
     recording = _Recording(session._method)
@@ -66,18 +66,18 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
     for step in range(count):
         _, state = session.step(golden.frame(step), state, golden.window_ms(step))
         returned = recording.returned
-        if len(returned) != len(names) + len(session.output_names_all()):
+        if len(returned) != len(made) + len(session.output_names_all()):
             raise ValueError(f"{model} returned {len(returned)} values, not its {len(session.output_names_all())} "
-                             f"outputs and {len(names)} taps")
-        values = [v.numpy() for v in returned[len(returned) - len(names):]]
+                             f"outputs and {len(made)} taps")
+        values = [v.numpy() for v in returned[len(returned) - len(made):]]
         if not taps:
-            taps = [{"tap": name, "shape": list(v.shape), "dtype": str(v.dtype)} for name, v in zip(names, values)]
+            taps = [{**t, "shape": list(v.shape), "dtype": str(v.dtype)} for t, v in zip(made, values)]
         digests.append([digest(np.ascontiguousarray(v).tobytes()) for v in values])
     return {"model": str(model), "steps": count, "taps": taps, "digests": digests, "isa": detect_isa().to_dict()}
 
 
-def program_taps(program: Any, source: str) -> list[str] | None:
-    """The tap names a loaded ExecuTorch program carries (None: not a taps program)."""
+def program_taps(program: Any, source: str) -> list[dict[str, Any]] | None:
+    """The taps (name and segment) a loaded ExecuTorch program carries (None: not a taps program)."""
     from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, decode_taps
 
     if TAPS_METHOD not in program.method_names:
@@ -101,13 +101,19 @@ def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
             "per_tap": apart["items"], "host_isa": host["isa"], "device_isa": device["isa"]}
 
 
+def describe(tap: dict[str, Any]) -> str:
+    """`model.stem.1:relu (tap 1, after conv2d, relu)`: the tap and the operators of its segment."""
+    segment = tap["segment"]
+    return f"{tap['tap']} (tap {tap['position']}, " + (f"after {', '.join(segment)})" if segment else "a program input)")
+
+
 def summary(report: dict[str, Any]) -> str:
     """One line: where the taps part first, or that they never do."""
     if report["first_step"] is None:
         return f"all {report['taps']} taps the same at every one of {report['steps']} steps"
     first = report["first_departures"]
-    return (f"taps part first at step {report['first_step']}, first in program order {first[0]['tap']} (tap "
-            f"{first[0]['position']})" + (f", then {len(first) - 1} more at that step" if len(first) > 1 else "")
+    return (f"taps part first at step {report['first_step']}, first in program order {describe(first[0])}"
+            + (f", then {len(first) - 1} more at that step" if len(first) > 1 else "")
             + f"; {report['apart_by_end']} of {report['taps']} taps apart by step {report['steps'] - 1}")
 
 

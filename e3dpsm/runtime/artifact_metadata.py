@@ -23,7 +23,7 @@ from e3dpsm.graph_metadata import GraphMetadata, MetadataError
 KEY_ARTIFACT = "e3dpsm.artifact"
 EMBEDDED_NAME = "e3dpsm"  # TFLite metadata buffer name
 PTE_METHOD = "e3dpsm_metadata"  # ExecuTorch constant method
-TAPS_METHOD = "e3dpsm_taps"  # an INT8 .pte's taps program: its tap names (export/executorch_taps.py)
+TAPS_METHOD = "e3dpsm_taps"  # an INT8 .pte's taps program: its taps (export/executorch_taps.py)
 SIDECAR_SUFFIX = ".json"
 
 
@@ -45,20 +45,23 @@ def decode(text: str | bytes, source: str) -> tuple[GraphMetadata, dict[str, Any
     return GraphMetadata.from_props(props, source), artifact
 
 
-def encode_taps(names: Sequence[str]) -> str:
-    """A taps program's tap names, in the order it returns them, as TAPS_METHOD's JSON."""
-    return json.dumps(list(names))
+def encode_taps(taps: Sequence[Mapping[str, Any]]) -> str:
+    """A taps program's taps (`{"tap": name, "segment": operators}`), in the order it returns
+    them, as TAPS_METHOD's JSON."""
+    return json.dumps([dict(t) for t in taps])
 
 
-def decode_taps(text: str, source: str) -> list[str]:
-    """The tap names TAPS_METHOD returns, checked (a ValueError naming `source` otherwise)."""
+def decode_taps(text: str, source: str) -> list[dict[str, Any]]:
+    """The taps TAPS_METHOD returns, checked (a ValueError naming `source` otherwise)."""
     try:
-        names = json.loads(text)
+        taps = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"{source}: its {TAPS_METHOD} is not JSON ({exc})") from exc
-    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
-        raise ValueError(f"{source}: its {TAPS_METHOD} is not a list of tap names")
-    return names
+    if not isinstance(taps, list) or not taps or not all(
+            isinstance(t, dict) and isinstance(t.get("tap"), str) and isinstance(t.get("segment"), list)
+            for t in taps):
+        raise ValueError(f"{source}: its {TAPS_METHOD} is not a list of taps (each a name and its segment)")
+    return taps
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
