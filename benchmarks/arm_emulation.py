@@ -425,12 +425,15 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
     digests of every instruction output at each step, from ETDump, recorded by `host_python`
     and emulated, compared here."""
     from e3dpsm.export.executorch_taps import taps_path
+    from e3dpsm.golden.pte_taps import program_taps
     from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT, compare, read_trace
     from e3dpsm.runtime.executorch_session import load_program, program_metadata
 
     traces = {}
     for graph in graphs:
         if graph.suffix != ".pte" or program_metadata(graph, load_program(graph))[1].get("precision") != "int8":
+            continue
+        if program_taps(load_program(graph), str(graph)) is not None:  # checked as a program; traced as taps of another
             continue
         folder = work / "pte-traces" / _slug(cpu.name) / graph.stem
         shutil.rmtree(folder, ignore_errors=True)

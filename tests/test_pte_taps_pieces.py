@@ -102,6 +102,10 @@ def test_the_first_tap_apart_is_at_the_earliest_step_then_in_program_order(trace
     no_segment = json.loads(json.dumps(both["first_departures"][0]))
     no_segment["segment"] = []
     assert describe(no_segment) == "toy.frame:codes (tap 0, a program input)"
+    long = {**no_segment, "segment": ["matmul", "sub", "mul", "matmul", "add", "rsqrt", "mul", "add"]}
+    assert describe(long) == "toy.frame:codes (tap 0, after matmul, sub, mul, matmul, add, rsqrt, mul, add)"
+    long["segment"] = long["segment"] + ["gelu"]
+    assert describe(long) == "toy.frame:codes (tap 0, after 9 operators: matmul, sub, mul, add, rsqrt, gelu)"
     renamed = json.loads(json.dumps(trace))
     renamed["taps"][0]["tap"] = "elsewhere:codes"
     with pytest.raises(ValueError, match="different programs"):

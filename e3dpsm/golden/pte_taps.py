@@ -101,10 +101,18 @@ def compare(host: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
             "per_tap": apart["items"], "host_isa": host["isa"], "device_isa": device["isa"]}
 
 
+SEGMENT_SHOWN = 8  # a longer segment (a block kept float) is named by its distinct operators
+
+
 def describe(tap: dict[str, Any]) -> str:
-    """`model.stem.1:relu (tap 1, after conv2d, relu)`: the tap and the operators of its segment."""
+    """`model.stem.1:relu (tap 1, after conv2d, relu)`: the tap and the operators of its
+    segment; a long one as `after 94 operators: view, div, ...`, each kind once, in order."""
     segment = tap["segment"]
-    return f"{tap['tap']} (tap {tap['position']}, " + (f"after {', '.join(segment)})" if segment else "a program input)")
+    if not segment:
+        return f"{tap['tap']} (tap {tap['position']}, a program input)"
+    if len(segment) <= SEGMENT_SHOWN:
+        return f"{tap['tap']} (tap {tap['position']}, after {', '.join(segment)})"
+    return f"{tap['tap']} (tap {tap['position']}, after {len(segment)} operators: {', '.join(dict.fromkeys(segment))})"
 
 
 def summary(report: dict[str, Any]) -> str:
