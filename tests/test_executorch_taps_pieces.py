@@ -72,12 +72,14 @@ def test_weights_are_no_taps_and_a_module_without_activations_is_refused(convert
     assert tap_name(quantized[0]) == ":x" and tap_segment(quantized[0]) == []
     root = torch.nn.Module()
     root.register_buffer("w", torch.ones(2))
-    with pytest.raises(ValueError, match="has no quantised activation"):
+    with pytest.raises(ValueError, match="^the module has no quantised activation to tap: tap a PT2E-converted "
+                                         "INT8 module$"):
         with_taps(torch.fx.GraphModule(root, torch.fx.symbolic_trace(lambda x: (x + 1, x)).graph))
     single = torch.fx.Graph()
     y = single.placeholder("y")
     single.output(single.call_function(quantize, (y, 0.1, 0, -128, 127, torch.int8)))
-    with pytest.raises(ValueError, match="returns one value"):
+    with pytest.raises(ValueError, match="^the module returns one value, not the step wrapper's tuple of poses and "
+                                         "states$"):
         with_taps(torch.fx.GraphModule(torch.nn.Module(), single))
 
 
@@ -163,3 +165,22 @@ def test_the_taps_program_is_the_shipped_ones_calibration_checked_step_by_step(t
     assert record == {"budget": 1, "taps_of": "step.pte"}
     assert checked == (path, str(tmp_path / "step_taps.pte"), list(range(32)), [10.0 + k for k in range(32)], 2)
     assert executorch_int8.TAPS_CHECK_STEPS == 32
+
+
+def test_a_segment_runs_back_through_every_branch_to_codes_inputs_and_constants() -> None:
+    """q(relu(add(mul(dq(q(x)), 2), y)) + w): the walk stops at the dequantize, the input y and
+    the constant w on each branch, and keeps going past each of them on the others."""
+    import torchao.quantization.pt2e.quantize_pt2e  # noqa: F401 registers quantized_decomposed
+
+    aten, ops = torch.ops.aten, torch.ops.quantized_decomposed
+    graph = torch.fx.Graph()
+    x, y, w = graph.placeholder("x"), graph.placeholder("y"), graph.get_attr("w")
+    codes = graph.call_function(ops.quantize_per_tensor.default, (x, 0.1, 0, -128, 127, torch.int8))
+    values = graph.call_function(ops.dequantize_per_tensor.default, (codes, 0.1, 0, -128, 127, torch.int8))
+    scaled = graph.call_function(aten.mul.Tensor, (values, 2.0))
+    summed = graph.call_function(aten.add.Tensor, (y, scaled))
+    shifted = graph.call_function(aten.add.Tensor, (graph.call_function(aten.relu.default, (summed,)), w))
+    tap = graph.call_function(ops.quantize_per_tensor.default, (shifted, 0.1, 0, -128, 127, torch.int8))
+    graph.output((tap,))
+    assert activation_quantizes(graph) == [codes, tap]
+    assert tap_segment(tap) == ["mul", "add", "relu", "add"] and tap_segment(codes) == []
