@@ -16,7 +16,7 @@ pytest.importorskip("executorch", reason="executorch (pip extra executorch) is n
 
 from _golden_fakes import STATE_SHAPE, golden_writer  # noqa: E402
 from _toy_pte import TAPS, toy_pose, toy_pte, toy_taps  # noqa: E402
-from e3dpsm.errors import InputError  # noqa: E402
+from e3dpsm.errors import DataError, InputError  # noqa: E402
 from e3dpsm.export.executorch_taps import steps_identical, taps_path  # noqa: E402
 from e3dpsm.golden.pte_taps import compare, describe, main, program_taps, read_trace, record, summary  # noqa: E402
 from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, decode_taps, encode_taps  # noqa: E402
@@ -73,8 +73,10 @@ def test_a_program_without_taps_is_refused_in_one_line(programs, golden, tmp_pat
         record(programs["shipped"], golden)
     assert main(["record", str(programs["shipped"]), str(golden), str(tmp_path / "t.json")]) == 2
     assert capsys.readouterr().err.startswith("pte_taps: error: ") and not (tmp_path / "t.json").exists()
-    with pytest.raises(InputError, match="at least one step"):
+    with pytest.raises(InputError, match="^--steps 0: a trace needs at least one step$"):
         record(programs["taps"], golden, steps=0)
+    one = record(programs["taps"], golden, steps=1)
+    assert one["steps"] == 1 and len(one["digests"]) == 1
 
 
 def _parted(trace: dict, step: int, positions: list[int]) -> dict:
@@ -148,3 +150,12 @@ def test_the_tap_names_travel_in_the_program(programs) -> None:
     with pytest.raises(ValueError, match="^src: its e3dpsm_taps is not JSON"):
         decode_taps("{", "src")
     assert taps_path("et8/step.pte") == "et8/step_taps.pte" and taps_path(Path("a.b/p")) == "a.b/p_taps"
+
+
+def test_a_record_whose_digests_do_not_fit_its_taps_is_refused(trace, tmp_path) -> None:
+    short = json.loads(json.dumps(trace))
+    short["digests"][2] = short["digests"][2][:1]
+    path = tmp_path / "short.json"
+    path.write_text(json.dumps(short))
+    with pytest.raises(DataError, match=rf"short\.json: its digests are not {STEPS} steps of 2 taps each$"):
+        read_trace(path)
