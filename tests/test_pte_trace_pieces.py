@@ -112,17 +112,27 @@ def test_descriptions_name_kernels_partitions_and_program_outputs() -> None:
     assert describe({"instruction": -1, "kernel": pte_trace.PROGRAM_OUTPUT, "output": 3, "position": 40}) == \
         "(program output) 40"
     names = ["Convert (NC) #1", "Fully Connected (NC, QS8, QC8W) GEMM #1", "Convolution (NHWC, QC8) IGEMM #1",
-             "Add (ND) #1"]
-    assert describe({"instruction": 19, "kernel": pte_trace.DELEGATE_CALL, "output": 2, "operators": 4,
+             "Add (ND) #1", "Add (ND, QS8) #2", "Average Pooling (NHWC, QU8) #1"]
+    assert describe({"instruction": 19, "kernel": pte_trace.DELEGATE_CALL, "output": 2, "operators": 6,
                      "operator_names": names}) == \
-        "instruction 19 (XNNPACK partition of 4 operators, 2 of them 8-bit; value 2)"
+        "instruction 19 (XNNPACK partition of 6 operators, 4 of them 8-bit; value 2)"
 
 
 def test_traces_of_different_programs_do_not_compare(trace) -> None:
     other = json.loads(json.dumps(trace))
     other["outputs"][0]["instruction"] += 1
-    with pytest.raises(ValueError, match="different programs"):
+    with pytest.raises(ValueError, match=r"^the two traces are of different programs \(their instructions differ\)$"):
         compare(trace, other)
+
+
+def test_a_comparison_keeps_each_machines_isa_and_one_departure_has_no_tail(trace) -> None:
+    device = _parted(trace, 1, [0])
+    device["isa"] = {"kind": "dotprod", "flags": ["asimd"]}
+    report = compare(trace, device)
+    assert report["host_isa"] == trace["isa"] and report["device_isa"] == {"kind": "dotprod", "flags": ["asimd"]}
+    assert summary(report) == (f"instruction outputs part first at step 1, first in execution order "
+                               f"{describe(report['first_departures'][0])}; 1 of {len(trace['outputs'])} outputs "
+                               f"apart by step {STEPS - 1}")
 
 
 def test_scalars_are_digested_by_value_and_unknown_tensor_types_refused() -> None:
@@ -228,7 +238,26 @@ def test_a_runtime_without_the_event_tracer_is_named_in_one_line_exit_3(toy, gol
     assert main(["record", str(toy), str(golden), str(out)]) == pte_trace.NO_EVENT_TRACER_EXIT == 3
     err = capsys.readouterr().err
     assert err.startswith("pte_trace: error: this ExecuTorch runtime (executorch ") and err.count("\n") == 1
-    assert "EXECUTORCH_ENABLE_EVENT_TRACER" in err and not out.exists()
+    assert err.endswith(") records no ETDump: it was built without its event tracer (EXECUTORCH_ENABLE_EVENT_TRACER); "
+                        "trace with one that has it\n") and not out.exists()
+
+
+def test_a_runtime_whose_release_is_unknown_says_so(monkeypatch) -> None:
+    import importlib.metadata
+
+    def unknown(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", unknown)
+    assert pte_trace._release() == "executorch, release unknown"
+
+
+def test_the_help_names_both_commands(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "digests of every instruction output at every golden step, on this machine" in out
+    assert "where two machines' instruction outputs part (host first)" in out
 
 
 def test_an_etdump_of_no_steps_holds_nothing(monkeypatch) -> None:
