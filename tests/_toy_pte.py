@@ -30,10 +30,12 @@ def toy_taps(lnes: np.ndarray, state_out: np.ndarray) -> list[np.ndarray]:
 
 
 def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: bool = True,
-            delegated: bool = False, taps: bool = False, pose_offset: float = 0.0) -> bytes:
+            delegated: bool = False, taps: bool = False, pose_offset: float = 0.0,
+            declared_taps: list[dict] | None = None) -> bytes:
     """The toy program's bytes; `version`: the ExecuTorch release its record names (default
     this one's); `delegated`: its arithmetic lowered to one XNNPACK partition; `taps`: the taps
-    program (TAPS in its taps method); `pose_offset`: added to the pose (another program)."""
+    program (TAPS in its taps method, or `declared_taps`); `pose_offset`: added to the pose (another
+    program)."""
     import torch
     from executorch.exir import to_edge_transform_and_lower
 
@@ -64,7 +66,7 @@ def toy_pte(version: str | None = None, precision: str = "fp32", with_metadata: 
     if taps:
         from e3dpsm.runtime.artifact_metadata import TAPS_METHOD, encode_taps
 
-        methods[TAPS_METHOD] = encode_taps(TAPS)
+        methods[TAPS_METHOD] = encode_taps(TAPS if declared_taps is None else declared_taps)
     partitioner = []
     if delegated:
         from executorch.backends.xnnpack.partition.xnnpack_partitioner import XnnpackPartitioner

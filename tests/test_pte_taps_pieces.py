@@ -159,3 +159,10 @@ def test_a_record_whose_digests_do_not_fit_its_taps_is_refused(trace, tmp_path) 
     path.write_text(json.dumps(short))
     with pytest.raises(DataError, match=rf"short\.json: its digests are not {STEPS} steps of 2 taps each$"):
         read_trace(path)
+
+
+def test_a_program_returning_other_than_its_outputs_and_taps_is_refused(golden, tmp_path) -> None:
+    path = tmp_path / "liar.pte"
+    path.write_bytes(toy_pte(precision="int8", taps=True, declared_taps=[*TAPS, {"tap": "x:y", "segment": []}]))
+    with pytest.raises(ValueError, match=r"liar\.pte returned 4 values, not its 2 outputs and 3 taps$"):
+        record(path, golden)
