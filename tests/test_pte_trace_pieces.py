@@ -256,8 +256,8 @@ def test_the_help_names_both_commands(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["--help"])
     out = " ".join(capsys.readouterr().out.split())
-    assert "digests of every instruction output at every golden step, on this machine" in out
-    assert "where two machines' instruction outputs part (host first)" in out
+    assert ("record digests of every instruction output at every golden step, on this machine compare where two "
+            "machines' instruction outputs part (host first) ") in out
 
 
 def test_an_etdump_of_no_steps_holds_nothing(monkeypatch) -> None:
