@@ -3,6 +3,9 @@ that returns the golden outputs and states with errors chosen per step: what the
 tests measure against hand-computed numbers."""
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from e3dpsm.golden.store import GoldenRecord, GoldenWriter
@@ -44,6 +47,24 @@ def golden_writer(steps: int) -> tuple[GoldenWriter, dict]:
                 "states": [{"name": STATE, "shape": [-1, *STATE_SHAPE]}],
                 "source": {"variant": "fake"}, "mpjpe_scale_mm": GT_OFFSET_MM}
     return writer, manifest
+
+
+def write_golden(folder: Path, steps: int) -> Path:
+    """golden_writer's golden of `steps` steps written to `folder` at 20 ms, 16 joints (the toy
+    programs' traces read it)."""
+    writer, manifest = golden_writer(steps)
+    writer.write(folder, {**manifest, "window_ms": 20.0, "joints": [f"j{i}" for i in range(16)]})
+    return folder
+
+
+def parted_record(trace: dict, step: int, positions: list[int]) -> dict:
+    """A device's copy of a trace record (pte_trace, pte_taps) whose values at `positions`
+    differ from `step` on."""
+    device = json.loads(json.dumps(trace))
+    for s in range(step, trace["steps"]):
+        for k in positions:
+            device["digests"][s][k] = "0" * 16
+    return device
 
 
 class FakeRunner:

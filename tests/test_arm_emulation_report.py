@@ -51,11 +51,11 @@ def test_the_report_gives_each_trace_kind_its_section():
                                         "old.pte": {"not_traced": "no ETDump here"}}}]}
     text = SCRIPT.markdown(report)
     assert "## lt8.tflite on `cortex-a72`: where the codes part (71 code tensors)" in text
-    assert "codes part first at step 9, most upstream e3dpsm_code_11" in text
+    assert "code tensors part first at step 9, first in graph order e3dpsm_code_11" in text
     assert "## q.onnx on `cortex-a72`: where the codes depart (149 quantised activations)" in text
     assert ("## et8.pte on `cortex-a72`: where the instruction outputs part (291 values ETDump logs per step)\n\n"
             "instruction outputs part first at step 2, first in execution order instruction 19 (XNNPACK partition "
-            "of 3 operators, 1 of them 8-bit; value 3); 200 of 291 outputs apart by step 59.") in text
+            "of 3 operators, 1 of them 8-bit; value 3); 200 of 291 instruction outputs apart by step 59.") in text
     assert "## old.pte on `cortex-a72`: not traced\n\nno ETDump here." in text
     assert "| q28 | LayerNormalization | 3 | 3 | 3 / 12288 | 1 |" in text
     assert "XNNPACK partitions LiteRT made on `cortex-a72` (0 would mean its builtin kernels ran): lt8.tflite 6." in text

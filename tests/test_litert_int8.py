@@ -284,7 +284,7 @@ def test_the_code_trace_exposes_every_quantize_and_names_where_codes_part(float_
     apart = tflite_trace.compare(host, device)
     assert apart["first_step"] == 2 and [c["name"] for c in apart["first_departures"]] == [codes[3]["name"]]
     assert apart["apart_by_end"] == 2 and apart["per_code"][1]["first_step"] == 4
-    assert f"step 2, most upstream {codes[3]['name']} (operator {codes[3]['operator']}" in tflite_trace.summary(apart)
+    assert f"step 2, first in graph order {codes[3]['name']} (operator {codes[3]['operator']}" in tflite_trace.summary(apart)
     # A kept module-path name is shown (its first scope, tail); a short one says nothing more.
     code = {**codes[3], "tensor_name": "a/b.Block_0/Linear_proj;12_quantized", "fed_by": "ADD",
             "read_by": ["FULLY_CONNECTED"]}

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
-from _golden_fakes import STATE_SHAPE, golden_writer  # noqa: E402
+from _golden_fakes import STATE_SHAPE, parted_record, write_golden  # noqa: E402
 from _toy_pte import TAPS, toy_pose, toy_pte, toy_taps  # noqa: E402
 from e3dpsm.errors import DataError, InputError  # noqa: E402
 from e3dpsm.export.executorch_taps import steps_identical, taps_path  # noqa: E402
@@ -37,10 +37,7 @@ def programs(tmp_path_factory) -> dict[str, Path]:
 
 @pytest.fixture(scope="module")
 def golden(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("golden") / "golden"
-    writer, manifest = golden_writer(STEPS)
-    writer.write(folder, {**manifest, "window_ms": 20.0, "joints": [f"j{i}" for i in range(16)]})
-    return folder
+    return write_golden(tmp_path_factory.mktemp("golden") / "golden", STEPS)
 
 
 @pytest.fixture(scope="module")
@@ -79,26 +76,18 @@ def test_a_program_without_taps_is_refused_in_one_line(programs, golden, tmp_pat
     assert one["steps"] == 1 and len(one["digests"]) == 1
 
 
-def _parted(trace: dict, step: int, positions: list[int]) -> dict:
-    device = json.loads(json.dumps(trace))
-    for s in range(step, trace["steps"]):
-        for k in positions:
-            device["digests"][s][k] = "0" * 16
-    return device
-
-
 def test_the_first_tap_apart_is_at_the_earliest_step_then_in_program_order(trace) -> None:
     same = compare(trace, json.loads(json.dumps(trace)))
     assert same["first_step"] is None and same["apart_by_end"] == 0 and same["taps"] == 2
     assert summary(same) == f"all 2 taps the same at every one of {STEPS} steps"
-    device = _parted(_parted(trace, 3, [0]), 1, [1])
+    device = parted_record(parted_record(trace, 3, [0]), 1, [1])
     report = compare(trace, device)
     assert report["first_step"] == 1 and report["apart_by_end"] == 2
     assert [t["tap"] for t in report["first_departures"]] == [TAPS[1]["tap"]]
     assert [t["first_step"] for t in report["per_tap"]] == [3, 1]
     assert summary(report) == ("taps part first at step 1, first in program order toy.state:codes (tap 1, after "
                                f"add, round, clamp); 2 of 2 taps apart by step {STEPS - 1}")
-    both = compare(trace, _parted(trace, 2, [0, 1]))
+    both = compare(trace, parted_record(trace, 2, [0, 1]))
     assert summary(both) == ("taps part first at step 2, first in program order toy.frame:codes (tap 0, after mul, "
                              f"round, clamp), then 1 more at that step; 2 of 2 taps apart by step {STEPS - 1}")
     no_segment = json.loads(json.dumps(both["first_departures"][0]))

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
-from _golden_fakes import STATE_SHAPE, golden_writer  # noqa: E402
+from _golden_fakes import STATE_SHAPE, parted_record, write_golden  # noqa: E402
 from _toy_pte import toy_pose, toy_pte  # noqa: E402
 from e3dpsm.errors import DataError, InputError  # noqa: E402
 from e3dpsm.golden import pte_trace  # noqa: E402
@@ -32,10 +32,7 @@ def toy(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def golden(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("golden") / "golden"
-    writer, manifest = golden_writer(STEPS)
-    writer.write(folder, {**manifest, "window_ms": 20.0, "joints": [f"j{i}" for i in range(16)]})
-    return folder
+    return write_golden(tmp_path_factory.mktemp("golden") / "golden", STEPS)
 
 
 @pytest.fixture(scope="module")
@@ -81,20 +78,12 @@ def test_the_same_program_on_the_same_machine_never_parts(trace) -> None:
     assert summary(report) == f"all {len(trace['outputs'])} instruction outputs the same at every one of {STEPS} steps"
 
 
-def _parted(trace: dict, step: int, positions: list[int]) -> dict:
-    device = json.loads(json.dumps(trace))
-    for s in range(step, trace["steps"]):
-        for k in positions:
-            device["digests"][s][k] = "0" * 16
-    return device
-
-
 def test_the_first_departure_is_the_earliest_step_then_the_first_in_execution_order(trace) -> None:
     partition = next(o for o in trace["outputs"] if o["kernel"] == pte_trace.DELEGATE_CALL)
     first = trace["outputs"].index(partition)
     last = len(trace["outputs"]) - 1
-    device = _parted(trace, 3, [last])
-    device = _parted(device, 2, [first + 1, last - 1])
+    device = parted_record(trace, 3, [last])
+    device = parted_record(device, 2, [first + 1, last - 1])
     report = compare(trace, device)
     assert report["first_step"] == 2 and report["apart_by_end"] == 3
     assert [o["position"] for o in report["first_departures"]] == [first + 1, last - 1]
@@ -126,13 +115,13 @@ def test_traces_of_different_programs_do_not_compare(trace) -> None:
 
 
 def test_a_comparison_keeps_each_machines_isa_and_one_departure_has_no_tail(trace) -> None:
-    device = _parted(trace, 1, [0])
+    device = parted_record(trace, 1, [0])
     device["isa"] = {"kind": "dotprod", "flags": ["asimd"]}
     report = compare(trace, device)
     assert report["host_isa"] == trace["isa"] and report["device_isa"] == {"kind": "dotprod", "flags": ["asimd"]}
     assert summary(report) == (f"instruction outputs part first at step 1, first in execution order "
-                               f"{describe(report['first_departures'][0])}; 1 of {len(trace['outputs'])} outputs "
-                               f"apart by step {STEPS - 1}")
+                               f"{describe(report['first_departures'][0])}; 1 of {len(trace['outputs'])} instruction "
+                               f"outputs apart by step {STEPS - 1}")
 
 
 def test_scalars_are_digested_by_value_and_unknown_tensor_types_refused() -> None:

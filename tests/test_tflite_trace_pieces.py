@@ -168,8 +168,8 @@ def test_several_codes_parting_at_one_step_are_all_first_departures() -> None:
     report = compare(HOST, device)
     assert [c["name"] for c in report["first_departures"]] == [f"{CODE_PREFIX}0", f"{CODE_PREFIX}2"]
     line = summary(report)
-    assert line == (f"codes part first at step 1, most upstream {describe(code(0))}, then 1 more downstream at that "
-                    "step; 2 of 3 code tensors apart by step 3")
+    assert line == (f"code tensors part first at step 1, first in graph order {describe(code(0))}, then 1 more "
+                    "downstream at that step; 2 of 3 code tensors apart by step 3")
 
 
 def test_traces_of_different_graphs_are_refused() -> None:
@@ -183,8 +183,8 @@ def test_traces_of_different_graphs_are_refused() -> None:
 def test_summary_lines() -> None:
     assert summary(compare(HOST, HOST)) == "all 3 code tensors the same at every one of 4 steps"
     device = trace([["a", "b", "c"], ["d", "e", "f"], ["g", "h", "X"], ["j", "k", "X"]])
-    assert summary(compare(HOST, device)) == (f"codes part first at step 2, most upstream {describe(code(2))}; "
-                                              "1 of 3 code tensors apart by step 3")
+    assert summary(compare(HOST, device)) == (f"code tensors part first at step 2, first in graph order "
+                                              f"{describe(code(2))}; 1 of 3 code tensors apart by step 3")
 
 
 def test_describe_names_the_operators_around_a_code_and_a_kept_tensor_name() -> None:

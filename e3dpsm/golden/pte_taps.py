@@ -23,7 +23,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from e3dpsm.golden.trace_files import TraceKind, digest, first_steps_apart, read_record, trace_main
+from e3dpsm.golden.trace_files import (TraceKind, departure_line, digest, first_steps_apart, read_record,
+                                       trace_main)
 
 TRACE = TraceKind(name="pte_taps", items="taps", key="tap", what="taps", described="taps")
 
@@ -117,12 +118,7 @@ def describe(tap: dict[str, Any]) -> str:
 
 def summary(report: dict[str, Any]) -> str:
     """One line: where the taps part first, or that they never do."""
-    if report["first_step"] is None:
-        return f"all {report['taps']} taps the same at every one of {report['steps']} steps"
-    first = report["first_departures"]
-    return (f"taps part first at step {report['first_step']}, first in program order {describe(first[0])}"
-            + (f", then {len(first) - 1} more at that step" if len(first) > 1 else "")
-            + f"; {report['apart_by_end']} of {report['taps']} taps apart by step {report['steps'] - 1}")
+    return departure_line(report, report["taps"], "taps", "in program order", describe, "at that step")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -25,7 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from e3dpsm.golden.trace_files import TraceKind, digest, first_steps_apart, read_record, trace_main
+from e3dpsm.golden.trace_files import (TraceKind, departure_line, digest, first_steps_apart, read_record,
+                                       trace_main)
 
 # The debug buffer of the first step, which runs alone (record): ample for `small` and `paper`
 # (what one step logs, every instruction output, is a few MB); later loads are sized from it.
@@ -237,12 +238,8 @@ def describe(output: dict[str, Any]) -> str:
 
 def summary(report: dict[str, Any]) -> str:
     """One line: where the outputs part first, or that they never do."""
-    if report["first_step"] is None:
-        return f"all {report['outputs']} instruction outputs the same at every one of {report['steps']} steps"
-    first = report["first_departures"]
-    return (f"instruction outputs part first at step {report['first_step']}, first in execution order "
-            f"{describe(first[0])}" + (f", then {len(first) - 1} more after it at that step" if len(first) > 1 else "")
-            + f"; {report['apart_by_end']} of {report['outputs']} outputs apart by step {report['steps'] - 1}")
+    return departure_line(report, report["outputs"], "instruction outputs", "in execution order", describe,
+                          "after it at that step")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -26,7 +26,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from e3dpsm.golden.trace_files import TraceKind, digest, first_steps_apart, read_record, trace_main
+from e3dpsm.golden.trace_files import (TraceKind, departure_line, digest, first_steps_apart, read_record,
+                                       trace_main)
 
 CODE_PREFIX = "e3dpsm_code_"
 
@@ -142,12 +143,7 @@ def summary(report: dict[str, Any]) -> str:
     """One line: where the codes part first, or that they never do. Codes are in graph order,
     so the first of a step's departures is the most upstream: the rest may only follow it
     (or the float states, which are not codes, carried a difference into it)."""
-    if report["first_step"] is None:
-        return f"all {report['codes']} code tensors the same at every one of {report['steps']} steps"
-    first = report["first_departures"]
-    return (f"codes part first at step {report['first_step']}, most upstream {describe(first[0])}"
-            + (f", then {len(first) - 1} more downstream at that step" if len(first) > 1 else "")
-            + f"; {report['apart_by_end']} of {report['codes']} code tensors apart by step {report['steps'] - 1}")
+    return departure_line(report, report["codes"], "code tensors", "in graph order", describe, "downstream at that step")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -107,3 +107,15 @@ def first_steps_apart(host: dict[str, Any], device: dict[str, Any], kind: TraceK
     first_step = min((item["first_step"] for item in apart), default=None)
     return {"steps": steps, "items": per_item, "apart_by_end": len(apart), "first_step": first_step,
             "first_departures": [item for item in apart if item["first_step"] == first_step]}
+
+
+def departure_line(report: Mapping[str, Any], count: int, items: str, order: str, describe: Callable[[dict], str],
+                   more: str) -> str:
+    """The one line each trace prints: `<items> part first at step S, first <order> <the first
+    departure>[, then N more <more>]; A of <count> <items> apart by step E`, or that none part."""
+    if report["first_step"] is None:
+        return f"all {count} {items} the same at every one of {report['steps']} steps"
+    first = report["first_departures"]
+    return (f"{items} part first at step {report['first_step']}, first {order} {describe(first[0])}"
+            + (f", then {len(first) - 1} more {more}" if len(first) > 1 else "")
+            + f"; {report['apart_by_end']} of {count} {items} apart by step {report['steps'] - 1}")
