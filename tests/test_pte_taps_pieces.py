@@ -99,8 +99,11 @@ def test_the_first_tap_apart_is_at_the_earliest_step_then_in_program_order(trace
     assert describe(long) == "toy.frame:codes (tap 0, after 9 operators: matmul, sub, mul, add, rsqrt, gelu)"
     renamed = json.loads(json.dumps(trace))
     renamed["taps"][0]["tap"] = "elsewhere:codes"
-    with pytest.raises(ValueError, match="different programs"):
+    with pytest.raises(ValueError, match=r"^the two traces are of different programs \(their taps differ\)$"):
         compare(trace, renamed)
+    device["isa"] = {"kind": "dotprod", "flags": ["asimd"]}
+    isas = compare(trace, device)
+    assert isas["host_isa"] == trace["isa"] and isas["device_isa"] == {"kind": "dotprod", "flags": ["asimd"]}
 
 
 def test_cli_records_and_compares_in_one_line(programs, golden, tmp_path, capsys) -> None:
