@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -156,5 +157,13 @@ def test_a_record_whose_digests_do_not_fit_its_taps_is_refused(trace, tmp_path) 
 def test_a_program_returning_other_than_its_outputs_and_taps_is_refused(golden, tmp_path) -> None:
     path = tmp_path / "liar.pte"
     path.write_bytes(toy_pte(precision="int8", taps=True, declared_taps=[*TAPS, {"tap": "x:y", "segment": []}]))
-    with pytest.raises(ValueError, match=r"liar\.pte returned 4 values, not its 2 outputs and 3 taps$"):
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))} returned 4 values, not its 2 outputs and 3 taps$"):
         record(path, golden)
+
+
+def test_the_help_names_both_commands(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert ("record digests of every tap of a taps program at every golden step, on this machine compare where two "
+            "machines' taps part (host first) ") in out
