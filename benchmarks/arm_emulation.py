@@ -431,9 +431,12 @@ def pte_traces(root: Path, graphs: list[Path], work: Path, steps: int, cpu: Emul
 
     traces = {}
     for graph in graphs:
-        if graph.suffix != ".pte" or program_metadata(graph, load_program(graph))[1].get("precision") != "int8":
+        if graph.suffix != ".pte":
             continue
-        if program_taps(load_program(graph), str(graph)) is not None:  # checked as a program; traced as taps of another
+        program = load_program(graph)
+        if program_metadata(graph, program)[1].get("precision") != "int8":
+            continue
+        if program_taps(program, str(graph)) is not None:  # checked as a program; traced as taps of another
             continue
         folder = work / "pte-traces" / _slug(cpu.name) / graph.stem
         shutil.rmtree(folder, ignore_errors=True)
