@@ -35,6 +35,13 @@ def op_name(node: torch.fx.Node) -> str:
     return getattr(target, "__name__", None) or str(target)
 
 
+def module_scope(node: torch.fx.Node) -> str:
+    """The innermost module path of a traced node ("" when the trace kept none)."""
+    stack = node.meta.get("nn_module_stack") or {}
+    paths = [v[0] for v in stack.values()]
+    return paths[-1] if paths else ""
+
+
 def node_macs(node: torch.fx.Node) -> int:
     if node.op != "call_function":
         return 0

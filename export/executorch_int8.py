@@ -29,7 +29,7 @@ import torch
 
 from e3dpsm.budget import BudgetCheck
 from e3dpsm.data.prepared import PreparedData
-from e3dpsm.export.delegation import node_macs, op_name
+from e3dpsm.export.delegation import module_scope, node_macs, op_name
 from e3dpsm.export.edge_int8 import (EdgeInt8Options, calibration_set, check_artifact, fp32_reference, held_out_set,
                                      narrow_float_groups, search_float_groups, search_record, search_set)
 from e3dpsm.export.executorch_export import quantized_module
@@ -105,7 +105,7 @@ def in_quantised_scope(node: torch.fx.Node, keep_float: Sequence[str] = ()) -> b
     convolution float)."""
     if node.op == "get_attr":
         return True
-    path = _scope(node)
+    path = module_scope(node)
     return _under(path, QUANTISED_SCOPES) and not _under(path, keep_float)
 
 
@@ -179,7 +179,7 @@ def operator_units(model: E3DPSM, group: str, program: torch.export.ExportedProg
     (edge_int8.narrow_float_groups; keep-float names are module paths, in_quantised_scope)."""
     module = model.get_submodule(group.removeprefix("model."))
     inside_kept = {id(m) for k in module.modules() if isinstance(k, KEEP_FLOAT_TYPES) for m in k.modules()}
-    computed = None if program is None else {_scope(n) for n in program.graph_module.graph.nodes
+    computed = None if program is None else {module_scope(n) for n in program.graph_module.graph.nodes
                                               if n.op == "call_function"}
     layers = [(f"{group}.{name}", m.weight.numel()) for name, m in module.named_modules()
               if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)) and id(m) not in inside_kept
@@ -219,16 +219,9 @@ def _runs_in_8_bits(node: torch.fx.Node) -> bool:
     return len(operands) == 2 and all(isinstance(a, torch.fx.Node) and _DEQUANTIZE in op_name(a) for a in operands)
 
 
-def _scope(node: torch.fx.Node) -> str:
-    """The innermost module path of a traced node ("" when the trace kept none)."""
-    stack: Mapping[str, Any] = node.meta.get("nn_module_stack") or {}
-    paths = [v[0] for v in stack.values()]
-    return paths[-1] if paths else ""
-
-
 def mac_nodes(graph: torch.fx.Graph) -> list[tuple[str, str, bool]]:
     """(operator, module path, runs in 8 bits) of every MAC-carrying node of `graph`."""
-    return [(op_name(n), _scope(n), _runs_in_8_bits(n)) for n in graph.nodes
+    return [(op_name(n), module_scope(n), _runs_in_8_bits(n)) for n in graph.nodes
             if n.op == "call_function" and node_macs(n) > 0]
 
 

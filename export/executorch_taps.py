@@ -44,10 +44,10 @@ def activation_quantizes(graph: torch.fx.Graph) -> list[torch.fx.Node]:
 
 def tap_name(node: torch.fx.Node) -> str:
     """`<innermost module path>:<the quantised op's node name>` ("" for the path when the trace kept none)."""
-    from e3dpsm.export.executorch_int8 import _scope
+    from e3dpsm.export.delegation import module_scope
 
     source = node.args[0]
-    return f"{_scope(source)}:{source.name}"
+    return f"{module_scope(source)}:{source.name}"
 
 
 def tap_segment(node: torch.fx.Node) -> list[str]:

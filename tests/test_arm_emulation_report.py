@@ -2,6 +2,8 @@
 root needed): which trace names what departs, and where each kind lands in the report."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from _benchmark_scripts import load_benchmark
 
 SCRIPT = load_benchmark("arm_emulation")
@@ -87,3 +89,42 @@ def test_pte_programs_are_skipped_with_the_reason_where_torch_cannot_start(monke
     assert SCRIPT.executorch_refusal(Path("/root"), cpu) == (
         "`import torch, executorch.runtime` exited 1 on `cortex-a72`")
     assert SCRIPT.has_pte([Path("a.onnx"), Path("b.pte")]) and not SCRIPT.has_pte([Path("a.onnx"), Path("b.tflite")])
+
+
+def test_only_int8_step_programs_are_traced_and_a_taps_program_stands_in_without_an_event_tracer(
+        tmp_path, monkeypatch) -> None:
+    """pte_traces without an arm64 root: the emulated `pte_trace record` answers as PyPI's aarch64
+    ExecuTorch does (no event tracer, exit 3). An fp32 program and a taps program passed among the
+    graphs are not traced; an INT8 program with its `_taps.pte` beside it is traced by its taps,
+    one without is reported not traced, saying how to write one."""
+    import subprocess
+
+    import pytest
+
+    pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
+    from _toy_pte import toy_pte
+    from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT
+
+    for name, content in {"fp.pte": toy_pte(), "toy.pte": toy_pte(precision="int8"),
+                          "toy_taps.pte": toy_pte(precision="int8", taps=True),
+                          "bare.pte": toy_pte(precision="int8")}.items():
+        (tmp_path / name).write_bytes(content)
+    recorded, tapped = [], []
+
+    def emulated(root, cmd, cpu, executorch):
+        recorded.append(Path(cmd[4]).name)
+        return subprocess.CompletedProcess(cmd, NO_EVENT_TRACER_EXIT, "", "pte_trace: error: no ETDump here\n")
+
+    def taps_trace(root, taps, folder, work, steps, cpu, host_python):
+        tapped.append((taps.name, folder.name, steps))
+        return {"first_step": 4}
+
+    monkeypatch.setattr(SCRIPT, "_emulated_process", emulated)
+    monkeypatch.setattr(SCRIPT, "taps_trace", taps_trace)
+    graphs = [tmp_path / n for n in ("step.onnx", "fp.pte", "toy.pte", "toy_taps.pte", "bare.pte")]
+    traces = SCRIPT.pte_traces(tmp_path, graphs, tmp_path / "work", 7)
+    assert recorded == ["toy.pte", "bare.pte"]
+    assert tapped == [("toy_taps.pte", "toy", 7)]
+    assert traces == {"toy.pte": {"first_step": 4}, "bare.pte": {"not_traced": (
+        "no ETDump here; and no bare_taps.pte beside it to trace instead (e3dpsm convert executorch --quantize "
+        "int8 --taps)")}}

@@ -178,7 +178,8 @@ def test_a_pte_blocks_units_are_its_8_bit_layers_largest_first(edge_model) -> No
     skip_without("executorch")
     from e3dpsm.export.edge_export import export_ready
     from e3dpsm.export.executorch_export import ExecuTorchOptions, step_program
-    from e3dpsm.export.executorch_int8 import _scope, operator_units
+    from e3dpsm.export.delegation import module_scope
+    from e3dpsm.export.executorch_int8 import operator_units
 
     units = operator_units(edge_model, "model.attention.3")
     layers = [edge_model.get_submodule(u.removeprefix("model.")) for u in units]
@@ -190,7 +191,7 @@ def test_a_pte_blocks_units_are_its_8_bit_layers_largest_first(edge_model) -> No
     with export_ready(edge_model, ExecuTorchOptions().attention_form):
         program = step_program(edge_model, ExecuTorchOptions())
         called = operator_units(edge_model, "model.attention.3", program)
-    scopes = {_scope(n) for n in program.graph_module.graph.nodes if n.op == "call_function"}
+    scopes = {module_scope(n) for n in program.graph_module.graph.nodes if n.op == "call_function"}
     assert called and set(called) < set(units) and all(u in scopes for u in called)
     assert [u for u in units if u in called] == called  # the order kept
     ssm = operator_units(edge_model, "model.ssm")

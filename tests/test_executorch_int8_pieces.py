@@ -18,7 +18,7 @@ pytest.importorskip("executorch", reason="executorch (pip extra executorch) is n
 
 from _model_helpers import converter_tiny  # noqa: E402
 from _toy_pt2e import ToyRecurrent, toy_program as exported_toy  # noqa: E402
-from e3dpsm.export import edge_export, executorch_export, executorch_int8  # noqa: E402
+from e3dpsm.export import delegation, edge_export, executorch_export, executorch_int8  # noqa: E402
 from e3dpsm.export.executorch_int8 import (QuantizedModuleStepper, calibrator, in_quantised_scope,  # noqa: E402
                                            int8_coverage, keep_float_record, mac_nodes, step_inputs,
                                            xnnpack_int8_quantizer)
@@ -39,7 +39,7 @@ def _converted(toy_program, monkeypatch, keep_float=()) -> torch.fx.GraphModule:
 
 def _weights_in_8_bits(module: torch.fx.GraphModule) -> dict[str, bool]:
     """Module path of every conv / linear -> whether its weight went through 8 bits."""
-    return {executorch_int8._scope(n): "dequantize_per_channel" in executorch_int8.op_name(n.args[1])
+    return {delegation.module_scope(n): "dequantize_per_channel" in executorch_int8.op_name(n.args[1])
             for n in module.graph.nodes if n.op == "call_function"
             and str(n.target) in ("aten.conv2d.default", "aten.linear.default")}
 
@@ -97,7 +97,7 @@ def test_a_get_attr_follows_its_reader() -> None:
     weight = graph.get_attr("model_direct_head_weight")  # carries no module path
     assert in_quantised_scope(weight, ("model.stem",)) is True
     bare = graph.call_function(torch.relu, (weight,))
-    assert executorch_int8._scope(bare) == "" and in_quantised_scope(bare) is False
+    assert delegation.module_scope(bare) == "" and in_quantised_scope(bare) is False
 
 
 def test_the_keep_float_record_names_what_stays_float() -> None:

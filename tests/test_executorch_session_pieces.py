@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
 
 from _golden_fakes import FRAME, STATE  # noqa: E402
-from _toy_pte import toy_pose, toy_pte  # noqa: E402
+from _toy_pte import TAPS, toy_pose, toy_pte, toy_taps  # noqa: E402
 from e3dpsm.errors import DataError  # noqa: E402
 from e3dpsm.graph_metadata import MetadataError  # noqa: E402
 from e3dpsm.runtime import executorch_session  # noqa: E402
@@ -173,4 +173,54 @@ def test_the_documented_escape_hatch_and_the_programs_lifetime(toy) -> None:
     docs = (Path(__file__).resolve().parents[1] / "docs" / "edge.md").read_text(encoding="utf-8")
     assert OTHER_RELEASE_ENV == "E3DPSM_EXECUTORCH_OTHER_RELEASE" and f"{OTHER_RELEASE_ENV}=1" in docs
     session = ExecuTorchStepSession(toy)
-    assert "forward" in session._program.method_names  # the program outlives no method of its session
+    assert "forward" in session.program.method_names  # the program outlives no method of its session
+
+
+def test_what_a_step_returns_past_its_outputs_is_kept_and_outlives_the_next_step(toy, tmp_path) -> None:
+    """A step program returns its outputs alone; a taps program's codes past them are the
+    session's extra_outputs after each step, numpy's codes, which the next step leaves alone."""
+    session = ExecuTorchStepSession(toy)
+    session.step(np.ones((1, *FRAME), np.float32), session.init_state(1), 20.0)
+    assert session.extra_outputs == ()
+    path = tmp_path / "step_taps.pte"
+    path.write_bytes(toy_pte(precision="int8", taps=True))
+    session = ExecuTorchStepSession(path)
+    rng = np.random.default_rng(3)
+    state, kept = session.init_state(1), []
+    for window in (20.0, 90.0):
+        lnes = rng.uniform(-40, 40, (1, *FRAME)).astype(np.float32)
+        _, new_state = session.step(lnes, state, window)
+        expected = toy_taps(lnes, new_state[STATE])
+        assert len(session.extra_outputs) == len(TAPS)
+        for got, want in zip(session.extra_outputs, expected):
+            assert got.dtype == np.int8
+            np.testing.assert_array_equal(got, want)
+        kept.append((session.extra_outputs, expected))
+        state = new_state
+    for got, want in zip(*kept[0]):  # the first step's codes, after the second step ran
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_session_steps_through_the_method_it_is_given(toy) -> None:
+    session = ExecuTorchStepSession(toy)
+    forward = session._method
+
+    class Shifted:  # the same program's forward, its pose moved: the session must step through it
+        def execute(self, inputs):
+            pose, state = forward.execute(inputs)
+            return [pose + 1, state]
+
+    session.use_method(Shifted())
+    lnes = np.zeros((1, *FRAME), np.float32)
+    outputs, _ = session.step(lnes, session.init_state(1), 5.0)
+    np.testing.assert_allclose(outputs["pose"], toy_pose(lnes, 5.0) + 1, rtol=0, atol=1e-6)
+    with pytest.raises(TypeError, match="^object has no execute\\(inputs\\): not an ExecuTorch method$"):
+        session.use_method(object())
+
+    class Short:
+        def execute(self, inputs):
+            return forward.execute(inputs)[:1]
+
+    session.use_method(Short())
+    with pytest.raises(DataError, match=f"^{toy} returned 1 values, fewer than its 2 outputs$"):
+        session.step(lnes, session.init_state(1), 5.0)

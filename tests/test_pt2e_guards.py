@@ -188,18 +188,19 @@ def _annotated(node: torch.fx.Node) -> bool:
 
 
 def test_quantizer_annotates_the_feature_extractor(annotated_step) -> None:
-    from e3dpsm.export.executorch_int8 import _scope, in_quantised_scope
+    from e3dpsm.export.delegation import module_scope
+    from e3dpsm.export.executorch_int8 import in_quantised_scope
 
     convolutions = [n for n in annotated_step.graph.nodes if n.target == torch.ops.aten.conv2d.default]
     assert convolutions and all(_annotated(n) for n in convolutions if in_quantised_scope(n))
-    assert any(_annotated(n) and ".stages." in "." + _scope(n) + "." for n in convolutions)
+    assert any(_annotated(n) and ".stages." in "." + module_scope(n) + "." for n in convolutions)
 
 
 def test_quantizer_leaves_heads_cats_and_recurrence_float(annotated_step) -> None:
-    from e3dpsm.export.executorch_int8 import _scope
+    from e3dpsm.export.delegation import module_scope
 
     for node in annotated_step.graph.nodes:
-        scope = _scope(node)
+        scope = module_scope(node)
         if node.target == torch.ops.aten.cat.default:
             assert not _annotated(node), scope
         if any(part in scope for part in (".s5", "fusion", "pose_embed", "direct_head", "delta_head")):

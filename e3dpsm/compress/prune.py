@@ -42,18 +42,21 @@ class PruneConfig:
     # Or the step as a percentage of the unpruned one, measured at the start ("60%").
     target_latency_pct: float | None = None
     target_runtime: str = "onnxruntime"
-    rounds: int = 3
-    extra_rounds: int = 2
+    rounds: int = 3  # planned rounds; their targets shrink geometrically to the final one
+    extra_rounds: int = 2  # more rounds, only while a latency target is still missed when measured
     shrink: float = 0.5  # a candidate narrows a unit to this fraction of its width
-    align: int = 4
+    align: int = 4  # widths kept multiples of this, which vector kernels like (compress/plan.py)
     steps: int = 300  # distillation steps per round
-    labels: str = "none"
+    labels: str = "none"  # "gt": distil with the ground-truth poses beside the teacher's (distill.LABEL_MODES)
     budget_pct: float | None = None  # stop once held-out MPJPE exceeds the unpruned by more
-    threads: int = 2
+    threads: int = 2  # torch threads for the rounds, and the timed runtime's, as the target device runs it
     seed: int = 0
+    # Each candidate cut is judged by the pose damage it does alone, streamed causally over
+    # `calib_windows` windows of `calib_frames` frames from the calibration split: enough to rank
+    # the cuts, small enough that measuring every candidate of a round takes seconds.
     calib_windows: int = 4
     calib_frames: int = 8
-    timing_steps: int = 200
+    timing_steps: int = 200  # steps per side of the side-by-side timing that decides a latency target
     eval_frames: int = 1000  # held-out frames per sequence (each from its start)
     lr: float = 5e-4
 

@@ -29,18 +29,6 @@ from e3dpsm.golden.trace_files import (TraceKind, departure_line, digest, first_
 TRACE = TraceKind(name="pte_taps", items="taps", key="tap", what="taps", described="taps")
 
 
-class _Recording:
-    """The session's method, keeping what its last call returned."""
-
-    def __init__(self, method: Any) -> None:
-        self.method = method
-        self.returned: list[Any] = []
-
-    def execute(self, inputs: list[Any]) -> list[Any]:
-        self.returned = list(self.method.execute(inputs))
-        return self.returned
-
-
 def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int | None = None,
            threads: int | None = 1) -> dict[str, Any]:
     """Step the taps program `model` over the golden's frames (states carried by this runtime);
@@ -55,22 +43,19 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
     golden = load_golden(golden_dir)
     count = golden.steps if steps is None else min(steps, golden.steps)
     session = ExecuTorchStepSession(model, threads=threads)
-    made = program_taps(session._program, str(model))
+    made = program_taps(session.program, str(model))
     if made is None:
         raise InputError(f"{model} has no taps: write its taps program with `e3dpsm convert executorch --quantize "
                          "int8 --taps` (step_taps.pte)")
-    recording = _Recording(session._method)
-    session._method = recording  # the session binds the contract; the taps are the outputs past it
     state = session.init_state(1)
     taps: list[dict[str, Any]] = []
     digests: list[list[str]] = []
     for step in range(count):
         _, state = session.step(golden.frame(step), state, golden.window_ms(step))
-        returned = recording.returned
-        if len(returned) != len(made) + len(session.output_names_all()):
-            raise ValueError(f"{model} returned {len(returned)} values, not its {len(session.output_names_all())} "
-                             f"outputs and {len(made)} taps")
-        values = [v.numpy() for v in returned[len(returned) - len(made):]]
+        values = session.extra_outputs  # the session binds the contract; the taps are the outputs past it
+        if len(values) != len(made):
+            raise ValueError(f"{model} returned {len(values)} values past its {len(session.output_names_all())} "
+                             f"outputs, not its {len(made)} taps")
         if not taps:
             taps = [{**t, "shape": list(v.shape), "dtype": str(v.dtype)} for t, v in zip(made, values)]
         digests.append([digest(np.ascontiguousarray(v).tobytes()) for v in values])

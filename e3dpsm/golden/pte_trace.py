@@ -148,7 +148,7 @@ def record(model: str | os.PathLike, golden_dir: str | os.PathLike, steps: int |
         first = len(digests)
         chunk = 1 if first == 0 else min(CHUNK_STEPS, count - first)
         traced = _traced_module(model, per_step * chunk)
-        session._method = _Traced(traced)  # the same program, stepped through the traced module
+        session.use_method(_Traced(traced))  # the same program, stepped through the traced module
         for step in range(first, first + chunk):
             _, state = session.run_feeds(session.feeds(golden.frame(step), state, golden.window_ms(step)))
         found, rows, used = _written(traced)

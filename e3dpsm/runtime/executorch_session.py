@@ -103,8 +103,29 @@ class ExecuTorchStepSession(ArtifactSession):
                 portable_lib._unsafe_reset_threadpool(int(threads))  # XNNPACK's pool is per process
             self._method = program.load_method("forward")
         self._program = program  # the method runs on the program's buffers: both live as long as the session
+        # What the program's last call (one batch row) returned past the contract's outputs: a
+        # taps program's 8-bit codes (golden/pte_taps.py); empty for a step program. The runtime
+        # returns new tensors at every call, so what a step left here outlives the next step.
+        self.extra_outputs: tuple[np.ndarray, ...] = ()
         self._bind(path, meta, list(self.artifact.get("inputs", [])), list(self.artifact.get("outputs", [])))
 
+    @property
+    def program(self) -> Any:
+        """The loaded ExecuTorch program, for its other methods (`e3dpsm_taps`)."""
+        return self._program
+
+    def use_method(self, method: Any) -> None:
+        """Step through `method` from now on: any object with `execute(list of tensors) -> list
+        of tensors` computing this program's forward (the same program loaded with ETDump on:
+        golden/pte_trace.py). Inputs, outputs and states stay this session's contract."""
+        if not callable(getattr(method, "execute", None)):
+            raise TypeError(f"{type(method).__name__} has no execute(inputs): not an ExecuTorch method")
+        self._method = method
+
     def _run_one(self, feeds: Mapping[str, np.ndarray]) -> dict[str, Any]:
-        values = self._method.execute([self._torch.from_numpy(np.ascontiguousarray(feeds[n])) for n in self._inputs])
+        values = list(self._method.execute([self._torch.from_numpy(np.ascontiguousarray(feeds[n]))
+                                            for n in self._inputs]))
+        if len(values) < len(self._outputs):
+            raise DataError(f"{self.path} returned {len(values)} values, fewer than its {len(self._outputs)} outputs")
+        self.extra_outputs = tuple(v.numpy() for v in values[len(self._outputs):])
         return {name: value.numpy() for name, value in zip(self._outputs, values)}
