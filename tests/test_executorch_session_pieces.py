@@ -180,6 +180,7 @@ def test_what_a_step_returns_past_its_outputs_is_kept_and_outlives_the_next_step
     """A step program returns its outputs alone; a taps program's codes past them are the
     session's extra_outputs after each step, numpy's codes, which the next step leaves alone."""
     session = ExecuTorchStepSession(toy)
+    assert session.extra_outputs == ()  # before any step too
     session.step(np.ones((1, *FRAME), np.float32), session.init_state(1), 20.0)
     assert session.extra_outputs == ()
     path = tmp_path / "step_taps.pte"

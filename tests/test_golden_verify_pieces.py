@@ -3,6 +3,8 @@ artifact is checked on, the tolerance profile, the task budget, and the ISA and 
 report carries, each against hand-written expectations and every refusal compared whole."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from e3dpsm.budget import TaskBudget
@@ -281,3 +283,42 @@ def test_a_golden_recorded_before_the_growth_floor_takes_todays_floor_and_keeps_
     recorded = {"name": "int8", "kind": "budget", "state_rtol": 0.5, "max_growth": 3.0}  # no growth_floor yet
     chosen = verify.resolve_profile("int8", None, {"tolerances": {"int8": recorded}})
     assert chosen.max_growth == 3.0 and chosen.growth_floor == PROFILES["int8"].growth_floor == 0.05
+
+
+@pytest.mark.parametrize("name, key", [("g.onnx", "kernel_trace"), ("step.pte", "code_trace"),
+                                       ("step.tflite", "code_trace")])
+def test_where_a_machine_parts_is_traced_by_the_artifacts_own_kind(tmp_path, monkeypatch, name, key) -> None:
+    """A QDQ graph's departure goes to the kernel trace, a .pte's and a .tflite's to their code
+    trace (golden/artifact_trace.py), each with the checked file, its digest and the threads."""
+    import hashlib
+
+    from _golden_fakes import make_golden
+
+    from e3dpsm.golden.store import GoldenRecord
+
+    calls = _Traced(monkeypatch, 3.0)
+    coded = []
+    monkeypatch.setattr(verify, "_code_trace", lambda folder, model, digest, threads: (
+        coded.append((folder, Path(model).name, digest, threads)) or {"trace": "codes"}))
+    _int8_runner(monkeypatch, 0.0)
+    model = tmp_path / name
+    model.write_bytes(b"an artifact's bytes")
+    digest = hashlib.sha256(model.read_bytes()).hexdigest()
+    made = make_golden()
+    golden = GoldenRecord({**made.manifest, "window_ms": 20.0}, made.arrays, tmp_path)
+    result, report = verify.verify_graph(str(model), golden, threads=2)
+    assert result.questions["same_as_host"] is False
+    assert {k: report[k] for k in ("kernel_trace", "code_trace") if k in report} == {
+        key: {"trace": "here"} if key == "kernel_trace" else {"trace": "codes"}}
+    assert (calls.traces, coded) == (([(tmp_path, digest, 2)], []) if key == "kernel_trace" else
+                                     ([], [(tmp_path, name, digest, 2)]))
+
+
+def test_the_code_trace_reads_the_golden_with_one_thread_unless_told(tmp_path, monkeypatch) -> None:
+    from e3dpsm.golden import artifact_trace
+
+    ran = []
+    monkeypatch.setattr(artifact_trace, "run_device", lambda *args: ran.append(args) or {"trace": "pte_taps"})
+    assert verify._code_trace(tmp_path, "a/step.pte", "d", None) == {"trace": "pte_taps"}
+    verify._code_trace(tmp_path, "a/step.pte", "d", 4)
+    assert ran == [(tmp_path, "a/step.pte", "d", 1), (tmp_path, "a/step.pte", "d", 4)]

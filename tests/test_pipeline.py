@@ -8,15 +8,18 @@ import pytest
 from _quantize_helpers import TRAINED_TINY
 from e3dpsm.checkpoint import CheckpointError
 from e3dpsm.pipeline.runner import run_pipeline
-from e3dpsm.pipeline.stages import STAGES, PipelineConfig
+from e3dpsm.errors import ConfigError
+from e3dpsm.pipeline.stages import STAGES, PipelineConfig, expand_stage_names
 
 
 def test_stages_use_the_given_checkpoint_and_its_resolution(tmp_path) -> None:
     cfg = PipelineConfig(out=tmp_path / "run", checkpoint=TRAINED_TINY)
-    # train is skipped with a checkpoint; clip reads the test split synth writes, so it is built at run time
-    argvs = {s.name: s.argv(cfg) for s in STAGES if s.name not in ("train", "clip")}
+    # train is skipped with a checkpoint; clip reads the test split synth writes, edge-check the
+    # artifacts the edge stages wrote, so both are built at run time
+    argvs = {s.name: s.argv(cfg) for s in STAGES if s.name not in ("train", "clip", "edge-check")}
     using = {name: argv[argv.index("--checkpoint") + 1] for name, argv in argvs.items() if "--checkpoint" in argv}
-    assert set(using) == {"evaluate", "export", "parity", "validate", "golden-record", "prune", "profile"}
+    assert set(using) == {"evaluate", "export", "parity", "validate", "golden-record", "prune", "executorch",
+                          "litert", "profile"}
     assert set(using.values()) == {str(TRAINED_TINY)}
     prepare = argvs["prepare"]
     assert prepare[prepare.index("--height") + 1] == "192" and prepare[prepare.index("--width") + 1] == "256"
@@ -137,3 +140,67 @@ def test_index_says_how_many_steps_the_model_trained(tmp_path) -> None:
     write_index(tmp_path, {"variant": "small", "seed": 0, "window_ms": 20.0}, [])
     header = (tmp_path / "report" / "index.md").read_text().splitlines()[2]
     assert header.startswith("Variant `small` trained 120 steps here, synthetic data (seed 0)")
+
+
+def _stage(name: str):
+    return next(s for s in STAGES if s.name == name)
+
+
+def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeypatch) -> None:
+    """Off by default; `--with edge` runs executorch, litert and edge-check in that order, after
+    the golden record they check against and before the profile that times them."""
+    import e3dpsm.pipeline.runner as runner
+
+    names = [s.name for s in STAGES]
+    assert all(_stage(n).optional for n in ("executorch", "litert", "edge-check"))
+    assert names.index("golden-record") < names.index("executorch") < names.index("litert") \
+        < names.index("edge-check") < names.index("profile")
+    assert expand_stage_names(["prune", "edge", "litert"]) == ["prune", "executorch", "litert", "edge-check"]
+    ran: list[list[str]] = []
+    monkeypatch.setattr(runner, "run_stage", lambda argv: ran.append(argv) or 0)
+    monkeypatch.setattr(runner, "write_index", lambda *a, **k: None)
+    run = tmp_path / "run"
+    for stage in STAGES:
+        if not stage.optional:
+            (run / stage.marker).parent.mkdir(parents=True, exist_ok=True)
+            (run / stage.marker).touch()
+    (run / "edge/litert").mkdir(parents=True)
+    (run / "edge/litert/step.tflite").touch()  # what the litert stage leaves, for edge-check's argv
+    done = run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY))
+    assert ran == [] and all(d["status"] == "skipped" for d in done)
+    run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edge",)))
+    assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]
+    ran.clear()
+    run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY), only=["edge"])
+    assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]
+    with pytest.raises(ConfigError, match=r"^unknown stages \['edges'\]; stages: synth, .* \(groups: edge: "
+                                          r"executorch litert edge-check\)$"):
+        run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edges",)))
+
+
+def test_edge_stage_commands_parse_and_check_and_profile_what_was_written(tmp_path) -> None:
+    from e3dpsm.cli import build_parser
+
+    cfg = PipelineConfig(out=tmp_path / "run", checkpoint=TRAINED_TINY, threads=3)
+    parser = build_parser()
+    for name, out in (("executorch", "edge/executorch"), ("litert", "edge/litert")):
+        args = parser.parse_args(_stage(name).argv(cfg))
+        assert (args.checkpoint, args.out, args.force, args.quantize) == (str(TRAINED_TINY), str(cfg.out / out),
+                                                                          True, None)
+        assert _stage(name).marker == f"{out}/convert.json"
+    profile = _stage("profile").argv(cfg)
+    assert "--edge-models" not in profile
+    with pytest.raises(ConfigError, match=r"^edge-check has no artifact to check: run it with --with executorch "
+                                          r"and/or litert \(or --with edge\)$"):
+        _stage("edge-check").argv(cfg)
+    written = [cfg.out / "edge/executorch/step.pte", cfg.out / "edge/litert/step.tflite"]
+    for path in written[::-1]:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+        check = parser.parse_args(_stage("edge-check").argv(cfg))
+        assert check.model == [str(p) for p in written if p.exists()]
+    assert (check.golden, check.out, check.threads, check.exit_zero) == (
+        str(cfg.out / "golden/record"), str(cfg.out / "edge/checks"), 3, False)
+    assert _stage("edge-check").marker == "edge/checks/summary.json"
+    profile = parser.parse_args(_stage("profile").argv(cfg))
+    assert profile.edge_models == [str(p) for p in written]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from e3dpsm.pipeline.report import int8_section, write_index
+from e3dpsm.pipeline.report import edge_section, int8_section, write_index
 
 
 def _quantize_report() -> dict:
@@ -54,3 +54,27 @@ def test_index_gives_the_serve_command_for_the_held_out_sequence(tmp_path) -> No
     assert "e3dpsm serve" in (out / "report/index.html").read_text()
 
 
+
+
+def test_the_edge_section_reads_each_conversion_record_and_the_check(tmp_path) -> None:
+    assert edge_section(tmp_path) == []
+    (tmp_path / "edge/executorch").mkdir(parents=True)
+    (tmp_path / "edge/executorch/convert.json").write_text(json.dumps({
+        "bytes": 6_043_210, "seconds": {"total": 108.5}, "options": {"attention_form": "grid_sample"},
+        "delegation": {"delegated_share": 0.99712}}))
+    lines = edge_section(tmp_path)
+    assert lines[0] == "## Edge artifacts"
+    assert lines[-2:] == ["| [edge/executorch/step.pte](../edge/executorch/step.pte) | 6.04 | 108 | grid_sample | "
+                          "XNNPACK runs 99.7% of the MACs |", ""]
+    (tmp_path / "edge/litert").mkdir(parents=True)
+    (tmp_path / "edge/litert/convert.json").write_text(json.dumps({
+        "bytes": 6_130_000, "seconds": {"total": 70.2}, "options": {"attention_form": "gather"},
+        "ops": {"xnnpack_partitions": 6}}))
+    (tmp_path / "edge/checks").mkdir()
+    (tmp_path / "edge/checks/summary.md").write_text("| model | status |\n|---|---|\n| step.pte | passed |\n")
+    write_index(tmp_path, {"variant": "small", "seed": 0, "window_ms": 20, "threads": 2}, [])
+    text = (tmp_path / "report/index.md").read_text()
+    section = text[text.index("## Edge artifacts"):]
+    assert ("| [edge/litert/step.tflite](../edge/litert/step.tflite) | 6.13 | 70 | gather | 6 XNNPACK partitions |\n\n"
+            "| model | status |\n|---|---|\n| step.pte | passed |\n") in section
+    assert section.index("executorch/step.pte") < section.index("litert/step.tflite")

@@ -39,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     rec.add_argument("--kernel-trace", type=positive_int, default=None, metavar="STEPS",
                      help="also keep this host's codes of every quantised activation of the --also QDQ graphs over "
                           "the first STEPS steps (about 1 MB per step of `small`), so that `golden check` on a "
-                          "device that departs from the host's rollout names the nodes where it departs")
+                          "device that departs from the host's rollout names the nodes where it departs; of an "
+                          "INT8 .tflite its codes' digests, of an INT8 .pte its taps program's (step_taps.pte "
+                          "beside it, copied in)")
     add_threads(rec)
     rec.add_argument("--out", required=True, help="golden folder to write")
     add_force(rec)
@@ -110,13 +112,20 @@ def run_record(args: argparse.Namespace) -> int:
 
 
 def _record_kernel_traces(golden_dir: str, graphs: list[str], steps: int) -> None:
-    import onnx
-
-    from e3dpsm.golden.kernel_cut import quantized_activations
+    from e3dpsm.golden import artifact_trace
     from e3dpsm.golden.kernel_report import record_host, trace_folder
     from e3dpsm.golden.record import sha256_file
 
     for graph in graphs:
+        if artifact_trace.trace_module(graph) is not None:
+            folder, what = artifact_trace.record_host(golden_dir, graph, steps)
+            print(f"golden record: {'code trace of' if folder else 'no code trace of'} {Path(graph).name}: {what}"
+                  + (f" -> {folder}" if folder else ""))
+            continue
+        import onnx
+
+        from e3dpsm.golden.kernel_cut import quantized_activations
+
         if not quantized_activations(onnx.load(graph)):
             print(f"golden record: {graph} has no quantised activations; no kernel trace")
             continue
@@ -147,6 +156,10 @@ def _print_check(model: str, runtime: str, result, report: dict, out: Path) -> N
     note = budget_runtime_note(report["budget_runtimes"])
     if note:
         print("  " + note)
+    if report.get("code_trace"):
+        trace = report["code_trace"]
+        print(f"  where this machine departs from the host ({trace['trace']}, {trace['steps']} steps): "
+              f"{trace['summary']}")
     trace = report.get("kernel_trace")
     if trace:
         from e3dpsm.golden.kernel_report import responsible_lines

@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     add_threads(p)
     p.add_argument("--only", nargs="+", metavar="STAGE", help="rerun only these stages (others untouched)")
     p.add_argument("--with", dest="with_stages", nargs="+", metavar="STAGE", default=[],
-                   help="also run these optional stages (off by default): prune")
+                   help="also run these optional stages (off by default): prune, executorch, litert, edge-check; "
+                        "edge names the last three (fp32 .pte and .tflite, their golden checks, profiled)")
     p.set_defaults(func=run)
     return p
 

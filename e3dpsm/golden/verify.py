@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from e3dpsm.errors import InputError
+from e3dpsm.golden.artifact_trace import trace_module
 from e3dpsm.golden.check import GoldenCheck, check_golden, plot_check
 from e3dpsm.golden.store import GoldenRecord, load_golden
 from e3dpsm.golden.tolerances import PROFILES, ToleranceProfile, profile_for_quantization
@@ -144,7 +145,10 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
         **result.to_dict(),
     }
     if result.questions["same_as_host"] is False and golden.folder is not None:
-        report["kernel_trace"] = _kernel_trace(golden.folder, digest, threads)
+        if trace_module(model) is None:
+            report["kernel_trace"] = _kernel_trace(golden.folder, digest, threads)
+        else:  # a .tflite or .pte: where its codes part, if the golden keeps the host's
+            report["code_trace"] = _code_trace(golden.folder, model, digest, threads)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -157,6 +161,13 @@ def verify_graph(model: str | os.PathLike, golden_dir: str | os.PathLike | Golde
                                         f"{'PASSED' if result.passed else 'FAILED'}")
         write_json_atomic(out / CHECK_FILE, report)
     return result, report
+
+
+def _code_trace(golden_folder: Path, model: str | os.PathLike, digest: str | None,
+                threads: int | None) -> dict[str, Any] | None:
+    from e3dpsm.golden.artifact_trace import run_device
+
+    return run_device(golden_folder, model, digest, threads or 1)
 
 
 def _kernel_trace(golden_folder: Path, digest: str | None, threads: int | None) -> dict[str, Any] | None:

@@ -7,7 +7,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.pipeline.stages import GRAPH, STAGES
+from e3dpsm.pipeline.stages import EDGE_ARTIFACTS, GRAPH, STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -72,6 +72,34 @@ def int8_section(int8_report: dict[str, Any]) -> list[str]:
             *rows, ""]
 
 
+def edge_section(out: Path) -> list[str]:
+    """The optional edge stages: each artifact's conversion record (convert.json) and the
+    golden check of both; nothing when they did not run."""
+    rows = []
+    for fmt, rel in EDGE_ARTIFACTS.items():
+        record = _load(out / Path(rel).parent / "convert.json")
+        if not record:
+            continue
+        if fmt == "executorch":
+            backend = f"XNNPACK runs {record['delegation']['delegated_share']:.1%} of the MACs"
+        else:
+            backend = f"{record['ops']['xnnpack_partitions']} XNNPACK partitions"
+        rows.append(f"| [{rel}](../{rel}) | {record['bytes'] / 1e6:.2f} | {record['seconds']['total']:.0f} | "
+                    f"{(record.get('options') or {}).get('attention_form', '-')} | {backend} |")
+    if not rows:
+        return []
+    lines = ["## Edge artifacts", "",
+             "The checkpoint converted for the edge runtimes (`e3dpsm convert`, fp32; docs/edge.md in the "
+             "repository), each checked against the golden rollout with its own runtime carrying the states, "
+             "and timed in the profile beside the ONNX graphs.", "",
+             "| artifact | size (MB) | conversion (s) | attention form | backend |", "|---|---:|---:|---|---|",
+             *rows, ""]
+    summary_md = out / "edge/checks/summary.md"
+    if summary_md.is_file():
+        lines += [summary_md.read_text().rstrip(), ""]
+    return lines
+
+
 def serve_command(out: Path, threads: int | None = None) -> str | None:
     """The `e3dpsm serve` command that shows the held-out sequence live through the pipeline's
     own step graph (absolute paths, ready to paste); None until both exist."""
@@ -119,6 +147,7 @@ def write_index(out: Path, config: dict[str, Any], stages: list[dict[str, Any]])
                   "([golden/checks/summary.json](../golden/checks/summary.json)).", ""]
         summary_md = out / "golden/checks/summary.md"
         lines += [summary_md.read_text().rstrip() if summary_md.is_file() else "(no summary table)", ""]
+    lines += edge_section(out)
     serve = serve_command(out, config.get("threads"))
     if (out / "clip/poses.gif").is_file() or serve:
         lines += ["## Poses you can watch", ""]

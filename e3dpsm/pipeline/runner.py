@@ -14,7 +14,7 @@ from dataclasses import asdict
 
 from e3dpsm.errors import ConfigError, E3DPSMError
 from e3dpsm.pipeline.report import write_index
-from e3dpsm.pipeline.stages import STAGES, PipelineConfig
+from e3dpsm.pipeline.stages import STAGE_GROUPS, STAGES, PipelineConfig, expand_stage_names
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +39,12 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
     cfg.out.mkdir(parents=True, exist_ok=True)
     done: list[dict] = []
     names = [s.name for s in STAGES]
-    unknown = sorted((set(only or []) | set(cfg.with_stages)) - set(names))
+    only = expand_stage_names(only) if only else None
+    asked = expand_stage_names(cfg.with_stages)
+    unknown = sorted((set(only or []) | set(asked)) - set(names))
     if unknown:
-        raise ConfigError(f"unknown stages {unknown}; stages: {', '.join(names)}")
+        groups = "; ".join(f"{group}: {' '.join(members)}" for group, members in STAGE_GROUPS.items())
+        raise ConfigError(f"unknown stages {unknown}; stages: {', '.join(names)} (groups: {groups})")
     for index, stage in enumerate(STAGES, 1):
         marker = cfg.out / stage.marker
         header = f"[{index}/{len(STAGES)}] {stage.name}"
@@ -49,7 +52,7 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
             log.info("%s: skipped, --checkpoint %s given", header, cfg.checkpoint)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
-        if stage.optional and stage.name not in cfg.with_stages and stage.name not in (only or []):
+        if stage.optional and stage.name not in asked and stage.name not in (only or []):
             log.info("%s: optional, not asked for (--with %s)", header, stage.name)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue

@@ -89,6 +89,29 @@ GRAPH = "export/step.onnx"
 INT8 = "quantize/int8/step_int8.onnx"
 FP16 = "quantize/fp16/step_fp16.onnx"
 INT8_DYNAMIC = "quantize/int8-dynamic/step_int8_dynamic.onnx"
+# The fp32 edge artifacts of the optional stages (`e3dpsm convert`, docs/edge.md).
+EDGE_ARTIFACTS = {"executorch": "edge/executorch/step.pte", "litert": "edge/litert/step.tflite"}
+# `--with edge` names the three edge stages at once.
+STAGE_GROUPS = {"edge": ("executorch", "litert", "edge-check")}
+
+
+def expand_stage_names(names: tuple[str, ...] | list[str]) -> list[str]:
+    """Stage names with each group (STAGE_GROUPS) replaced by its stages, order kept."""
+    return list(dict.fromkeys(n for name in names for n in STAGE_GROUPS.get(name, (name,))))
+
+
+def edge_artifacts(cfg: PipelineConfig) -> list[str]:
+    """The edge artifacts the optional stages have written so far, in EDGE_ARTIFACTS' order."""
+    return [_p(cfg, rel) for rel in EDGE_ARTIFACTS.values() if (cfg.out / rel).is_file()]
+
+
+def _edge_check_argv(cfg: PipelineConfig) -> list[str]:
+    models = edge_artifacts(cfg)
+    if not models:
+        raise ConfigError("edge-check has no artifact to check: run it with --with executorch and/or litert "
+                          "(or --with edge)")
+    return ["golden", "check", "--model", *models, "--golden", _p(cfg, "golden/record"), "--threads",
+            str(cfg.threads), "--out", _p(cfg, "edge/checks")]
 
 
 def _held_out_events(cfg: PipelineConfig) -> str:
@@ -193,10 +216,22 @@ STAGES: tuple[Stage, ...] = (
         "--eval-split", "test", "--out", _p(c, "prune"), "--target-macs", str(c.prune_target_macs),
         "--rounds", "1", "--steps", str(c.prune_steps), "--threads", str(c.threads), "--force", "--no-progress"],
         optional=True),
+    # Off by default: the checkpoint as fp32 ExecuTorch and LiteRT artifacts (XNNPACK), each
+    # checked against the golden rollout with its own runtime carrying the states, and
+    # profiled beside the ONNX graphs (`--with edge`).
+    Stage("executorch", "edge/executorch/convert.json", "edge/executorch/convert.json",
+          "edge/executorch/convert.json", lambda c: [
+              "convert", "executorch", "--checkpoint", _ckpt(c), "--out", _p(c, "edge/executorch"), "--force"],
+          optional=True),
+    Stage("litert", "edge/litert/convert.json", "edge/litert/convert.json", "edge/litert/convert.json", lambda c: [
+        "convert", "litert", "--checkpoint", _ckpt(c), "--out", _p(c, "edge/litert"), "--force"], optional=True),
+    Stage("edge-check", "edge/checks/summary.json", "edge/checks/summary.md", "edge/checks/summary.json",
+          _edge_check_argv, optional=True),
     Stage("profile", "profile/report.json", "profile/report.md", "profile/report.json", lambda c: [
         "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),
-        "--threads", str(c.threads), "--out", _p(c, "profile"), "--force"]),
+        "--threads", str(c.threads), "--out", _p(c, "profile"), "--force",
+        *(["--edge-models", *edge_artifacts(c)] if edge_artifacts(c) else [])]),
 )
 
 
