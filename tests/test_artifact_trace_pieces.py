@@ -146,3 +146,20 @@ def test_golden_record_and_check_say_where_in_one_line_each(golden, programs, tm
     _print_check("step.pte", "executorch", result, report, tmp_path)
     assert capsys.readouterr().out.splitlines()[-1] == (
         "  where this machine departs from the host (pte_taps, 60 steps): taps part first at step 4, ...")
+
+
+def test_the_names_in_the_golden_and_one_thread_unless_told(golden, programs, monkeypatch) -> None:
+    """The file names docs/golden-and-diagnose.md gives, and both halves on one thread unless
+    told, as the kernel trace of a QDQ graph runs."""
+    from e3dpsm.golden import pte_taps
+
+    assert (HOST_FILE, TAPS_PROGRAM) == ("host_trace.json", "step_taps.pte")
+    seen, real = [], pte_taps.record
+    monkeypatch.setattr(pte_taps, "record", lambda model, golden_dir, steps, threads: (
+        seen.append(threads) or real(model, golden_dir, steps, threads)))
+    shipped = programs["step.pte"]
+    record_host(golden, shipped, 2)
+    run_device(golden, shipped, _sha256(shipped))
+    record_host(golden, shipped, 2, threads=3)
+    run_device(golden, shipped, _sha256(shipped), threads=2)
+    assert seen == [1, 1, 3, 2]

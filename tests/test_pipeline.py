@@ -204,3 +204,13 @@ def test_edge_stage_commands_parse_and_check_and_profile_what_was_written(tmp_pa
     assert _stage("edge-check").marker == "edge/checks/summary.json"
     profile = parser.parse_args(_stage("profile").argv(cfg))
     assert profile.edge_models == [str(p) for p in written]
+    assert (profile.targets, profile.data, profile.out) == ("all", str(cfg.out / "prepared"), str(cfg.out / "profile"))
+
+
+def test_each_edge_stage_links_the_reports_its_command_writes() -> None:
+    """What the index's stage table links: convert's convert.json, golden check's summary."""
+    reports = {s.name: (s.marker, s.human_report, s.machine_report) for s in STAGES}
+    assert reports["executorch"] == ("edge/executorch/convert.json",) * 3
+    assert reports["litert"] == ("edge/litert/convert.json",) * 3
+    assert reports["edge-check"] == ("edge/checks/summary.json", "edge/checks/summary.md", "edge/checks/summary.json")
+    assert reports["profile"] == ("profile/report.json", "profile/report.md", "profile/report.json")
