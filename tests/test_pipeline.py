@@ -146,9 +146,11 @@ def _stage(name: str):
     return next(s for s in STAGES if s.name == name)
 
 
-def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeypatch) -> None:
+def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeypatch, caplog) -> None:
     """Off by default; `--with edge` runs executorch, litert and edge-check in that order, after
     the golden record they check against and before the profile that times them."""
+    import logging
+
     import e3dpsm.pipeline.runner as runner
 
     names = [s.name for s in STAGES]
@@ -161,13 +163,18 @@ def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeyp
     monkeypatch.setattr(runner, "write_index", lambda *a, **k: None)
     run = tmp_path / "run"
     for stage in STAGES:
-        if not stage.optional:
+        if not stage.optional and stage.name != "train":  # train: skipped for the checkpoint
             (run / stage.marker).parent.mkdir(parents=True, exist_ok=True)
             (run / stage.marker).touch()
     (run / "edge/litert").mkdir(parents=True)
     (run / "edge/litert/step.tflite").touch()  # what the litert stage leaves, for edge-check's argv
-    done = run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY))
-    assert ran == [] and all(d["status"] == "skipped" for d in done)
+    with caplog.at_level(logging.INFO, logger=runner.__name__):
+        done = run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY))
+    assert ran == [] and done == [{"stage": s.name, "status": "skipped", "seconds": 0.0} for s in STAGES]
+    logged = [r.getMessage() for r in caplog.records]
+    index = names.index("executorch") + 1
+    assert f"[{index}/{len(STAGES)}] executorch: optional, not asked for (--with executorch)" in logged
+    assert f"[3/{len(STAGES)}] train: skipped, --checkpoint {TRAINED_TINY} given" in logged
     run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edge",)))
     assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]
     ran.clear()

@@ -78,3 +78,19 @@ def test_the_edge_section_reads_each_conversion_record_and_the_check(tmp_path) -
     assert ("| [edge/litert/step.tflite](../edge/litert/step.tflite) | 6.13 | 70 | gather | 6 XNNPACK partitions |\n\n"
             "| model | status |\n|---|---|\n| step.pte | passed |\n") in section
     assert section.index("executorch/step.pte") < section.index("litert/step.tflite")
+
+
+def test_the_edge_section_whole_with_the_litert_stage_alone(tmp_path) -> None:
+    (tmp_path / "edge/litert").mkdir(parents=True)
+    (tmp_path / "edge/litert/convert.json").write_text(json.dumps({
+        "bytes": 5_000_000, "seconds": {"total": 9.4}, "ops": {"xnnpack_partitions": 6}}))  # a record without options
+    (tmp_path / "edge/checks").mkdir()
+    (tmp_path / "edge/checks/summary.md").write_text("| check |\n|---|\n\n")
+    assert edge_section(tmp_path) == [
+        "## Edge artifacts", "",
+        "The checkpoint converted for the edge runtimes (`e3dpsm convert`, fp32; docs/edge.md in the repository), "
+        "each checked against the golden rollout with its own runtime carrying the states, and timed in the profile "
+        "beside the ONNX graphs.", "",
+        "| artifact | size (MB) | conversion (s) | attention form | backend |", "|---|---:|---:|---|---|",
+        "| [edge/litert/step.tflite](../edge/litert/step.tflite) | 5.00 | 9 | - | 6 XNNPACK partitions |", "",
+        "| check |\n|---|", ""]

@@ -13,7 +13,6 @@ machine's half over the same steps and compares: check.json's `code_trace`, one 
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
@@ -79,14 +78,9 @@ def _has_codes(model: str | os.PathLike) -> bool:
 
 def find_host_trace(golden_dir: str | os.PathLike, sha256: str | None) -> Path | None:
     """The folder of the golden's host trace of the artifact with this digest, if it keeps one."""
-    from e3dpsm.golden.kernel_report import KERNELS_FOLDER
+    from e3dpsm.golden.kernel_report import find_trace
 
-    if not sha256:
-        return None
-    for path in sorted((Path(golden_dir) / KERNELS_FOLDER).glob(f"*-{sha256[:12]}/{HOST_FILE}")):
-        if json.loads(path.read_text(encoding="utf-8")).get("sha256") == sha256:
-            return path.parent
-    return None
+    return find_trace(golden_dir, sha256, HOST_FILE)
 
 
 def run_device(golden_dir: str | os.PathLike, model: str | os.PathLike, sha256: str | None,

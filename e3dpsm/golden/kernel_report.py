@@ -31,12 +31,13 @@ def trace_folder(golden_dir: str | os.PathLike, graph: str | os.PathLike, sha256
     return Path(golden_dir) / KERNELS_FOLDER / f"{Path(graph).stem}-{sha256[:12]}"
 
 
-def find_trace(golden_dir: str | os.PathLike, sha256: str | None) -> Path | None:
-    """The golden's kernel trace of the graph with this digest, if `golden record
-    --kernel-trace` kept one."""
+def find_trace(golden_dir: str | os.PathLike, sha256: str | None, manifest_name: str = ORDER) -> Path | None:
+    """The folder of the golden's trace of the graph with this digest, if `golden record
+    --kernel-trace` kept one: a kernel trace (its `codes.json`), or an artifact's code trace
+    (artifact_trace.HOST_FILE)."""
     if not sha256:
         return None
-    for manifest in sorted((Path(golden_dir) / KERNELS_FOLDER).glob(f"*-{sha256[:12]}/{ORDER}")):
+    for manifest in sorted((Path(golden_dir) / KERNELS_FOLDER).glob(f"*-{sha256[:12]}/{manifest_name}")):
         if json.loads(manifest.read_text(encoding="utf-8")).get("sha256") == sha256:
             return manifest.parent
     return None
