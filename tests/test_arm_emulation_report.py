@@ -105,9 +105,9 @@ def test_only_int8_step_programs_are_traced_and_a_taps_program_stands_in_without
     from _toy_pte import toy_pte
     from e3dpsm.golden.pte_trace import NO_EVENT_TRACER_EXIT
 
-    for name, content in {"fp.pte": toy_pte(), "toy.pte": toy_pte(precision="int8"),
-                          "toy_taps.pte": toy_pte(precision="int8", taps=True),
-                          "bare.pte": toy_pte(precision="int8")}.items():
+    int8 = toy_pte(precision="int8")
+    for name, content in {"fp.pte": toy_pte(), "toy.pte": int8, "toy_taps.pte": toy_pte(precision="int8", taps=True),
+                          "bare.pte": int8}.items():
         (tmp_path / name).write_bytes(content)
     recorded, tapped = [], []
 
