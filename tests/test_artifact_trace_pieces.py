@@ -80,6 +80,22 @@ def test_a_pte_without_its_taps_program_is_not_traced(golden, programs) -> None:
     assert run_device(golden, programs["alone.pte"], _sha256(programs["alone.pte"])) is None
 
 
+def test_a_taps_program_of_another_conversion_is_refused_and_nothing_written(tmp_path, programs) -> None:
+    from _toy_pte import toy_pte
+
+    from e3dpsm.errors import DataError
+
+    golden = write_golden(tmp_path / "golden", STEPS)
+    shipped = tmp_path / "step.pte"
+    shipped.write_bytes(programs["step.pte"].read_bytes())
+    (tmp_path / "step_taps.pte").write_bytes(toy_pte(precision="int8", taps=True, pose_offset=0.5))
+    with pytest.raises(DataError, match=rf"^{tmp_path}/step_taps\.pte does not compute step\.pte's steps \(they "
+                                        r"differ from step 0\): write both with one `e3dpsm convert executorch "
+                                        r"--quantize int8 --taps`$"):
+        record_host(golden, shipped, STEPS)
+    assert not (golden / "kernels").exists()
+
+
 def test_the_device_half_names_the_first_tap_apart(tmp_path, programs) -> None:
     golden = write_golden(tmp_path / "golden", STEPS)
     shipped = programs["step.pte"]

@@ -49,24 +49,43 @@ def record_host(golden_dir: str | os.PathLike, model: str | os.PathLike, steps: 
     if module is None:
         raise ValueError(f"{model}: an artifact trace is of a .tflite or a .pte")
     traced, program = Path(model), None
-    if module.__name__.endswith("pte_taps"):
+    if Path(model).suffix == ".pte":
         from e3dpsm.export.executorch_taps import taps_path
 
         traced = Path(taps_path(model))
         if not traced.is_file():
             return None, (f"no {traced.name} beside it to trace (write it with `e3dpsm convert executorch --quantize "
                           "int8 --taps`)")
+        _check_taps_program(model, traced, golden_dir, steps, threads)
         program = TAPS_PROGRAM
     elif not _has_codes(model):
         return None, "no quantised activations (nothing is rounded at run time)"
-    folder = trace_folder(golden_dir, model, sha256_file(model))
+    digest = sha256_file(model)
+    folder = trace_folder(golden_dir, model, digest)
     with atomic_dir(folder, force=True) as tmp:
         if program:
             shutil.copyfile(traced, tmp / program)
         trace = module.record(tmp / program if program else traced, golden_dir, steps, threads)
-        trace.update(model=Path(model).name, sha256=sha256_file(model), trace=module.TRACE.name, program=program)
+        trace.update(model=Path(model).name, sha256=digest, trace=module.TRACE.name, program=program)
         write_json_atomic(tmp / HOST_FILE, trace)
     return folder, f"{trace['steps']} steps of {len(trace[module.TRACE.items])} {module.TRACE.what}"
+
+
+def _check_taps_program(model: Path | str, taps: Path, golden_dir: str | os.PathLike, steps: int,
+                        threads: int) -> None:
+    """A taps program says where `model` parts only if it computes `model`'s steps: a stale one
+    (from another conversion) is refused before anything is written."""
+    from e3dpsm.errors import DataError
+    from e3dpsm.export.executorch_taps import steps_identical
+    from e3dpsm.golden.store import load_golden
+
+    golden = load_golden(golden_dir)
+    count = min(steps, golden.steps)
+    same = steps_identical(model, taps, [golden.frame(s) for s in range(count)],
+                           [golden.window_ms(s) for s in range(count)], threads)
+    if same < count:
+        raise DataError(f"{taps} does not compute {Path(model).name}'s steps (they differ from step {same}): write "
+                        "both with one `e3dpsm convert executorch --quantize int8 --taps`")
 
 
 def _has_codes(model: str | os.PathLike) -> bool:
