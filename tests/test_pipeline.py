@@ -173,7 +173,8 @@ def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeyp
     assert ran == [] and done == [{"stage": s.name, "status": "skipped", "seconds": 0.0} for s in STAGES]
     logged = [r.getMessage() for r in caplog.records]
     index = names.index("executorch") + 1
-    assert f"[{index}/{len(STAGES)}] executorch: optional, not asked for (--with executorch)" in logged
+    assert f"[{index}/{len(STAGES)}] executorch: optional, not asked for (--with executorch or --with edge)" in logged
+    assert f"[{names.index('prune') + 1}/{len(STAGES)}] prune: optional, not asked for (--with prune)" in logged
     assert f"[3/{len(STAGES)}] train: skipped, --checkpoint {TRAINED_TINY} given" in logged
     run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edge",)))
     assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]

@@ -53,7 +53,8 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
         if stage.optional and stage.name not in asked and stage.name not in (only or []):
-            log.info("%s: optional, not asked for (--with %s)", header, stage.name)
+            or_group = "".join(f" or --with {g}" for g, members in STAGE_GROUPS.items() if stage.name in members)
+            log.info("%s: optional, not asked for (--with %s%s)", header, stage.name, or_group)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
         if (only and stage.name not in only) or (marker.exists() and not only):
