@@ -222,3 +222,26 @@ def test_each_edge_stage_links_the_reports_its_command_writes() -> None:
     assert reports["litert"] == ("edge/litert/convert.json",) * 3
     assert reports["edge-check"] == ("edge/checks/summary.json", "edge/checks/summary.md", "edge/checks/summary.json")
     assert reports["profile"] == ("profile/report.json", "profile/report.md", "profile/report.json")
+
+
+@pytest.mark.slow
+def test_the_edge_stages_convert_check_and_report_the_trained_tiny(tmp_path, prepared_data) -> None:
+    """`--only edge` on a run that has its golden: the two fp32 artifacts converted by their
+    commands, both passing their golden check on their own runtimes, the index's edge section."""
+    pytest.importorskip("executorch", reason="executorch (pip extra executorch) is not installed")
+    pytest.importorskip("litert_torch", reason="litert-torch (pip extra litert) is not installed")
+    from e3dpsm.cli import main
+
+    run = tmp_path / "run"
+    assert main(["golden", "record", "--checkpoint", str(TRAINED_TINY), "--data", str(prepared_data), "--split",
+                 "test", "--steps", "20", "--out", str(run / "golden/record")]) == 0
+    done = run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY), only=["edge"])
+    assert [d["stage"] for d in done if d["status"] == "ran"] == ["executorch", "litert", "edge-check"]
+    summary = json.loads((run / "edge/checks/summary.json").read_text())
+    checks = {(c["model"].rsplit("/", 1)[-1], c["runtime"]): c for c in summary["checks"]}
+    assert summary["passed"] and set(checks) == {("step.pte", "executorch"), ("step.tflite", "litert")}
+    assert all(c["status"] == "passed" and c["profile"] == "fp32" and c["pose_max"] < 0.01 for c in checks.values())
+    index = (run / "report/index.md").read_text()
+    section = index[index.index("## Edge artifacts"):index.index("## Stages")]
+    assert "| [edge/executorch/step.pte](../edge/executorch/step.pte) |" in section
+    assert "| [edge/litert/step.tflite](../edge/litert/step.tflite) |" in section and "**passed**" in section
