@@ -179,8 +179,13 @@ def test_the_edge_stages_are_optional_and_edge_names_all_three(tmp_path, monkeyp
     run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edge",)))
     assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]
     ran.clear()
-    run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY), only=["edge"])
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger=runner.__name__):
+        run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY), only=["edge"])
     assert [argv[:2] for argv in ran] == [["convert", "executorch"], ["convert", "litert"], ["golden", "check"]]
+    logged = [r.getMessage() for r in caplog.records]
+    assert f"[1/{len(STAGES)}] synth: not in --only, left as it is" in logged
+    assert not any("done before" in line for line in logged)
     with pytest.raises(ConfigError, match=r"^unknown stages \['edges'\]; stages: synth, .* \(groups: edge: "
                                           r"executorch litert edge-check\)$"):
         run_pipeline(PipelineConfig(out=run, checkpoint=TRAINED_TINY, with_stages=("edges",)))

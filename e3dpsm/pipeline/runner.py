@@ -57,7 +57,11 @@ def run_pipeline(cfg: PipelineConfig, only: list[str] | None = None) -> list[dic
             log.info("%s: optional, not asked for (--with %s%s)", header, stage.name, or_group)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
-        if (only and stage.name not in only) or (marker.exists() and not only):
+        if only and stage.name not in only:
+            log.info("%s: not in --only, left as it is", header)
+            done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
+            continue
+        if marker.exists() and not only:
             log.info("%s: done before, skipped (%s exists)", header, stage.marker)
             done.append({"stage": stage.name, "status": "skipped", "seconds": 0.0})
             continue
