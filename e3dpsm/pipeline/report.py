@@ -7,7 +7,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from e3dpsm.pipeline.stages import EDGE_ARTIFACTS, GRAPH, STAGES
+from e3dpsm.pipeline.stages import EDGE_ARTIFACTS, EDGE_RECORDS, GRAPH, STAGES
 from e3dpsm.utils.env import report_header
 from e3dpsm.utils.io import write_json_atomic, write_text_atomic
 
@@ -77,7 +77,7 @@ def edge_section(out: Path) -> list[str]:
     golden check of both; nothing when they did not run."""
     rows = []
     for fmt, rel in EDGE_ARTIFACTS.items():
-        record = _load(out / Path(rel).parent / "convert.json")
+        record = _load(out / EDGE_RECORDS[fmt])
         if not record:
             continue
         if fmt == "executorch":

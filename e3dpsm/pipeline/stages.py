@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from e3dpsm.cli._convert_edge import ARTIFACTS as CONVERTED, REPORT_NAME as CONVERT_RECORD
 from e3dpsm.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -89,8 +90,11 @@ GRAPH = "export/step.onnx"
 INT8 = "quantize/int8/step_int8.onnx"
 FP16 = "quantize/fp16/step_fp16.onnx"
 INT8_DYNAMIC = "quantize/int8-dynamic/step_int8_dynamic.onnx"
-# The fp32 edge artifacts of the optional stages (`e3dpsm convert`, docs/edge.md).
-EDGE_ARTIFACTS = {"executorch": "edge/executorch/step.pte", "litert": "edge/litert/step.tflite"}
+# The optional edge stages convert to these formats (`e3dpsm convert`, docs/edge.md), each into
+# edge/<format>/: the artifact and its record, under the names the convert command writes.
+EDGE_FORMATS = ("executorch", "litert")
+EDGE_ARTIFACTS = {fmt: f"edge/{fmt}/{CONVERTED[fmt][0]}" for fmt in EDGE_FORMATS}
+EDGE_RECORDS = {fmt: f"edge/{fmt}/{CONVERT_RECORD}" for fmt in EDGE_FORMATS}
 # `--with edge` names the three edge stages at once.
 STAGE_GROUPS = {"edge": ("executorch", "litert", "edge-check")}
 
@@ -103,6 +107,12 @@ def expand_stage_names(names: tuple[str, ...] | list[str]) -> list[str]:
 def edge_artifacts(cfg: PipelineConfig) -> list[str]:
     """The edge artifacts the optional stages have written so far, in EDGE_ARTIFACTS' order."""
     return [_p(cfg, rel) for rel in EDGE_ARTIFACTS.values() if (cfg.out / rel).is_file()]
+
+
+def _edge_convert_stage(fmt: str) -> Stage:
+    record = EDGE_RECORDS[fmt]
+    return Stage(fmt, record, record, record, lambda c: [
+        "convert", fmt, "--checkpoint", _ckpt(c), "--out", _p(c, str(Path(record).parent)), "--force"], optional=True)
 
 
 def _edge_check_argv(cfg: PipelineConfig) -> list[str]:
@@ -219,19 +229,14 @@ STAGES: tuple[Stage, ...] = (
     # Off by default: the checkpoint as fp32 ExecuTorch and LiteRT artifacts (XNNPACK), each
     # checked against the golden rollout with its own runtime carrying the states, and
     # profiled beside the ONNX graphs (`--with edge`).
-    Stage("executorch", "edge/executorch/convert.json", "edge/executorch/convert.json",
-          "edge/executorch/convert.json", lambda c: [
-              "convert", "executorch", "--checkpoint", _ckpt(c), "--out", _p(c, "edge/executorch"), "--force"],
-          optional=True),
-    Stage("litert", "edge/litert/convert.json", "edge/litert/convert.json", "edge/litert/convert.json", lambda c: [
-        "convert", "litert", "--checkpoint", _ckpt(c), "--out", _p(c, "edge/litert"), "--force"], optional=True),
+    *(_edge_convert_stage(fmt) for fmt in EDGE_FORMATS),
     Stage("edge-check", "edge/checks/summary.json", "edge/checks/summary.md", "edge/checks/summary.json",
           _edge_check_argv, optional=True),
     Stage("profile", "profile/report.json", "profile/report.md", "profile/report.json", lambda c: [
         "profile", "--checkpoint", _ckpt(c), "--targets", "all", "--int8-model", _p(c, INT8),
         "--fp16-model", _p(c, FP16), "--data", _p(c, "prepared"), "--steps", str(c.profile_steps),
         "--threads", str(c.threads), "--out", _p(c, "profile"), "--force",
-        *(["--edge-models", *edge_artifacts(c)] if edge_artifacts(c) else [])]),
+        *(["--edge-models", *edge] if (edge := edge_artifacts(c)) else [])]),
 )
 
 
