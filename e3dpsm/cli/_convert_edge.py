@@ -9,11 +9,11 @@ from typing import Any, Callable
 
 from e3dpsm.cli._common import add_force, add_model_source
 from e3dpsm.cli._convert_int8 import add_int8_options, check_int8_args
+from e3dpsm.runtime.artifact_metadata import CONVERT_RECORD as REPORT_NAME, CONVERTED_NAMES
 
-REPORT_NAME = "convert.json"
 # format -> (artifact name, module needed to convert)
-ARTIFACTS = {"executorch": ("step.pte", "executorch"), "litert": ("step.tflite", "litert_torch"),
-             "coreml": ("step.mlpackage", "coremltools")}
+ARTIFACTS = {fmt: (CONVERTED_NAMES[fmt], module)
+             for fmt, module in (("executorch", "executorch"), ("litert", "litert_torch"), ("coreml", "coremltools"))}
 
 
 def _common(p: argparse.ArgumentParser, default_form: str) -> None:

@@ -11,8 +11,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from e3dpsm.cli._common import add_threads, positive_float, positive_int
-
-REPORT_NAME = "convert.json"
+from e3dpsm.runtime.artifact_metadata import CONVERT_RECORD as REPORT_NAME, CONVERTED_NAMES
 
 
 def add_int8_options(p: argparse.ArgumentParser) -> None:
@@ -85,7 +84,7 @@ def run_executorch_int8(args: argparse.Namespace) -> int:
         return coverage(result) + (f"; wrote {taps['file']} ({taps['taps']} taps, the same poses and states as "
                                    f"step.pte at all {taps['identical_steps']} steps checked)" if taps else "")
 
-    return _run_edge_int8(args, "executorch", "step.pte", ("executorch",),
+    return _run_edge_int8(args, "executorch", CONVERTED_NAMES["executorch"], ("executorch",),
                           lambda model, data, path, options, work: convert_executorch_int8(
                               model, data, path, options, work, program, taps=args.taps), coverage_and_taps)
 
@@ -104,7 +103,7 @@ def run_litert_int8(args: argparse.Namespace) -> int:
                    "CONV_2D / FULLY_CONNECTED / BATCH_MATMUL")
         return f"the weights of {counted} in 8 bits, float arithmetic" if weights_only else f"{counted} in 8 bits"
 
-    return _run_edge_int8(args, "litert", "step.tflite", ("litert_torch", "ai_edge_quantizer"),
+    return _run_edge_int8(args, "litert", CONVERTED_NAMES["litert"], ("litert_torch", "ai_edge_quantizer"),
                           lambda model, data, path, options, work: convert(
                               model, data, path, options, work, litert), coverage)
 

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from e3dpsm.cli._common import add_force, positive_int
+from e3dpsm.runtime.artifact_metadata import CONVERT_RECORD
 
 ENGINE_NAME = "step.engine"
 
@@ -42,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         report = report_header("convert", {k: v for k, v in vars(args).items() if k != "func"})
         report.update(format="tensorrt", file=ENGINE_NAME, **result.to_dict())
         report["path"] = str(Path(args.out) / ENGINE_NAME)
-        write_json_atomic(tmp / "convert.json", report)
+        write_json_atomic(tmp / CONVERT_RECORD, report)
     print(f"wrote {Path(args.out) / ENGINE_NAME} ({precision}, {report['bytes'] / 1e6:.2f} MB, "
           f"{report['seconds']['total']:.0f} s) and its sidecar {ENGINE_NAME}.json")
     return 0

@@ -9,8 +9,7 @@ import argparse
 from pathlib import Path
 
 from e3dpsm.cli._common import add_force, positive_int
-
-REPORT_NAME = "convert.json"
+from e3dpsm.runtime.artifact_metadata import CONVERT_RECORD as REPORT_NAME
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from e3dpsm.cli._convert_edge import ARTIFACTS as CONVERTED, REPORT_NAME as CONVERT_RECORD
 from e3dpsm.errors import ConfigError
+from e3dpsm.runtime.artifact_metadata import CONVERT_RECORD, CONVERTED_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ INT8_DYNAMIC = "quantize/int8-dynamic/step_int8_dynamic.onnx"
 # The optional edge stages convert to these formats (`e3dpsm convert`, docs/edge.md), each into
 # edge/<format>/: the artifact and its record, under the names the convert command writes.
 EDGE_FORMATS = ("executorch", "litert")
-EDGE_ARTIFACTS = {fmt: f"edge/{fmt}/{CONVERTED[fmt][0]}" for fmt in EDGE_FORMATS}
+EDGE_ARTIFACTS = {fmt: f"edge/{fmt}/{CONVERTED_NAMES[fmt]}" for fmt in EDGE_FORMATS}
 EDGE_RECORDS = {fmt: f"edge/{fmt}/{CONVERT_RECORD}" for fmt in EDGE_FORMATS}
 # `--with edge` names the three edge stages at once.
 STAGE_GROUPS = {"edge": ("executorch", "litert", "edge-check")}

@@ -25,6 +25,9 @@ EMBEDDED_NAME = "e3dpsm"  # TFLite metadata buffer name
 PTE_METHOD = "e3dpsm_metadata"  # ExecuTorch constant method
 TAPS_METHOD = "e3dpsm_taps"  # an INT8 .pte's taps program: its taps (export/executorch_taps.py)
 SIDECAR_SUFFIX = ".json"
+# What `e3dpsm convert FORMAT --out DIR` writes in DIR: the artifact under this name, and its record.
+CONVERTED_NAMES = {"executorch": "step.pte", "litert": "step.tflite", "coreml": "step.mlpackage"}
+CONVERT_RECORD = "convert.json"
 
 
 def encode(meta: GraphMetadata, artifact: Mapping[str, Any]) -> str:
